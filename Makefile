@@ -1,0 +1,39 @@
+# DriveTrack Release: every target creates or reuses the virtual environment .venv itself.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | sha256sum | cut -c1-12)
+export PREFECT_HOME ?= $(CURDIR)/.prefect
+export DO_NOT_TRACK := 1
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export DASK_LOGGING__DISTRIBUTED := warning
+
+.PHONY: help venv test bench release serve demo clean
+
+help:
+	@echo "make test                      run the test suite (creates .venv)"
+	@echo "make release VERSION=x.y.z     build and publish a release on embedded defaults"
+	@echo "        [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training]"
+	@echo "make serve                     serve the scheduled regeneration deployment"
+	@echo "make bench                     run the benchmarks (results in docs/benchmarks.md)"
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# torch==2.13.0 is the CPU wheel on the machine's disk (no GPU here); the GPU queue runs it.
+	$(PY) -m pip install -q torch==2.13.0 || $(PY) -m pip install -q "torch>=2.3,<2.15"
+	$(PY) -m pip install -q -e ".[test,torch]"
+	@rm -f $(VENV)/.installed-*
+	@touch $(STAMP)
+
+venv: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q -p no:cacheprovider
+
+bench: $(STAMP)
+	$(PY) -m bench.run
+
+clean:
+	rm -rf $(VENV) .pytest_cache

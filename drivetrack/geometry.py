@@ -1,0 +1,207 @@
+"""Rigid transforms, boxes and the Waymo camera model, vectorised in numpy.
+
+Conventions, stated once for the whole project:
+
+- A 4x4 rigid transform is named ``<dst>_from_<src>`` and maps homogeneous points of frame ``src``
+  to frame ``dst``; compose so inner frames cancel:
+  ``camera_from_world = camera_from_vehicle @ vehicle_from_world``.
+- Frames: vehicle and Waymo camera are x forward, y left, z up, metres.
+- Pixels: ``(x, y)`` = (column, row) in pixels; pixel ``i`` covers ``[i, i + 1)``, so the centre
+  of the top-left pixel is ``(0.5, 0.5)``. Waymo's intrinsic ``c_u, c_v`` use this convention.
+- Functions take ``[..., N, 3]`` points and ``[..., 4, 4]`` transforms and broadcast over the
+  leading dimensions; empty inputs give empty outputs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "transform_points", "invert_rigid", "matrix_from_flat", "rotation_z", "rotation_from_rpy",
+    "rigid_from_rotation_translation", "box_from_center_heading", "points_in_box_mask",
+    "CameraModel", "MAX_TRUSTED_DISTORTION", "MIN_TRUSTED_DISTORTION",
+]
+
+#: Waymo treats a radial distortion factor outside this range as untrusted (the point lies where
+#: the polynomial is no longer monotonic; its projection may be meaningless).
+MIN_TRUSTED_DISTORTION = 0.8
+MAX_TRUSTED_DISTORTION = 1.2
+
+
+def matrix_from_flat(flat: np.ndarray) -> np.ndarray:
+    """``float64 [..., 4, 4]`` from Waymo's row-major ``[..., 16]`` transform columns."""
+    flat = np.asarray(flat, dtype=np.float64)
+    if flat.shape[-1:] != (16,):
+        raise ValueError(f"a flat transform has 16 values, got shape {flat.shape}")
+    return flat.reshape(flat.shape[:-1] + (4, 4))
+
+
+def transform_points(dst_from_src: np.ndarray, points_src: np.ndarray) -> np.ndarray:
+    """Apply rigid transforms to points.
+
+    Args:
+        dst_from_src: float [..., 4, 4].
+        points_src: float [..., N, 3], metres, in frame ``src``.
+    Returns:
+        float64 [..., N, 3] in frame ``dst`` (leading dimensions broadcast).
+    """
+    dst_from_src = np.asarray(dst_from_src, dtype=np.float64)
+    points_src = np.asarray(points_src, dtype=np.float64)
+    if dst_from_src.shape[-2:] != (4, 4):
+        raise ValueError(f"transform must be [..., 4, 4], got {dst_from_src.shape}")
+    if points_src.shape[-1:] != (3,):
+        raise ValueError(f"points must be [..., N, 3], got {points_src.shape}")
+    rotation = dst_from_src[..., :3, :3]
+    translation = dst_from_src[..., None, :3, 3]
+    return np.einsum("...ij,...nj->...ni", rotation, points_src) + translation
+
+
+def invert_rigid(dst_from_src: np.ndarray) -> np.ndarray:
+    """``src_from_dst`` for rigid ``dst_from_src`` float [..., 4, 4] (exact, no general inverse)."""
+    dst_from_src = np.asarray(dst_from_src, dtype=np.float64)
+    rotation_t = np.swapaxes(dst_from_src[..., :3, :3], -1, -2)
+    out = np.zeros_like(dst_from_src)
+    out[..., :3, :3] = rotation_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rotation_t, dst_from_src[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def rotation_z(yaw: np.ndarray) -> np.ndarray:
+    """float64 [..., 3, 3] rotation by ``yaw`` radians about +z (counter-clockwise seen from above)."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    zeros, ones = np.zeros_like(yaw), np.ones_like(yaw)
+    return np.stack([np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1),
+                     np.stack([zeros, zeros, ones], -1)], -2)
+
+
+def rotation_from_rpy(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """float64 [..., 3, 3] = Rz(yaw) @ Ry(pitch) @ Rx(roll), angles in radians (Waymo's order)."""
+    roll, pitch, yaw = (np.asarray(a, dtype=np.float64) for a in (roll, pitch, yaw))
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    return np.stack([
+        np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+        np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+        np.stack([-sp, cp * sr, cp * cr], -1),
+    ], -2)
+
+
+def rigid_from_rotation_translation(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """float64 [..., 4, 4] from rotation [..., 3, 3] and translation [..., 3]."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    translation = np.asarray(translation, dtype=np.float64)
+    shape = np.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    out = np.zeros(shape + (4, 4))
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def box_from_center_heading(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """``parent_from_box`` float64 [..., 4, 4] of a Waymo box.
+
+    Args:
+        center: float [..., 3], box centre in the parent frame (for ``lidar_box``: the vehicle
+            frame of the box's own frame), metres.
+        heading: float [...], yaw about +z, radians. The box frame has x along the heading
+            (length, ``size.x``), y to its left (width, ``size.y``), z up (height, ``size.z``).
+    """
+    return rigid_from_rotation_translation(rotation_z(heading), center)
+
+
+def points_in_box_mask(points_box: np.ndarray, size: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """bool [..., N]: points (box frame, float [..., N, 3]) inside a box of ``size`` [..., 3].
+
+    ``margin`` (metres) grows the box on every side when positive and shrinks it when negative.
+    """
+    half = np.asarray(size, dtype=np.float64)[..., None, :] / 2.0 + margin
+    return np.all(np.abs(points_box) <= half, axis=-1)
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A Waymo camera: pinhole with Brown-Conrady distortion (k1, k2, k3 radial, p1, p2 tangential).
+
+    ``vehicle_from_camera`` is ``camera_calibration.extrinsic`` (float64 [4, 4]); the camera frame
+    is Waymo's (x along the optical axis, y left, z up). Intrinsics are in pixels.
+    """
+    f_u: float
+    f_v: float
+    c_u: float
+    c_v: float
+    k1: float
+    k2: float
+    p1: float
+    p2: float
+    k3: float
+    width: int
+    height: int
+    vehicle_from_camera: np.ndarray
+    rolling_shutter_direction: int = 0
+
+    @property
+    def camera_from_vehicle(self) -> np.ndarray:
+        return invert_rigid(self.vehicle_from_camera)
+
+    def _distort(self, u: np.ndarray, v: np.ndarray):
+        r2 = u * u + v * v
+        d = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        u_d = u * d + 2.0 * self.p1 * u * v + self.p2 * (r2 + 2.0 * u * u)
+        v_d = v * d + self.p1 * (r2 + 2.0 * v * v) + 2.0 * self.p2 * u * v
+        return u_d, v_d, d
+
+    def pixels_from_camera(self, points_camera: np.ndarray):
+        """Project camera-frame points to distorted pixels.
+
+        Args:
+            points_camera: float [..., N, 3], metres, Waymo camera frame.
+        Returns:
+            ``(pixels, valid)``: float64 [..., N, 2] pixel (x, y) and bool [..., N], true where the
+            point is in front of the camera (x > 0) and its distortion factor is trusted.
+            Pixels of invalid points are NaN. Inside-the-image is *not* part of ``valid``: see
+            :meth:`inside_image`.
+        """
+        points_camera = np.asarray(points_camera, dtype=np.float64)
+        x = points_camera[..., 0]
+        in_front = x > 1e-6
+        safe_x = np.where(in_front, x, 1.0)
+        u = -points_camera[..., 1] / safe_x
+        v = -points_camera[..., 2] / safe_x
+        u_d, v_d, d = self._distort(u, v)
+        valid = in_front & (d >= MIN_TRUSTED_DISTORTION) & (d <= MAX_TRUSTED_DISTORTION)
+        pixels = np.stack([self.f_u * u_d + self.c_u, self.f_v * v_d + self.c_v], axis=-1)
+        pixels[~valid] = np.nan
+        return pixels, valid
+
+    def pixels_from_vehicle(self, points_vehicle: np.ndarray):
+        """:meth:`pixels_from_camera` of vehicle-frame points float [..., N, 3]."""
+        return self.pixels_from_camera(transform_points(self.camera_from_vehicle, points_vehicle))
+
+    def inside_image(self, pixels: np.ndarray) -> np.ndarray:
+        """bool [..., N]: pixel (x, y) float [..., N, 2] lies in [0, width) x [0, height)."""
+        with np.errstate(invalid="ignore"):
+            return ((pixels[..., 0] >= 0) & (pixels[..., 0] < self.width)
+                    & (pixels[..., 1] >= 0) & (pixels[..., 1] < self.height))
+
+    def rays_from_pixels(self, pixels: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """Unit viewing rays (camera frame, float64 [..., N, 3]) of distorted pixels [..., N, 2].
+
+        Inverts the distortion by fixed-point iteration (converges for the trusted range of
+        Waymo-like calibrations; residuals below 1e-9 normalised units after 20 iterations).
+        """
+        pixels = np.asarray(pixels, dtype=np.float64)
+        u_d = (pixels[..., 0] - self.c_u) / self.f_u
+        v_d = (pixels[..., 1] - self.c_v) / self.f_v
+        u, v = u_d.copy(), v_d.copy()
+        for _ in range(iterations):
+            r2 = u * u + v * v
+            d = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+            du = 2.0 * self.p1 * u * v + self.p2 * (r2 + 2.0 * u * u)
+            dv = self.p1 * (r2 + 2.0 * v * v) + 2.0 * self.p2 * u * v
+            u = (u_d - du) / d
+            v = (v_d - dv) / d
+        rays = np.stack([np.ones_like(u), -u, -v], axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)

@@ -1,0 +1,151 @@
+"""The in-memory scene: one segment's frames, poses, calibrations, LiDAR returns and boxes.
+
+This is the contract between ingestion (``drivetrack.waymo``, which builds a :class:`Scene` from
+parquet) and every later stage (depth, tracks, evaluation), which never touch column names.
+Everything is columnar numpy so that a segment is loaded once and shared read-only by all the
+object jobs of that segment.
+
+Frame index ``t`` (0..T-1) orders frames by ``timestamps_micros``. Units: metres, radians,
+seconds, pixels as in :mod:`drivetrack.geometry`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivetrack.geometry import CameraModel
+
+__all__ = ["LidarReturns", "Boxes", "CameraFrames", "Scene"]
+
+
+@dataclass
+class LidarReturns:
+    """Every valid LiDAR return of a segment, all lasers and returns, concatenated over frames.
+
+    Attributes (M = number of returns):
+        points_vehicle: float64 [M, 3], metres, in the vehicle frame *of the return's frame*
+            (for TOP, already corrected with the per-pixel pose for motion during the sweep).
+        frame: int32 [M], frame index t.
+        laser: int8 [M], ``LaserName`` value.
+        return_index: int8 [M], 1 or 2.
+        row, col: int32 [M], pixel of the return in its range image.
+        intensity: float32 [M].
+        frame_offsets: int64 [T + 1]; returns of frame t are ``[frame_offsets[t], frame_offsets[t+1])``
+            (rows are sorted by frame).
+    """
+    points_vehicle: np.ndarray
+    frame: np.ndarray
+    laser: np.ndarray
+    return_index: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+    intensity: np.ndarray
+    frame_offsets: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.points_vehicle.shape[0])
+
+    def of_frame(self, t: int) -> slice:
+        """The slice of rows belonging to frame ``t``."""
+        return slice(int(self.frame_offsets[t]), int(self.frame_offsets[t + 1]))
+
+
+@dataclass
+class Boxes:
+    """3D box labels (``lidar_box``), one row per (object, frame); K rows.
+
+    Attributes:
+        object_id: object [K] of str, ``key.laser_object_id``.
+        frame: int32 [K], frame index t.
+        center: float64 [K, 3], metres, vehicle frame of frame t.
+        size: float64 [K, 3], metres (length along heading, width, height).
+        heading: float64 [K], radians, yaw about +z in the vehicle frame.
+        type: int8 [K], ``BoxType`` value.
+        speed: float64 [K, 3], m/s, box velocity (NaN where the source has none).
+        num_lidar_points_in_box: int64 [K] (-1 where unknown).
+    """
+    object_id: np.ndarray
+    frame: np.ndarray
+    center: np.ndarray
+    size: np.ndarray
+    heading: np.ndarray
+    type: np.ndarray
+    speed: np.ndarray
+    num_lidar_points_in_box: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.frame.shape[0])
+
+    def select(self, mask: np.ndarray) -> "Boxes":
+        """Rows where ``mask`` (bool [K] or int index) holds."""
+        return Boxes(**{k: v[mask] for k, v in self.__dict__.items()})
+
+    def object_ids(self) -> list[str]:
+        """Distinct object ids, sorted."""
+        return sorted(set(self.object_id.tolist()))
+
+
+@dataclass
+class CameraFrames:
+    """One camera's images and per-frame metadata over a segment.
+
+    Attributes:
+        model: calibration.
+        jpeg: list [T] of bytes (``camera_image.image``), decoded on demand; None where missing.
+        world_from_vehicle: float64 [T, 4, 4], ``camera_image.pose`` (vehicle pose at the image's
+            ``pose_timestamp``), NaN where missing.
+        pose_timestamp: float64 [T], seconds.
+        velocity: float64 [T, 6], (vx, vy, vz) m/s and (wx, wy, wz) rad/s of the vehicle, in the
+            world frame as Waymo stores it.
+        shutter, trigger_time, readout_done_time: float64 [T], rolling-shutter parameters
+            (seconds; ``shutter`` is the exposure duration).
+    """
+    model: CameraModel
+    jpeg: list
+    world_from_vehicle: np.ndarray
+    pose_timestamp: np.ndarray
+    velocity: np.ndarray
+    shutter: np.ndarray
+    trigger_time: np.ndarray
+    readout_done_time: np.ndarray
+
+    def image(self, t: int) -> np.ndarray:
+        """uint8 [H, W, 3] RGB image of frame ``t``."""
+        import cv2
+
+        data = self.jpeg[t]
+        if data is None:
+            raise ValueError(f"camera {self.model!r} has no image at frame {t}")
+        bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"frame {t}: the camera image is not a decodable JPEG")
+        return bgr[..., ::-1].copy()
+
+
+@dataclass
+class Scene:
+    """One segment, ready for annotation.
+
+    Attributes:
+        segment: ``key.segment_context_name``.
+        split: ``training`` / ``validation`` / ``testing``.
+        timestamps_micros: int64 [T], frame timestamps, strictly increasing.
+        world_from_vehicle: float64 [T, 4, 4], ``vehicle_pose`` of each frame.
+        cameras: camera name (``CameraName`` value) -> :class:`CameraFrames`.
+        lidar: every valid return, see :class:`LidarReturns`.
+        boxes: ``lidar_box`` labels, see :class:`Boxes`.
+        source_files: component -> URL of the parquet file it came from (for provenance).
+    """
+    segment: str
+    split: str
+    timestamps_micros: np.ndarray
+    world_from_vehicle: np.ndarray
+    cameras: dict[int, CameraFrames]
+    lidar: LidarReturns
+    boxes: Boxes
+    source_files: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.timestamps_micros.shape[0])
