@@ -33,6 +33,9 @@ class LidarReturns:
         intensity: float32 [M].
         frame_offsets: int64 [T + 1]; returns of frame t are ``[frame_offsets[t], frame_offsets[t+1])``
             (rows are sorted by frame).
+        camera_projection: optional int16 [M, 6], ``lidar_camera_projection`` at the return's
+            pixel: [cam1, x1, y1, cam2, x2, y2] (camera 0 = none, -1 = no projection row);
+            None unless requested from the reader.
     """
     points_vehicle: np.ndarray
     frame: np.ndarray
@@ -42,6 +45,7 @@ class LidarReturns:
     col: np.ndarray
     intensity: np.ndarray
     frame_offsets: np.ndarray
+    camera_projection: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points_vehicle.shape[0])
@@ -96,8 +100,9 @@ class CameraFrames:
         world_from_vehicle: float64 [T, 4, 4], ``camera_image.pose`` (vehicle pose at the image's
             ``pose_timestamp``), NaN where missing.
         pose_timestamp: float64 [T], seconds.
-        velocity: float64 [T, 6], (vx, vy, vz) m/s and (wx, wy, wz) rad/s of the vehicle, in the
-            world frame as Waymo stores it.
+        velocity: float64 [T, 6], (vx, vy, vz) m/s of the vehicle in the world frame and
+            (wx, wy, wz) rad/s its angular velocity in the vehicle frame (the official camera
+            model, ``camera_model.cc``, rotates w by the pose into the world frame).
         shutter, trigger_time, readout_done_time: float64 [T], rolling-shutter parameters
             (seconds; ``shutter`` is the exposure duration).
     """
