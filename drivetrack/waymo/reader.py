@@ -178,8 +178,24 @@ class _ComponentFile:
         try:
             return self.parquet.read(columns=columns)
         except (pa.ArrowException, OSError) as exc:
-            raise self.error("truncated or corrupt parquet file", column=columns,
-                             expected="readable column chunks", found=str(exc)) from None
+            raise self._read_error(exc, columns) from None
+
+    def _read_error(self, exc: Exception, columns: list[str]) -> WaymoFormatError:
+        """Name the failing column where possible (pyarrow reads them all at once)."""
+        if "Expected all lists to be of size" in str(exc):
+            # apache/arrow#35692: pyarrow < 23 cannot read null rows of a fixed_size_list column.
+            for name in columns:
+                if pa.types.is_fixed_size_list(self.schema.field(name).type):
+                    try:
+                        self.parquet.read(columns=[name])
+                    except pa.ArrowException:
+                        return self.error(
+                            "null rows in a fixed_size_list column (this pyarrow cannot read "
+                            "them, apache/arrow#35692)", column=name,
+                            expected=str(self.comp.by_name[name].type) + " without null rows",
+                            found=str(exc))
+        return self.error("truncated or corrupt parquet file", column=columns,
+                          expected="readable column chunks", found=str(exc))
 
     def _filter(self, data):
         mask = pc.fill_null(pc.equal(data[KEY_SEGMENT], self.segment), False)
@@ -203,8 +219,7 @@ class _ComponentFile:
                     self.check_content(table)
                     yield table
         except (pa.ArrowException, OSError) as exc:
-            raise self.error("truncated or corrupt parquet file", column=columns,
-                             expected="readable column chunks", found=str(exc)) from None
+            raise self._read_error(exc, columns) from None
 
     def read(self, columns: list[str]) -> pa.Table:
         table = self._filter(self._read(columns))
