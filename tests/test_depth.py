@@ -1,0 +1,231 @@
+"""Depth stage: sparse projection, CPU completers and the max-of-4 look-up, on known values."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from drivetrack.depth import (get_completer, lookup_max4, sparse_depth_from_points)
+from drivetrack.depth.analytic import default_scene, exact_depth, front_camera, lidar_points
+from drivetrack.geometry import CameraModel, rigid_from_rotation_translation
+
+CPU_COMPLETERS = ["nearest", "ipbasic"]
+
+
+def make_camera(width=40, height=30, k1=0.0, f=20.0) -> CameraModel:
+    """Camera at the vehicle origin looking along +x (Waymo camera frame = vehicle frame)."""
+    return CameraModel(f_u=f, f_v=f, c_u=width / 2, c_v=height / 2, k1=k1, k2=0.0, p1=0.0,
+                       p2=0.0, k3=0.0, width=width, height=height,
+                       vehicle_from_camera=np.eye(4))
+
+
+def point_at_pixel(camera, x, y, depth):
+    """Vehicle-frame point (no distortion camera at the origin) that projects to pixel (x, y)."""
+    return [depth, -(x - camera.c_u) / camera.f_u * depth, -(y - camera.c_v) / camera.f_v * depth]
+
+
+# ---------------------------------------------------------------- sparse_depth_from_points
+
+def test_sparse_min_depth_wins_and_pixel_convention():
+    camera = make_camera()
+    points = np.array([point_at_pixel(camera, 5.5, 7.5, 10.0),
+                       point_at_pixel(camera, 5.9, 7.1, 4.0),    # same pixel, nearer: wins
+                       point_at_pixel(camera, 5.2, 7.8, 12.0),
+                       point_at_pixel(camera, 30.01, 2.99, 3.0)])  # pixel (30, 2)
+    sparse = sparse_depth_from_points(points, camera)
+    assert sparse.dtype == np.float32 and sparse.shape == (30, 40)
+    assert sparse[7, 5] == pytest.approx(4.0)
+    assert sparse[2, 30] == pytest.approx(3.0)
+    assert np.count_nonzero(sparse) == 2
+
+
+def test_sparse_z_depth_is_camera_x_not_range():
+    camera = CameraModel(**{**make_camera().__dict__,
+                            "vehicle_from_camera": rigid_from_rotation_translation(
+                                np.eye(3), np.array([1.5, 0.0, 2.0]))})
+    # 10 m ahead of the camera, 3 m to its left: z-depth 10, range sqrt(109)
+    sparse = sparse_depth_from_points(np.array([[11.5, 3.0, 2.0]]), camera)
+    assert sparse[np.nonzero(sparse)] == pytest.approx([10.0])
+
+
+def test_sparse_ignores_points_behind_outside_and_nan():
+    camera = make_camera()
+    points = np.array([[-5.0, 0.0, 0.0],                       # behind the camera
+                       [5.0, 100.0, 0.0],                      # far outside the image
+                       [np.nan, 0.0, 0.0], [5.0, np.nan, 0.0],
+                       point_at_pixel(camera, 39.999, 29.999, 2.0),  # last pixel, inside
+                       point_at_pixel(camera, 40.0, 10.0, 2.0)])     # x = width: outside
+    sparse = sparse_depth_from_points(points, camera)
+    assert np.count_nonzero(sparse) == 1 and sparse[29, 39] == pytest.approx(2.0)
+
+
+def test_sparse_uses_distortion():
+    plain, barrel = make_camera(), make_camera(k1=0.05)
+    point = np.array([point_at_pixel(plain, 35.5, 25.5, 5.0)])  # u = -0.775, v = -0.525
+    assert sparse_depth_from_points(point, plain)[25, 35] == pytest.approx(5.0)
+    pixels, valid = barrel.pixels_from_vehicle(point)
+    expected_col, expected_row = np.floor(pixels[0]).astype(int)
+    assert valid[0] and (expected_col, expected_row) != (35, 25)
+    sparse = sparse_depth_from_points(point, barrel)
+    assert sparse[expected_row, expected_col] == pytest.approx(5.0)
+    assert np.count_nonzero(sparse) == 1
+
+
+def test_sparse_empty_and_bad_input():
+    camera = make_camera()
+    empty = sparse_depth_from_points(np.zeros((0, 3)), camera)
+    assert empty.shape == (30, 40) and not empty.any()
+    with pytest.raises(ValueError, match=r"expected float \[M, 3\], found shape \(4, 2\)"):
+        sparse_depth_from_points(np.zeros((4, 2)), camera)
+    with pytest.raises(TypeError, match="found int64"):
+        sparse_depth_from_points(np.zeros((4, 3), dtype=np.int64), camera)
+
+
+# ---------------------------------------------------------------- completers (CPU)
+
+def test_nearest_single_return_fills_its_reach_disc():
+    sparse = np.zeros((41, 41), np.float32)
+    sparse[20, 20] = 7.5
+    dense = get_completer("nearest", max_reach_px=10)(sparse)
+    rows, cols = np.mgrid[0:41, 0:41]
+    distance = np.hypot(rows - 20, cols - 20)
+    assert np.all(dense[distance <= 9.9] == np.float32(7.5))
+    assert np.all(dense[distance > 10.5] == 0)  # beyond reach: unknown, not extrapolated
+    assert dense.dtype == np.float32
+
+
+def test_nearest_two_returns_split_at_bisector():
+    sparse = np.zeros((20, 40), np.float32)
+    sparse[10, 10] = 5.0
+    sparse[10, 29] = 30.0  # bisector between columns 19 and 20
+    dense = get_completer("nearest", max_reach_px=math.inf)(sparse)
+    assert np.all(dense[:, :20] == 5.0) and np.all(dense[:, 20:] == 30.0)
+
+
+def test_nearest_default_reach_scales_with_width_and_sky_stays_zero():
+    width = 960  # default reach 10 px
+    sparse = np.zeros((200, width), np.float32)
+    sparse[150:, ::4] = 12.0  # returns only in the lower part; "sky" above
+    dense = get_completer("nearest")(sparse)
+    assert np.all(dense[141:] == 12.0)
+    assert not dense[:139].any()
+
+
+@pytest.mark.parametrize("name", CPU_COMPLETERS)
+def test_batches_and_empty_input(name):
+    completer = get_completer(name)
+    assert completer.name == name
+    rng = np.random.default_rng(0)
+    batch = np.where(rng.random((3, 24, 32)) < 0.1, rng.uniform(2, 50, (3, 24, 32)), 0).astype(np.float32)
+    batch[1] = 0.0  # a frame without returns
+    dense = completer(batch)
+    assert dense.shape == batch.shape and dense.dtype == np.float32
+    assert not dense[1].any()
+    np.testing.assert_array_equal(dense[2], completer(batch[2]))
+    assert not completer(np.zeros((0, 24, 32), np.float32)).size
+
+
+@pytest.mark.parametrize("name", CPU_COMPLETERS)
+def test_completer_input_errors(name):
+    completer = get_completer(name)
+    with pytest.raises(TypeError, match="expected dtype float32.*found float64"):
+        completer(np.zeros((4, 4)))
+    with pytest.raises(ValueError, match=r"found shape \(2, 3, 4, 5\)"):
+        completer(np.zeros((2, 3, 4, 5), np.float32))
+    bad = np.zeros((4, 4), np.float32)
+    bad[1, 1] = -3.0
+    with pytest.raises(ValueError, match="finite depths >= 0.*-3.0"):
+        completer(bad)
+    with pytest.raises(ValueError, match="max_reach_px"):
+        get_completer(name, max_reach_px=0)
+
+
+def test_ipbasic_fills_holes_and_keeps_returns_near_their_values():
+    # a tilted plane with returns on every 4th row and 3rd column (holes in between)
+    rows, cols = np.mgrid[0:60, 0:80]
+    truth = (10.0 + 0.1 * rows + 0.05 * cols).astype(np.float32)
+    sparse = np.where((rows % 4 == 0) & (cols % 3 == 0), truth, 0).astype(np.float32)
+    dense = get_completer("ipbasic", max_reach_px=6)(sparse)
+    inner = (slice(4, 56), slice(4, 76))
+    assert np.all(dense[inner] > 0)  # every hole filled
+    known = sparse > 0
+    assert np.max(np.abs(dense[known] - sparse[known]) / sparse[known]) < 0.05
+    assert np.max(np.abs(dense[inner] - truth[inner]) / truth[inner]) < 0.05
+    # beyond reach stays unknown, unless extending to the top is asked for
+    lower = sparse.copy()
+    lower[:40] = 0
+    assert not get_completer("ipbasic", max_reach_px=5)(lower)[:30].any()
+    assert get_completer("ipbasic", max_reach_px=5, extend_to_top=True)(lower)[:30].all()
+
+
+def test_ipbasic_prefers_the_nearer_surface():
+    sparse = np.zeros((30, 30), np.float32)
+    sparse[::2, ::2] = 40.0        # background
+    sparse[10:20:2, 10:20:2] = 8.0  # a near object with a leaked background return inside it
+    sparse[14, 14] = 40.0
+    dense = get_completer("ipbasic", max_reach_px=6)(sparse)
+    assert dense[14, 14] == pytest.approx(8.0, rel=0.05)
+
+
+def test_completers_on_analytic_scene_against_exact_depth():
+    camera = front_camera(width=240, height=160)
+    scene = default_scene()
+    truth = exact_depth(scene, camera)
+    sparse = sparse_depth_from_points(lidar_points(scene, beams=64, azimuths=1000), camera)
+    assert 0.01 < np.mean(sparse > 0) < 0.2
+    evaluable = (truth > 0) & (truth < 60)
+    for name, min_within in (("nearest", 0.9), ("ipbasic", 0.85)):
+        dense = get_completer(name, max_reach_px=6)(sparse)
+        filled = evaluable & (dense > 0)
+        assert filled.sum() > 0.8 * evaluable.sum(), name
+        within = np.abs(dense[filled] - truth[filled]) < 0.05 * truth[filled]
+        print(name, within.mean(), filled.sum() / evaluable.sum())
+        assert within.mean() > min_within, (name, within.mean())
+
+
+# ---------------------------------------------------------------- lookup_max4
+
+def test_lookup_known_values_centres_edges_corners():
+    depth = np.array([[1, 2, 3],
+                      [4, 0, 6],
+                      [7, 8, 9]], np.float32)
+    pixels = np.array([
+        [0.5, 0.5],   # centre of (0, 0): itself
+        [1.5, 1.5],   # centre of an unknown pixel: unknown
+        [1.0, 1.0],   # corner between (0,0), (1,0), (0,1), (1,1): max(1, 2, 4, 0)
+        [2.0, 2.0],   # max(0, 6, 8, 9)
+        [1.0, 0.5],   # between centres of (0,0) and (1,0) on a centre row: max(1, 2)
+        [0.2, 0.2],   # inside the border, outer neighbours outside: only (0,0)
+        [2.9, 2.9],   # only (2,2)
+        [1.5, 1.2],   # between rows 0 and 1 in column 1: max(2, 0)
+        [-0.1, 1.0], [3.0, 1.0], [1.0, 3.0], [np.nan, 1.0],  # outside / NaN
+    ])
+    expected = [1, 0, 4, 9, 2, 1, 9, 2, 0, 0, 0, 0]
+    result = lookup_max4(depth, pixels)
+    assert result.dtype == np.float32
+    np.testing.assert_array_equal(result, np.array(expected, np.float32))
+
+
+def test_lookup_shapes_and_batch():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(1, 10, (2, 5, 6)).astype(np.float32)
+    pixels = rng.uniform(0, 5, (2, 7, 3, 2))
+    batched = lookup_max4(depth, pixels)
+    assert batched.shape == (2, 7, 3)
+    np.testing.assert_array_equal(batched[1], lookup_max4(depth[1], pixels[1]))
+    assert lookup_max4(depth[0], np.zeros((0, 2))).shape == (0,)
+    # never below the bilinear interpolation of the same four pixels
+    x, y = pixels[0, :, 0, 0], pixels[0, :, 0, 1]
+    x0 = np.clip(np.floor(x - 0.5), 0, 5).astype(int)
+    y0 = np.clip(np.floor(y - 0.5), 0, 4).astype(int)
+    assert np.all(lookup_max4(depth[0], pixels[0, :, 0]) >= depth[0][y0, x0])
+
+
+def test_lookup_errors():
+    with pytest.raises(ValueError, match=r"expected float \[\.\.\., 2\].*found shape \(4, 3\)"):
+        lookup_max4(np.zeros((3, 3), np.float32), np.zeros((4, 3)))
+    with pytest.raises(ValueError, match=r"expected float32 \[H, W\] or \[B, H, W\], found shape \(3,\)"):
+        lookup_max4(np.zeros(3, np.float32), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"batch of 2 depth maps expected shape \[2, \.\.\., 2\]"):
+        lookup_max4(np.zeros((2, 3, 3), np.float32), np.zeros((3, 4, 2)))
