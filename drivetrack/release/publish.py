@@ -1,0 +1,554 @@
+"""Transactional publish of a release.
+
+Store layout for dataset ``D`` (all paths relative to the store root)::
+
+    D/{version}/...            the release: data files, README.md, croissant.json, SHA256SUMS, manifest.json
+    D/versions.json            index of published versions (updated by compare-and-swap)
+    D/latest.json              pointer to the highest published release (compare-and-swap)
+    D/_txn/{version}.json      claim of a publish in progress (created exclusively; removed at the end)
+    D/_staging/{version}/...   staged files of a publish in progress
+
+A publish (write-audit-publish):
+
+0. checks the version string and the gate report, before anything is written
+   (:class:`GatesFailedError` if the gates failed and no reason to accept was given);
+1. refuses a version that already has a manifest (:class:`VersionExistsError`);
+2. claims the version by creating ``_txn/{version}.json`` exclusively: of two publishes of one
+   version, exactly one gets the claim, the other fails with :class:`ConcurrentPublishError`;
+3. uploads and hashes every file concurrently into ``_staging/{version}/`` (streamed in 8 MiB
+   chunks), then re-reads every staged object and checks size and sha256;
+4. writes README.md, croissant.json and SHA256SUMS into staging, moves everything into
+   ``{version}/`` (rename locally, server-side copy on S3) and checks sizes;
+5. commits by creating ``{version}/manifest.json`` exclusively (a version exists exactly when its
+   manifest exists; before that, readers see no version);
+6. adds the version to ``versions.json`` and moves ``latest.json`` with compare-and-swap on their
+   previous value, then removes the claim and the staging prefix.
+
+A failure between 2 and 5 raises :class:`PublishInterruptedError`; nothing is visible. Run the
+same publish with ``resume=True`` (reuses staged files whose sha256 matches) or ``gc`` to clean.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import random
+import socket
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Callable
+
+import fsspec
+
+from drivetrack.release import cards as _cards
+from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GatesFailedError,
+                                       InvalidSourceError, PublishConflictError, PublishInterruptedError,
+                                       ReleaseError, StagingCheckError, VersionExistsError)
+from drivetrack.release.manifest import (CARD_NAME, CROISSANT_NAME, MANIFEST_FORMAT, MANIFEST_NAME,
+                                         RESERVED_NAMES, SUMS_NAME, FileEntry, SemVer, check_dataset,
+                                         check_release_path, check_version, code_version,
+                                         counts_from_files, dump_manifest, read_run_json,
+                                         render_sha256sums, seal_manifest, sha256_bytes, sha256_stream,
+                                         splits_from_paths, statistics_from_parquet)
+from drivetrack.release.store import Store, iter_chunks, open_store
+
+DEFAULT_DATASET = "drivetrack-waymo"
+DEFAULT_WORKERS = 8
+NPZ_SAMPLE = 64
+"""How many .npz files per layout are opened to describe their arrays in croissant.json."""
+
+Progress = Callable[[str, dict], None]
+"""``progress(event, info)``: events ``uploaded`` (per file), ``staged``, ``checked``, ``promoted``,
+``committed``. Used for progress display and, in tests, to inject faults between steps."""
+
+
+# ---- layout ------------------------------------------------------------------------------
+
+def version_prefix(dataset: str, version: str) -> str:
+    return f"{dataset}/{version}"
+
+
+def staging_prefix(dataset: str, version: str) -> str:
+    return f"{dataset}/_staging/{version}"
+
+
+def claim_path(dataset: str, version: str) -> str:
+    return f"{dataset}/_txn/{version}.json"
+
+
+def index_path(dataset: str) -> str:
+    return f"{dataset}/versions.json"
+
+
+def latest_path(dataset: str) -> str:
+    return f"{dataset}/latest.json"
+
+
+def _now() -> tuple[str, float]:
+    t = time.time()
+    return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"), t
+
+
+@dataclass
+class PublishResult:
+    """What a publish did. ``mb_per_s`` is source bytes / wall time of upload+hash+check."""
+
+    dataset: str
+    version: str
+    store_url: str
+    version_url: str
+    manifest_sha256: str
+    files: int
+    bytes: int
+    seconds: float
+    mb_per_s: float
+    latest: str | None
+    reused_files: int = 0
+    warnings: list[str] = field(default_factory=list)
+
+
+# ---- source folder ------------------------------------------------------------------------
+
+class _Source:
+    """The folder to publish (local path or fsspec URL)."""
+
+    def __init__(self, source: str | os.PathLike, storage_options: dict | None = None):
+        src = os.fspath(source)
+        if "://" in src and not src.startswith("file://"):
+            self.fs, self.root = fsspec.core.url_to_fs(src, **(storage_options or {}))
+            self.local = False
+        else:
+            self.fs, self.root = None, os.path.abspath(src.removeprefix("file://"))
+            self.local = True
+        self.url = src
+
+    def list(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        if self.local:
+            if not os.path.isdir(self.root):
+                raise InvalidSourceError(f"source folder {self.root} does not exist or is not a folder")
+            for dirpath, dirs, files in os.walk(self.root, followlinks=True):
+                dirs.sort()
+                for name in files:
+                    full = os.path.join(dirpath, name)
+                    out[os.path.relpath(full, self.root).replace(os.sep, "/")] = os.stat(full).st_size
+        else:
+            for p, info in self.fs.find(self.root, detail=True).items():
+                if info.get("type") != "directory":
+                    out[p[len(self.root.rstrip("/")):].lstrip("/")] = int(info["size"])
+        return dict(sorted(out.items()))
+
+    def open(self, rel: str):
+        if self.local:
+            return open(os.path.join(self.root, rel), "rb", buffering=0)
+        return self.fs.open(f"{self.root.rstrip('/')}/{rel}", "rb")
+
+    def read(self, rel: str) -> bytes:
+        with self.open(rel) as f:
+            return f.read()
+
+    def where(self, rel: str) -> str:
+        return os.path.join(self.root, rel) if self.local else f"{self.url.rstrip('/')}/{rel}"
+
+
+# ---- checks before anything is written -------------------------------------------------------
+
+def check_gate_report(gate_report: dict | None, accept_failed_gates: str | None) -> None:
+    """Raise :class:`GatesFailedError` if the gates failed and no acceptance reason is given."""
+    if accept_failed_gates is not None and not str(accept_failed_gates).strip():
+        raise ValueError("accept_failed_gates must be a non-empty reason (it is recorded in the release)")
+    if gate_report is None:
+        return
+    if not isinstance(gate_report, dict) or "success" not in gate_report or \
+            not isinstance(gate_report.get("results"), list):
+        raise ValueError("gate_report must be a dict with 'success' (bool) and 'results' (list); got "
+                         f"{type(gate_report).__name__} with keys "
+                         f"{sorted(gate_report) if isinstance(gate_report, dict) else None}")
+    if not gate_report["success"] and not accept_failed_gates:
+        summary = _cards.summarize_gates(gate_report, None)
+        failed = [r["name"] for r in summary["results"] if r["success"] is False]
+        raise GatesFailedError(
+            f"quality gates failed ({summary['failed']} of {len(summary['results'])}: "
+            f"{', '.join(failed[:10]) or 'see report'}); nothing was published. Fix the data or publish "
+            f"with accept_failed_gates='<reason>' (CLI: --accept-failed-gates REASON)")
+
+
+# ---- helpers -----------------------------------------------------------------------------------
+
+def _run_pool(fn, items, workers: int):
+    """Map ``fn`` over ``items`` on a thread pool; re-raise the first error after all finished."""
+    if not items:
+        return []
+    with ThreadPoolExecutor(max_workers=max(1, min(workers, len(items)))) as pool:
+        futures = [pool.submit(fn, it) for it in items]
+        results, first_error = [], None
+        for fut in futures:
+            try:
+                results.append(fut.result())
+            except BaseException as e:  # noqa: BLE001 - collected and re-raised below
+                first_error = first_error or e
+                results.append(None)
+    if first_error is not None:
+        raise first_error
+    return results
+
+
+def hash_object(store: Store, rel: str) -> tuple[str, int]:
+    with store.open_read(rel) as f:
+        return sha256_stream(f)
+
+
+def _read_json(store: Store, rel: str) -> tuple[dict | None, str | None]:
+    data, token = store.read_with_token(rel)
+    if data is None:
+        return None, None
+    try:
+        return json.loads(data), token
+    except json.JSONDecodeError as e:
+        raise ReleaseError(f"{store.url_of(rel)} is not valid JSON ({e}); repair it with `drivetrack gc`") from e
+
+
+def _json_bytes(doc: dict) -> bytes:
+    return (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()
+
+
+def update_json_cas(store: Store, rel: str, update: Callable[[dict | None], dict | None],
+                    attempts: int = 100) -> dict | None:
+    """Read-modify-write ``rel`` with compare-and-swap on its previous value, retrying on conflict.
+
+    ``update(current)`` returns the new document, or ``None`` to leave the object unchanged.
+    """
+    for attempt in range(attempts):
+        current, token = _read_json(store, rel)
+        new = update(current)
+        if new is None:
+            return current
+        try:
+            store.compare_and_swap(rel, _json_bytes(new), token)
+            return new
+        except CasConflictError:
+            time.sleep(random.uniform(0, 0.01 * min(attempt + 1, 10)))
+    raise CasConflictError(f"{store.url_of(rel)}: gave up after {attempts} compare-and-swap conflicts")
+
+
+def add_to_index(store: Store, dataset: str, manifest: dict) -> None:
+    entry = {"version": manifest["version"], "created": manifest["created"],
+             "manifest_sha256": manifest["manifest_sha256"], "files": len(manifest["files"]),
+             "bytes": int(sum(f["size"] for f in manifest["files"]))}
+
+    def update(doc):
+        doc = doc or {"dataset": dataset, "versions": []}
+        if any(v["version"] == entry["version"] for v in doc["versions"]):
+            return None
+        doc["versions"] = sorted(doc["versions"] + [entry], key=lambda v: SemVer.parse(v["version"]))
+        doc["updated"] = _now()[0]
+        return doc
+
+    update_json_cas(store, index_path(dataset), update)
+
+
+def move_latest(store: Store, dataset: str, manifest: dict) -> str | None:
+    """Point ``latest.json`` at this version if it is the highest release; returns the latest version.
+
+    Pre-releases become latest only while no release exists.
+    """
+    new = SemVer.parse(manifest["version"])
+
+    def update(doc):
+        if doc is not None:
+            cur = SemVer.parse(doc["version"])
+            if new <= cur or (new.prerelease and not cur.prerelease):
+                return None
+        return {"dataset": dataset, "version": manifest["version"],
+                "manifest_sha256": manifest["manifest_sha256"], "updated": _now()[0],
+                "previous": doc["version"] if doc else None}
+
+    doc = update_json_cas(store, latest_path(dataset), update)
+    return doc["version"] if doc else None
+
+
+# ---- publish -----------------------------------------------------------------------------------
+
+def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike, version: str, *,
+                    dataset: str = DEFAULT_DATASET, storage_options: dict | None = None,
+                    gate_report: dict | None = None, accept_failed_gates: str | None = None,
+                    config: dict | None = None, card: dict | None = None, resume: bool = False,
+                    workers: int = DEFAULT_WORKERS, progress: Progress | None = None,
+                    source_storage_options: dict | None = None) -> PublishResult:
+    """Publish the folder ``source_dir`` as ``{store_url}/{dataset}/{version}/`` (see module doc).
+
+    ``config`` is recorded in the manifest (``config.publish``); ``card`` (or ``config["card"]``)
+    overrides the card defaults (:data:`drivetrack.release.cards.DEFAULT_CARD`).
+    """
+    # 0. checks that need no storage
+    check_version(version)
+    check_dataset(dataset)
+    check_gate_report(gate_report, accept_failed_gates)
+    card_opts = {**_cards.DEFAULT_CARD, **((config or {}).get("card") or {}), **(card or {})}
+    source = _Source(source_dir, source_storage_options)
+    sizes = source.list()
+    if not sizes:
+        raise InvalidSourceError(f"source folder {source.where('')} holds no files: nothing to publish")
+    for rel in sizes:
+        check_release_path(rel, source.where(rel))
+        if rel in RESERVED_NAMES:
+            raise InvalidSourceError(
+                f"{source.where(rel)}: the release writes {rel} itself; remove or rename it in the source")
+    run = read_run_json(source.read("run.json") if "run.json" in sizes else None, source.where("run.json"))
+    stats_files = {p.split("/", 1)[1]: source.read(p) for p in sizes
+                   if p.startswith("stats/") and p.count("/") == 1 and p.endswith(".parquet")}
+    statistics = statistics_from_parquet(stats_files)
+
+    store = open_store(store_url, storage_options)
+    vpre, spre, claim = version_prefix(dataset, version), staging_prefix(dataset, version), claim_path(dataset, version)
+    manifest_rel = f"{vpre}/{MANIFEST_NAME}"
+
+    # 1. never overwrite a published version
+    if store.exists(manifest_rel):
+        raise VersionExistsError(
+            f"{store.url_of(vpre)} is already published (manifest exists); published versions are "
+            f"immutable: choose a new version")
+
+    # 2. claim the version
+    created, t_created = _now()
+    txid = uuid.uuid4().hex
+    claim_doc = {"dataset": dataset, "version": version, "txid": txid, "host": socket.gethostname(),
+                 "pid": os.getpid(), "started": created, "started_unix": t_created, "source": source.url}
+    claim_bytes = _json_bytes(claim_doc)
+    try:
+        store.put_if_absent(claim, claim_bytes)
+    except FileExistsError:
+        holder, token = _read_json(store, claim)
+        if not resume or holder is None:
+            if store.exists(manifest_rel):
+                raise VersionExistsError(f"{store.url_of(vpre)} was published meanwhile; published "
+                                         f"versions are immutable") from None
+            raise ConcurrentPublishError(
+                f"version {version} of {dataset} in {store.url} is being published by another process "
+                f"(transaction {holder and holder.get('txid')}, host {holder and holder.get('host')}, "
+                f"pid {holder and holder.get('pid')}, started {holder and holder.get('started')}). "
+                f"If that publish was interrupted, resume it (resume=True / --resume) or clean it up "
+                f"(`drivetrack gc {store.url} --dataset {dataset}`)") from None
+        claim_doc["resumed_from"] = holder.get("txid")
+        claim_bytes = _json_bytes(claim_doc)
+        try:
+            store.compare_and_swap(claim, claim_bytes, token)
+        except CasConflictError:
+            raise ConcurrentPublishError(
+                f"version {version} of {dataset}: another process took over the claim {store.url_of(claim)} "
+                f"while this one tried to resume") from None
+
+    def still_ours(step: str) -> None:
+        holder, _ = _read_json(store, claim)
+        if holder is None or holder.get("txid") != txid:
+            raise ConcurrentPublishError(
+                f"version {version} of {dataset}: the claim {store.url_of(claim)} was taken over or removed "
+                f"(now {holder and holder.get('txid')}) before {step}; this publish stopped without committing")
+
+    try:
+        if store.exists(manifest_rel):
+            store.delete(claim)
+            raise VersionExistsError(f"{store.url_of(vpre)} was published meanwhile; published versions "
+                                     f"are immutable")
+        result = _publish_claimed(
+            store=store, source=source, sizes=sizes, dataset=dataset, version=version, created=created,
+            run=run, statistics=statistics, stats_files=stats_files, config=config, card_opts=card_opts,
+            gate_report=gate_report, accept_failed_gates=accept_failed_gates, resume=resume,
+            workers=workers, progress=progress, still_ours=still_ours)
+    except (PublishConflictError, InvalidSourceError):
+        raise
+    except Exception as e:
+        raise PublishInterruptedError(
+            f"publish of {dataset} {version} to {store.url} was interrupted: {type(e).__name__}: {e}. "
+            f"No version is visible (no manifest was committed). Resume with the same command and "
+            f"--resume (resume=True), or clean up with `drivetrack gc {store.url} --dataset {dataset} "
+            f"--older-than 0`") from e
+    return result
+
+
+def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], dataset: str, version: str,
+                     created: str, run: dict | None, statistics: dict, stats_files: dict, config: dict | None,
+                     card_opts: dict, gate_report: dict | None, accept_failed_gates: str | None,
+                     resume: bool, workers: int, progress: Progress | None, still_ours) -> PublishResult:
+    vpre, spre = version_prefix(dataset, version), staging_prefix(dataset, version)
+    claim = claim_path(dataset, version)
+    emit = progress or (lambda event, info: None)
+    t0 = time.perf_counter()
+    if not resume:  # leftovers of an earlier, cleaned-up attempt are not ours to reuse
+        store.delete_tree(spre)
+        store.delete_tree(vpre)
+    staged_now = set(store.find(spre)) if resume else set()
+    final_now = set(store.find(vpre)) if resume else set()
+
+    # 3. upload + hash concurrently, then check what was staged
+    def upload(rel: str) -> tuple[FileEntry, str]:
+        where = source.where(rel)
+        if resume and (rel in staged_now or rel in final_now):
+            with source.open(rel) as f:
+                digest, n = sha256_stream(f)
+            for prefix, state in ((vpre, "promoted"), (spre, "staged")):
+                if rel in (final_now if state == "promoted" else staged_now):
+                    if store.size(f"{prefix}/{rel}") == n and hash_object(store, f"{prefix}/{rel}")[0] == digest:
+                        emit("uploaded", {"path": rel, "bytes": n, "reused": True})
+                        return FileEntry(rel, n, digest), f"reused-{state}"
+        h = hashlib.sha256()
+        n = 0
+        try:
+            with source.open(rel) as fi, store.open_write(f"{spre}/{rel}") as fo:
+                for chunk in iter_chunks(fi):
+                    h.update(chunk)
+                    fo.write(chunk)
+                    n += len(chunk)
+        except Exception as e:
+            raise OSError(f"uploading {where} to {store.url_of(f'{spre}/{rel}')} failed: "
+                          f"{type(e).__name__}: {e}") from e
+        if n != sizes[rel]:
+            raise StagingCheckError(f"{where} changed size during the upload ({sizes[rel]} -> {n} bytes)")
+        emit("uploaded", {"path": rel, "bytes": n, "reused": False})
+        return FileEntry(rel, n, h.hexdigest()), "uploaded"
+
+    uploaded = _run_pool(upload, list(sizes), workers)
+    entries = [e for e, _ in uploaded]
+    state = {e.path: s for e, s in uploaded}
+    emit("staged", {"staging": store.url_of(spre), "files": len(entries)})
+
+    def check(entry: FileEntry) -> str | None:
+        if state[entry.path] != "uploaded":
+            return None
+        rel = f"{spre}/{entry.path}"
+        try:
+            digest, n = hash_object(store, rel)
+        except FileNotFoundError:
+            return f"{entry.path}: staged object {store.url_of(rel)} is missing"
+        if n != entry.size or digest != entry.sha256:
+            return (f"{entry.path}: staged object {store.url_of(rel)} has {n} bytes, sha256 {digest}; "
+                    f"uploaded {entry.size} bytes, sha256 {entry.sha256}")
+        return None
+
+    problems = [p for p in _run_pool(check, entries, workers) if p]
+    if problems:
+        raise StagingCheckError(f"{len(problems)} staged object(s) do not match the upload: "
+                                + "; ".join(problems[:5]))
+    t_data = time.perf_counter() - t0
+    emit("checked", {"files": len(entries)})
+
+    # 4. cards and checksums, staged then promoted with the data
+    paths = [e.path for e in entries]
+    splits = splits_from_paths(paths)
+    counts = counts_from_files(entries, splits)
+    gates = _cards.summarize_gates(gate_report, accept_failed_gates)
+    code = code_version()
+    npz_configs = _describe_npz_configs(source, paths, splits)
+    parquet_columns = _parquet_columns(stats_files)
+    croissant = _cards.croissant_bytes(_cards.build_croissant(
+        dataset=dataset, version=version, created=created, card=card_opts, data_files=entries,
+        npz_configs=npz_configs, parquet_columns=parquet_columns, url=store.url_of(vpre)))
+    readme = _cards.build_hf_card(
+        dataset=dataset, version=version, created=created, card=card_opts, paths=paths, splits=splits,
+        counts=counts, statistics=statistics, gates=gates, run=run, code=code, store_url=store.url).encode()
+    meta = [FileEntry(CARD_NAME, len(readme), sha256_bytes(readme)),
+            FileEntry(CROISSANT_NAME, len(croissant), sha256_bytes(croissant))]
+    sums = render_sha256sums(entries + meta)
+    meta.append(FileEntry(SUMS_NAME, len(sums), sha256_bytes(sums)))
+    for name, data in ((CARD_NAME, readme), (CROISSANT_NAME, croissant), (SUMS_NAME, sums)):
+        store.write_bytes(f"{spre}/{name}", data)
+        state[name] = "uploaded"
+    all_entries = sorted(entries + meta, key=lambda e: e.path)
+
+    still_ours("promoting the staged files")
+
+    def promote(entry: FileEntry) -> None:
+        rel = f"{vpre}/{entry.path}"
+        if state[entry.path] != "reused-promoted":
+            store.move(f"{spre}/{entry.path}", rel)
+        found = store.size(rel)
+        if found != entry.size:
+            raise StagingCheckError(f"{store.url_of(rel)} has {found} bytes after promotion, expected {entry.size}")
+        store.make_read_only(rel)
+
+    _run_pool(promote, all_entries, workers)
+    emit("promoted", {"version": store.url_of(vpre)})
+
+    # 5. commit: the manifest, created exclusively, last
+    run_info = {k: v for k, v in (run or {}).items() if k not in ("config", "segments")}
+    manifest = seal_manifest({
+        "format": MANIFEST_FORMAT,
+        "dataset": dataset,
+        "version": version,
+        "created": created,
+        "code_version": code,
+        "run": run_info or None,
+        "config": {"annotation": (run or {}).get("config"), "publish": config},
+        "segments": (run or {}).get("segments") or [],
+        "counts": counts,
+        "statistics": statistics,
+        "gates": gates,
+        "source": source.url,
+        "files": [e.to_json() for e in all_entries],
+    })
+    still_ours("committing the manifest")
+    try:
+        store.put_if_absent(f"{vpre}/{MANIFEST_NAME}", dump_manifest(manifest))
+    except FileExistsError:
+        raise VersionExistsError(f"{store.url_of(vpre)} was committed by another publish first") from None
+    store.make_read_only(f"{vpre}/{MANIFEST_NAME}")
+    emit("committed", {"manifest_sha256": manifest["manifest_sha256"]})
+
+    # 6. pointers (compare-and-swap) and clean-up; the version is already published here
+    warnings: list[str] = []
+    latest = None
+    try:
+        add_to_index(store, dataset, manifest)
+        latest = move_latest(store, dataset, manifest)
+    except Exception as e:  # noqa: BLE001 - the release is committed; gc repairs the pointers
+        warnings.append(f"version committed, but updating versions.json/latest.json failed "
+                        f"({type(e).__name__}: {e}); run `drivetrack gc {store.url} --dataset {dataset}` "
+                        f"to repair them")
+    try:
+        store.delete_tree(spre)
+        store.delete(claim)
+    except Exception as e:  # noqa: BLE001
+        warnings.append(f"version committed, but removing the staging prefix or claim failed ({e}); "
+                        f"`drivetrack gc` removes them")
+    total = sum(e.size for e in entries)
+    return PublishResult(
+        dataset=dataset, version=version, store_url=store.url, version_url=store.url_of(vpre),
+        manifest_sha256=manifest["manifest_sha256"], files=len(all_entries), bytes=total,
+        seconds=time.perf_counter() - t0, mb_per_s=total / 1e6 / max(t_data, 1e-9), latest=latest,
+        reused_files=sum(1 for s in state.values() if s.startswith("reused")), warnings=warnings)
+
+
+def _describe_npz_configs(source: _Source, paths: list[str], splits: list[str]):
+    layouts = {
+        "drivetrack": ([f"{s}/*.npz" for s in splits],
+                       [p for p in paths if p.count("/") == 1 and p.split("/")[0] in splits and p.endswith(".npz")]),
+        "tapvid3d": ([f"{s}/tapvid3d/*.npz" for s in splits],
+                     [p for p in paths if p.count("/") == 2 and p.split("/")[0] in splits
+                      and p.split("/")[1] == "tapvid3d" and p.endswith(".npz")]),
+    }
+    out = {}
+    for name, (patterns, files) in layouts.items():
+        if not files:
+            continue
+        step = max(1, len(files) // NPZ_SAMPLE)
+        specs = []
+        for rel in files[::step][:NPZ_SAMPLE]:
+            with source.open(rel) as f:
+                specs.append(_cards.describe_npz(f, source.where(rel)))
+        out[name] = (patterns, _cards.merge_specs(specs))
+    return out
+
+
+def _parquet_columns(stats_files: dict[str, bytes]) -> dict[str, list[tuple[str, str]]]:
+    import io
+
+    import pyarrow.parquet as pq
+
+    out = {}
+    for name, data in stats_files.items():
+        schema = pq.read_schema(io.BytesIO(data))
+        out[f"stats/{name}"] = [(f.name, str(f.type)) for f in schema]
+    return out
