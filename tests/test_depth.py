@@ -103,6 +103,19 @@ def test_nearest_two_returns_split_at_bisector():
     assert np.all(dense[:, :20] == 5.0) and np.all(dense[:, 20:] == 30.0)
 
 
+def test_nearest_backends_agree_up_to_ties():
+    rng = np.random.default_rng(5)
+    sparse = np.zeros((60, 90), np.float32)
+    known = rng.random(sparse.shape) < 0.04
+    sparse[known] = rng.uniform(1, 60, known.sum())
+    fast = get_completer("nearest", max_reach_px=8)(sparse)
+    exact = get_completer("nearest", max_reach_px=8, backend="scipy")(sparse)
+    np.testing.assert_array_equal(fast > 0, exact > 0)
+    assert np.mean(fast == exact) > 0.95
+    with pytest.raises(ValueError, match="backend: expected 'opencv' or 'scipy', found 'gpu'"):
+        get_completer("nearest", backend="gpu")
+
+
 def test_nearest_default_reach_scales_with_width_and_sky_stays_zero():
     width = 960  # default reach 10 px
     sparse = np.zeros((200, width), np.float32)
