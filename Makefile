@@ -20,8 +20,9 @@ help:
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
-	# torch==2.13.0 is the CPU wheel on the machine's disk (no GPU here); the GPU queue runs it.
+	# torch 2.13.0 CPU lies on the project machines' disk (no GPU here); install it first so that
+	# the torch extra's range is already satisfied and no multi-GB CUDA build is pulled in.
+	# Keep the interpreter's pip: newer pips skip the machine's constraints and pick CUDA builds.
 	$(PY) -m pip install -q torch==2.13.0 || $(PY) -m pip install -q "torch>=2.3,<2.15"
 	$(PY) -m pip install -q -e ".[test,torch]"
 	@rm -f $(VENV)/.installed-*
