@@ -290,3 +290,33 @@ def test_s3_bucket_through_storage_options(tmp_path):
         assert len(s.lidar) == 118
     finally:
         server.stop()
+
+
+def test_info_command_json_and_table(segment_root, tmp_path, capsys):
+    import json
+
+    from drivetrack.cli import main
+
+    assert main(["info", str(segment_root), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    (s,) = out["segments"]
+    assert s["segment"] == SEGMENT and s["num_frames"] == 3
+    assert s["duration_s"] == pytest.approx(0.2)
+    assert s["cameras"]["FRONT"] == {"width": 16, "height": 8, "images": 3}
+    top = s["lasers"]["TOP"]
+    assert top["shape"] == [4, 8, 4] and top["frames"] == 3
+    assert top["valid_return1"] == sum(np.count_nonzero(top_range(t, 1)[..., 0] > 0) for t in range(3))
+    assert top["valid_return2"] == 12 and s["lasers"]["FRONT"]["valid_return2"] == 0
+    assert s["objects"] == {"VEHICLE": {"objects": 1, "boxes": 3},
+                            "PEDESTRIAN": {"objects": 1, "boxes": 1}}
+
+    assert main(["info", str(segment_root), "--segment", SEGMENT]) == 0
+    text = capsys.readouterr().out
+    assert SEGMENT in text and "FRONT_LEFT" in text and "PEDESTRIAN" in text and "4x8x4" in text
+
+    tiny_segment(tmp_path, skip=("vehicle_pose",))
+    assert main(["info", str(tmp_path), "--json"]) == 1
+    bad = json.loads(capsys.readouterr().out)["segments"][0]
+    assert "missing component file" in bad["error"] and "vehicle_pose" in bad["error"]
+    assert main(["info", str(tmp_path), "--split", "validation"]) == 2
+    assert main(["info", str(tmp_path), "--storage-option", "novalue"]) == 2
