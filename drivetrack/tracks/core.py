@@ -1,0 +1,253 @@
+"""The track stage: one (segment, camera, object) clip -> point tracks with occlusion.
+
+Object-frame formulation of the paper's ``X_tau = W_tau^-1 B_tau B_t^-1 W_t X_t``: every LiDAR
+return of the clip is moved ONCE into its box's frame (``p_box = box_from_vehicle_t X_t``), then
+carried to every target frame tau by one transform per frame (``vehicle_from_box_tau``,
+``camera_from_box_tau``, ``world_from_box_tau``), vectorised as [T, n, 3] over a chunk of n points.
+
+Visibility of a point at tau: in front of the camera with trusted distortion, inside the image,
+and not behind the scene surface: with ``D = lookup_max4(depth_tau, pixel)`` (z-depth, metres),
+occluded iff ``D > 0 and D < occlusion_ratio * z`` where z is the point's z-depth from the
+camera. Unknown depth (0) means no known surface in front, hence visible.
+"""
+from __future__ import annotations
+
+import importlib
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivetrack.geometry import CameraModel, box_from_center_heading, invert_rigid, transform_points
+from drivetrack.tracks.depth_stage import SegmentContext
+from drivetrack.tracks.plan import ObjectJob
+from drivetrack.waymo.schema import BoxType, CameraName
+
+__all__ = ["ObjectTracks", "run_object_job", "track_speeds", "rolling_shutter_projector",
+           "image_time_offsets"]
+
+
+@dataclass
+class ObjectTracks:
+    """Point tracks of one clip (N tracks, T frames). Pixels (x, y), pixel i covers [i, i+1).
+
+    Attributes:
+        split, segment, camera (``CameraName`` value), object_id, object_type (``BoxType`` value).
+        frames: int64 [T], the clip's frame indices in the segment.
+        timestamps_micros: int64 [T].
+        tracks: float32 [N, T, 2], pixels (NaN where the point is behind the camera or its
+            distortion is untrusted; finite but meaningless where not visible).
+        visibles: bool [N, T].
+        points3d: float32 [N, T, 3], metres, vehicle frame of each frame tau.
+        query_frames: int32 [N], clip frame of the LiDAR return that produced the track.
+        lidar_sources: int32 [N, 4], (laser_name, return 1|2, range-image row, col).
+        track_speed_mps: float64 [N], mean world-frame speed of each track over the clip.
+        box_speed_mps: mean over the clip of the annotated box speed magnitude (NaN if none).
+        speed_error_mps: float64 [N], |track_speed_mps - box_speed_mps|.
+        camera_model: the camera's calibration.
+        camera_from_vehicle: float64 [T, 4, 4] (vehicle frame of each frame, camera at the image
+            pose); with ``world_from_vehicle`` float64 [T, 4, 4] they give camera extrinsics.
+        jpeg: list [T] of the clip's JPEG bytes (references into the scene, not copies).
+        min_camera_distance_m: closest camera-to-box-centre distance over the clip.
+        projection: ``rolling_shutter`` or ``global_shutter``.
+        num_candidates: returns inside the box over the clip (before the visibility filter).
+        num_dropped_invisible, num_dropped_speed: candidates dropped by each filter.
+        rejection: None, or a reason from ``REJECTION_REASONS`` when no track survived.
+    """
+    split: str
+    segment: str
+    camera: int
+    object_id: str
+    object_type: int
+    frames: np.ndarray
+    timestamps_micros: np.ndarray
+    tracks: np.ndarray
+    visibles: np.ndarray
+    points3d: np.ndarray
+    query_frames: np.ndarray
+    lidar_sources: np.ndarray
+    track_speed_mps: np.ndarray
+    box_speed_mps: float
+    speed_error_mps: np.ndarray
+    camera_model: CameraModel
+    camera_from_vehicle: np.ndarray
+    world_from_vehicle: np.ndarray
+    jpeg: list = field(repr=False)
+    min_camera_distance_m: float = float("nan")
+    projection: str = "global_shutter"
+    num_candidates: int = 0
+    num_dropped_invisible: int = 0
+    num_dropped_speed: int = 0
+    rejection: str | None = None
+
+    @property
+    def camera_name(self) -> str:
+        return CameraName(self.camera).name
+
+    @property
+    def object_type_name(self) -> str:
+        return BoxType(self.object_type).name
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.tracks.shape[0])
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def rolling_shutter_projector():
+    """``drivetrack.rolling_shutter.pixels_from_world`` if that module exists, else None."""
+    try:
+        module = importlib.import_module("drivetrack.rolling_shutter")
+    except ModuleNotFoundError as error:
+        if error.name != "drivetrack.rolling_shutter":
+            raise
+        return None
+    return getattr(module, "pixels_from_world")
+
+
+def track_speeds(points_world: np.ndarray, timestamps_micros: np.ndarray) -> np.ndarray:
+    """float64 [N]: path length / duration of tracks float [T, N, 3] (metres) over the clip.
+
+    NaN for a single-frame clip.
+    """
+    points_world = np.asarray(points_world, dtype=np.float64)
+    seconds = (timestamps_micros[-1] - timestamps_micros[0]) * 1e-6
+    if points_world.shape[0] < 2 or seconds <= 0:
+        return np.full(points_world.shape[1], np.nan)
+    steps = np.linalg.norm(np.diff(points_world, axis=0), axis=-1)
+    return steps.sum(axis=0) / seconds
+
+
+def _box_velocity_world(world_from_box: np.ndarray, timestamps_micros: np.ndarray) -> np.ndarray:
+    """float64 [T, 3] box-centre velocity in the world frame (finite differences), m/s."""
+    centres = world_from_box[:, :3, 3]
+    if centres.shape[0] < 2:
+        return np.zeros_like(centres)
+    return np.gradient(centres, timestamps_micros * 1e-6, axis=0)
+
+
+def image_time_offsets(scene, camera: int, frames: np.ndarray) -> np.ndarray:
+    """float64 [T]: image pose time minus frame time (s) of ``frames``; 0 where unknown.
+
+    Raises ValueError when an offset exceeds 1 s (the image does not belong to the frame).
+    """
+    pose_time = np.asarray(scene.cameras[camera].pose_timestamp, dtype=np.float64)[frames]
+    offsets = pose_time - scene.timestamps_micros[frames] * 1e-6
+    offsets = np.where(np.isfinite(offsets), offsets, 0.0)
+    bad = np.flatnonzero(np.abs(offsets) > 1.0)
+    if bad.size:
+        raise ValueError(f"segment {scene.segment!r} camera {CameraName(camera).name}: image pose_timestamp "
+                         f"differs from the frame timestamp by {offsets[bad[0]]:.3f} s at frame "
+                         f"{int(frames[bad[0]])}")
+    return offsets
+
+
+def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
+    """Point tracks of one accepted clip (see the module docstring). Pure: writes nothing."""
+    from drivetrack.depth import lookup_max4
+
+    plan, config, scene = ctx.plan, ctx.config, ctx.scene
+    geometry = plan.cameras[job.camera]
+    frames_meta = scene.cameras[job.camera]
+    model = frames_meta.model
+    boxes, lidar = scene.boxes, scene.lidar
+    frames, rows = job.frames, job.box_rows
+    t_count = frames.size
+    timestamps = scene.timestamps_micros[frames].astype(np.int64)
+
+    vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])      # [T,4,4]
+    world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
+    camera_from_box = geometry.camera_from_vehicle[frames] @ vehicle_from_box
+    velocity_world = _box_velocity_world(world_from_box, timestamps)
+    # Boxes and LiDAR are at the frame timestamp, the image at its pose timestamp: move the
+    # object along its velocity by the difference (camera frame shift per clip frame).
+    image_offset_s = image_time_offsets(scene, job.camera, frames)
+    shift_world = image_offset_s[:, None] * velocity_world                                  # [T,3]
+    shift_camera = np.einsum("tij,tj->ti", geometry.camera_from_world[frames, :3, :3], shift_world)
+
+    lidar_rows, source_clip = plan.box_points(rows)
+    n_candidates = lidar_rows.size
+    if config.max_tracks_per_object is not None and n_candidates > config.max_tracks_per_object:
+        # Same subset for every camera of the object; independent of job order.
+        rng = np.random.default_rng([config.seed, zlib.crc32(f"{scene.segment}/{job.object_id}".encode())])
+        keep = np.sort(rng.choice(n_candidates, size=config.max_tracks_per_object, replace=False))
+        lidar_rows, source_clip = lidar_rows[keep], source_clip[keep]
+    n = lidar_rows.size
+    # Points in their box's frame, computed once: p_box = box_from_vehicle_t X_t.
+    box_from_vehicle = invert_rigid(vehicle_from_box)
+    p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
+        + box_from_vehicle[source_clip, :3, 3]
+
+    projector = rolling_shutter_projector() if config.rolling_shutter else None
+    depth = ctx.depth.get(job.camera)
+    if depth is None or np.any(depth.slot[frames] < 0):
+        raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
+                         f"the segment context has no depth map for some clip frames")
+
+    tracks = np.full((n, t_count, 2), np.nan, dtype=np.float32)
+    visibles = np.zeros((n, t_count), dtype=bool)
+    points3d = np.zeros((n, t_count, 3), dtype=np.float32)
+    speeds = np.zeros(n, dtype=np.float64)
+    for start in range(0, n, config.chunk_points):
+        chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
+        points_camera = transform_points(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
+        points_world = transform_points(world_from_box, chunk)                              # [T, n, 3]
+        if projector is None:
+            pixels, valid = model.pixels_from_camera(points_camera)
+        else:
+            pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
+            valid = np.zeros(points_camera.shape[:2], dtype=bool)
+            for tau, t in enumerate(frames.tolist()):
+                velocity = np.broadcast_to(velocity_world[tau], points_world[tau].shape)
+                px, ok, _ = projector(frames_meta, t, points_world[tau] + shift_world[tau], velocity)
+                pixels[tau], valid[tau] = px, ok
+            valid &= points_camera[..., 0] > 0
+        ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
+        z = points_camera[..., 0]
+        visible = ok.copy()
+        for tau, t in enumerate(frames.tolist()):
+            idx = np.flatnonzero(ok[tau])
+            if idx.size == 0:
+                continue
+            surface = np.asarray(lookup_max4(depth.of_frame(t), pixels[tau, idx]), dtype=np.float64)
+            occluded = (surface > 0) & (surface < config.occlusion_ratio * z[tau, idx])
+            visible[tau, idx[occluded]] = False
+        stop = start + chunk.shape[0]
+        tracks[start:stop] = np.swapaxes(pixels, 0, 1)
+        visibles[start:stop] = visible.T
+        points3d[start:stop] = np.swapaxes(transform_points(vehicle_from_box, chunk), 0, 1)
+        speeds[start:stop] = track_speeds(points_world, timestamps)
+
+    box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
+    box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
+    errors = np.abs(speeds - box_speed_mean)
+
+    keep = visibles.any(axis=1)
+    dropped_invisible = int((~keep).sum())
+    dropped_speed = 0
+    if config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean):
+        fast = keep & ~(errors <= config.max_speed_deviation_mps)
+        dropped_speed = int(fast.sum())
+        keep &= ~fast
+
+    sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
+                        lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
+    result = ObjectTracks(
+        split=scene.split, segment=scene.segment, camera=job.camera, object_id=job.object_id,
+        object_type=job.object_type, frames=frames.copy(), timestamps_micros=timestamps,
+        tracks=tracks[keep], visibles=visibles[keep], points3d=points3d[keep],
+        query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources[keep],
+        track_speed_mps=speeds[keep], box_speed_mps=box_speed_mean, speed_error_mps=errors[keep],
+        camera_model=model, camera_from_vehicle=geometry.camera_from_vehicle[frames].copy(),
+        world_from_vehicle=scene.world_from_vehicle[frames].copy(),
+        jpeg=[frames_meta.jpeg[t] for t in frames.tolist()],
+        min_camera_distance_m=job.min_camera_distance_m,
+        projection="rolling_shutter" if projector is not None else "global_shutter",
+        num_candidates=int(n_candidates), num_dropped_invisible=dropped_invisible,
+        num_dropped_speed=dropped_speed,
+        rejection=None if keep.any() else "no_visible_points",
+    )
+    return result

@@ -1,0 +1,116 @@
+"""Tidy statistics tables of the track stage (``stats/*.parquet``, see docs/formats.md)."""
+from __future__ import annotations
+
+import io
+
+import fsspec
+import numpy as np
+import pandas as pd
+
+from drivetrack.tracks.core import ObjectTracks
+from drivetrack.tracks.plan import REJECTION_REASONS, SegmentPlan
+from drivetrack.waymo.schema import BoxType, CameraName
+
+__all__ = ["OBJECT_COLUMNS", "SEGMENT_COLUMNS", "REJECTION_COLUMNS", "SPEED_PERCENTILES",
+           "object_stats", "segment_stats", "rejection_stats", "write_table"]
+
+SPEED_PERCENTILES = (25, 50, 75, 95, 99)
+
+OBJECT_COLUMNS = (
+    "split", "segment", "camera", "object_id", "object_type", "file", "num_tracks", "num_frames",
+    "first_frame", "visible_fraction", "min_camera_distance_m", "box_speed_mean_mps",
+    *(f"speed_err_p{p}" for p in SPEED_PERCENTILES),
+    "num_nonfinite_visible", "num_visible_outside_image", "num_candidates",
+    "num_dropped_invisible", "num_dropped_speed", "projection",
+)
+SEGMENT_COLUMNS = (
+    "split", "segment", "status", "error", "num_frames", "num_objects_labelled",
+    "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
+    *(f"rejected_{r}" for r in REJECTION_REASONS),
+)
+REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")
+
+
+def _object_row(t: ObjectTracks, file: str) -> dict:
+    visible = t.visibles
+    finite = np.isfinite(t.tracks).all(axis=-1)
+    model = t.camera_model
+    with np.errstate(invalid="ignore"):
+        inside = ((t.tracks[..., 0] >= 0) & (t.tracks[..., 0] < model.width)
+                  & (t.tracks[..., 1] >= 0) & (t.tracks[..., 1] < model.height))
+    errors = t.speed_error_mps[np.isfinite(t.speed_error_mps)]
+    pct = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
+           else np.full(len(SPEED_PERCENTILES), np.nan))
+    row = {
+        "split": t.split, "segment": t.segment, "camera": t.camera_name, "object_id": t.object_id,
+        "object_type": t.object_type_name, "file": file, "num_tracks": t.num_tracks,
+        "num_frames": t.num_frames, "first_frame": int(t.frames[0]) if t.num_frames else -1,
+        "visible_fraction": float(visible.mean()) if visible.size else float("nan"),
+        "min_camera_distance_m": float(t.min_camera_distance_m),
+        "box_speed_mean_mps": float(t.box_speed_mps),
+        "num_nonfinite_visible": int((visible & ~finite).sum()),
+        "num_visible_outside_image": int((visible & finite & ~inside).sum()),
+        "num_candidates": int(t.num_candidates), "num_dropped_invisible": int(t.num_dropped_invisible),
+        "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
+    }
+    row.update({f"speed_err_p{p}": float(v) for p, v in zip(SPEED_PERCENTILES, pct)})
+    return row
+
+
+def object_stats(results: list[ObjectTracks], files: dict[tuple[int, str], str] | None = None) -> pd.DataFrame:
+    """One row per annotated clip (rejected clips are skipped: they are in the rejections table).
+
+    Args:
+        results: outputs of ``run_object_job``.
+        files: (camera value, object_id) -> URL of the DriveTrack file written for the clip.
+    """
+    files = files or {}
+    rows = [_object_row(t, files.get((t.camera, t.object_id), "")) for t in results if t.rejection is None]
+    return pd.DataFrame(rows, columns=list(OBJECT_COLUMNS))
+
+
+def rejection_stats(plan: SegmentPlan, results: list[ObjectTracks] = ()) -> pd.DataFrame:
+    """One row per rejected (segment, camera, object, reason), planning and track stages."""
+    scene = plan.scene
+    rows = [{"split": scene.split, "segment": scene.segment, "camera": CameraName(r["camera"]).name,
+             "object_id": r["object_id"], "object_type": BoxType(r["object_type"]).name,
+             "reason": r["reason"], "detail": r["detail"]} for r in plan.rejections]
+    for t in results:
+        if t.rejection is not None:
+            rows.append({"split": t.split, "segment": t.segment, "camera": t.camera_name,
+                         "object_id": t.object_id, "object_type": t.object_type_name,
+                         "reason": t.rejection,
+                         "detail": f"{t.num_candidates} candidates, {t.num_dropped_invisible} never visible, "
+                                   f"{t.num_dropped_speed} dropped by the speed filter"})
+    return pd.DataFrame(rows, columns=list(REJECTION_COLUMNS))
+
+
+def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
+                  results: list[ObjectTracks] = (), status: str = "done", error: str = "") -> pd.DataFrame:
+    """One row for a segment; ``plan`` may be None when the segment failed before planning."""
+    if status not in ("done", "failed"):
+        raise ValueError(f"segment {segment!r}: status must be 'done' or 'failed', got {status!r}")
+    row = {"split": split, "segment": segment, "status": status, "error": error,
+           "num_frames": plan.scene.num_frames if plan else 0,
+           "num_objects_labelled": plan.num_objects_labelled if plan else 0,
+           "num_object_clips_considered": plan.num_clips_considered if plan else 0,
+           "num_object_clips_annotated": sum(1 for t in results if t.rejection is None),
+           "num_tracks": sum(t.num_tracks for t in results if t.rejection is None)}
+    counts = dict.fromkeys(REJECTION_REASONS, 0)
+    if plan is not None:
+        for table_row in rejection_stats(plan, results).itertuples():
+            counts[table_row.reason] += 1
+    row.update({f"rejected_{r}": int(c) for r, c in counts.items()})
+    return pd.DataFrame([row], columns=list(SEGMENT_COLUMNS))
+
+
+def write_table(url: str, table: pd.DataFrame) -> str:
+    """Write ``table`` as parquet at ``url`` (any fsspec URL); returns url."""
+    buffer = io.BytesIO()
+    table.to_parquet(buffer, index=False)
+    fs, path = fsspec.core.url_to_fs(url)
+    if "/" in path:
+        fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
+    with fs.open(path, "wb") as handle:
+        handle.write(buffer.getvalue())
+    return url
