@@ -111,7 +111,9 @@ def describe_npz(f, where: str) -> list[ArraySpec]:
                         shape, _fortran, dtype = np.lib.format.read_array_header_2_0(member)
                 out.append(ArraySpec(info.filename[:-4], dtype.str, tuple(int(s) for s in shape)))
     except (zipfile.BadZipFile, ValueError, OSError) as e:
-        raise ValueError(f"{where}: not a readable .npz file ({e})") from e
+        from drivetrack.release.errors import InvalidSourceError
+
+        raise InvalidSourceError(f"{where}: not a readable .npz file ({e})") from e
     return out
 
 

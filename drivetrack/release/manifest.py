@@ -80,8 +80,12 @@ class SemVer:
 
 
 def check_version(version: str) -> str:
-    """Return ``version`` if it is a semantic version, else raise :class:`InvalidVersionError`."""
-    SemVer.parse(version)
+    """Return ``version`` if it is a semantic version without build metadata, else raise
+    :class:`InvalidVersionError` (``1.0.0+a`` and ``1.0.0+b`` have equal precedence: ambiguous)."""
+    if SemVer.parse(version).build:
+        raise InvalidVersionError(
+            f"version {version!r}: build metadata ('+...') is not allowed in release versions, because "
+            f"versions differing only in it have equal precedence; use a pre-release tag (1.0.0-rc.1)")
     return version
 
 

@@ -253,15 +253,16 @@ def add_to_index(store: Store, dataset: str, manifest: dict) -> None:
 def move_latest(store: Store, dataset: str, manifest: dict) -> str | None:
     """Point ``latest.json`` at this version if it is the highest release; returns the latest version.
 
-    Pre-releases become latest only while no release exists.
+    Pre-releases become latest only while no release exists; the move is a compare-and-swap on
+    the previous pointer, so concurrent publishes cannot move it backwards.
     """
-    new = SemVer.parse(manifest["version"])
+    def rank(v: str):  # any release outranks any pre-release; then semver precedence
+        sv = SemVer.parse(v)
+        return (not sv.prerelease, sv)
 
     def update(doc):
-        if doc is not None:
-            cur = SemVer.parse(doc["version"])
-            if new <= cur or (new.prerelease and not cur.prerelease):
-                return None
+        if doc is not None and rank(manifest["version"]) <= rank(doc["version"]):
+            return None
         return {"dataset": dataset, "version": manifest["version"],
                 "manifest_sha256": manifest["manifest_sha256"], "updated": _now()[0],
                 "previous": doc["version"] if doc else None}
@@ -301,6 +302,9 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     stats_files = {p.split("/", 1)[1]: source.read(p) for p in sizes
                    if p.startswith("stats/") and p.count("/") == 1 and p.endswith(".parquet")}
     statistics = statistics_from_parquet(stats_files)
+    paths = list(sizes)
+    # Reads only .npz headers; a bad clip file fails here, before anything is written.
+    npz_configs = _describe_npz_configs(source, paths, splits_from_paths(paths))
 
     store = open_store(store_url, storage_options)
     vpre, spre, claim = version_prefix(dataset, version), staging_prefix(dataset, version), claim_path(dataset, version)
@@ -355,7 +359,8 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
                                      f"are immutable")
         result = _publish_claimed(
             store=store, source=source, sizes=sizes, dataset=dataset, version=version, created=created,
-            run=run, statistics=statistics, stats_files=stats_files, config=config, card_opts=card_opts,
+            run=run, statistics=statistics, stats_files=stats_files, npz_configs=npz_configs,
+            config=config, card_opts=card_opts,
             gate_report=gate_report, accept_failed_gates=accept_failed_gates, resume=resume,
             workers=workers, progress=progress, still_ours=still_ours)
     except (PublishConflictError, InvalidSourceError):
@@ -370,7 +375,8 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
 
 
 def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], dataset: str, version: str,
-                     created: str, run: dict | None, statistics: dict, stats_files: dict, config: dict | None,
+                     created: str, run: dict | None, statistics: dict, stats_files: dict, npz_configs: dict,
+                     config: dict | None,
                      card_opts: dict, gate_report: dict | None, accept_failed_gates: str | None,
                      resume: bool, workers: int, progress: Progress | None, still_ours) -> PublishResult:
     vpre, spre = version_prefix(dataset, version), staging_prefix(dataset, version)
@@ -441,7 +447,6 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     counts = counts_from_files(entries, splits)
     gates = _cards.summarize_gates(gate_report, accept_failed_gates)
     code = code_version()
-    npz_configs = _describe_npz_configs(source, paths, splits)
     parquet_columns = _parquet_columns(stats_files)
     croissant = _cards.croissant_bytes(_cards.build_croissant(
         dataset=dataset, version=version, created=created, card=card_opts, data_files=entries,
@@ -510,6 +515,7 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     try:
         store.delete_tree(spre)
         store.delete(claim)
+        store.delete_tree(f"{dataset}/_txn") if not store.find(f"{dataset}/_txn") else None
     except Exception as e:  # noqa: BLE001
         warnings.append(f"version committed, but removing the staging prefix or claim failed ({e}); "
                         f"`drivetrack gc` removes them")

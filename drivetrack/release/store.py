@@ -193,11 +193,21 @@ class Store:
     def delete_tree(self, rel: str) -> int:
         """Delete every object below ``rel``; returns how many were deleted."""
         files = self.find(rel)
-        if not files:
-            return 0
         if self.is_local:
             import shutil
-            shutil.rmtree(self.path(rel), ignore_errors=False)
+            if os.path.isdir(self.path(rel)):
+                shutil.rmtree(self.path(rel))
+            # Empty parents (``_staging``, ``_txn``) too; object stores have no empty folders.
+            parent = os.path.dirname(self.path(rel))
+            while parent.startswith(self.root + os.sep):
+                try:
+                    os.rmdir(parent)
+                except OSError:
+                    break
+                parent = os.path.dirname(parent)
+            return len(files)
+        if not files:
+            return 0
         else:
             self.fs.rm([self.path(f"{rel}/{f}") for f in files])
         return len(files)

@@ -1,0 +1,82 @@
+"""``drivetrack publish DIR --store STORE --version V``: publish an annotation output folder as a release."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from drivetrack.commands._release_common import add_store_options, print_json, storage_options
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("publish", help="publish an annotation output folder as an immutable, versioned release",
+                       description="Stage, check and commit DIR as {STORE}/{dataset}/{version}/ "
+                                   "(manifest.json written last; latest/versions updated by compare-and-swap).")
+    p.add_argument("dir", help="annotation output folder (run.json, {split}/*.npz, stats/*.parquet, ...)")
+    p.add_argument("--store", default="./store", help="store URL: folder, s3://bucket/prefix or gs://bucket/prefix")
+    p.add_argument("--version", required=True, dest="release_version", help="semantic version, e.g. 1.0.0")
+    p.add_argument("--config", default=None, help="YAML/JSON file recorded in the manifest (key 'card' overrides card fields)")
+    p.add_argument("--gates-config", default=None, help="gate configuration for drivetrack.gates (default infra/gates.yaml)")
+    p.add_argument("--gate-report", default=None,
+                   help="use this gate report JSON (e.g. DIR/validation/gates.json) instead of running the gates")
+    p.add_argument("--accept-failed-gates", default=None, metavar="REASON",
+                   help="publish even if gates failed; REASON is recorded in the manifest and the card")
+    p.add_argument("--resume", action="store_true", help="resume an interrupted publish of this version")
+    p.add_argument("--workers", type=int, default=8, help="concurrent uploads/hashes")
+    add_store_options(p)
+    p.set_defaults(func=run)
+
+
+def _load_config(path: str | None) -> dict | None:
+    if path is None:
+        return None
+    text = Path(path).read_text()
+    if path.endswith(".json"):
+        return json.loads(text)
+    import yaml
+
+    cfg = yaml.safe_load(text)
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{path}: the config must be a mapping, found {type(cfg).__name__}")
+    return cfg
+
+
+def _run_gates(dir: str, args) -> dict:
+    """The gate report to publish with: ``--gate-report FILE`` if given, else run drivetrack.gates."""
+    if args.gate_report:
+        report = json.loads(Path(args.gate_report).read_text())
+        if not isinstance(report, dict):
+            raise ValueError(f"{args.gate_report}: a gate report must be a JSON object")
+        return report
+    from drivetrack.gates import run_gates
+
+    return run_gates(str(dir), config=args.gates_config).to_dict()
+
+
+def run(args) -> int:
+    from drivetrack.release import GatesFailedError, ReleaseError, publish_release
+
+    try:
+        config = _load_config(args.config)
+        report = _run_gates(args.dir, args)
+        result = publish_release(
+            args.dir, args.store, args.release_version, dataset=args.dataset,
+            storage_options=storage_options(args), gate_report=report,
+            accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
+            workers=args.workers)
+    except GatesFailedError as e:
+        print(f"drivetrack publish: {e}", file=sys.stderr)
+        return 3
+    except (ReleaseError, ValueError, OSError) as e:
+        print(f"drivetrack publish: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        print_json(result.__dict__)
+    else:
+        print(f"published {result.version_url}: {result.files} files, {result.bytes / 1e6:.1f} MB, "
+              f"{result.mb_per_s:.1f} MB/s, manifest sha256 {result.manifest_sha256}"
+              + (f", {result.reused_files} reused" if result.reused_files else "")
+              + (f"; latest = {result.latest}" if result.latest else ""))
+    for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    return 0

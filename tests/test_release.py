@@ -1,0 +1,417 @@
+"""Release store on local folders: publish, verify (ours and sha256sum -c), cards, Croissant
+(validated by mlcroissant), immutability, conflicts, interrupted publishes, gc, diff, CLI."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from drivetrack.cli import main as cli
+from drivetrack.release import (ConcurrentPublishError, GatesFailedError, InvalidSourceError,
+                                InvalidVersionError, ManifestError, PublishConflictError,
+                                PublishInterruptedError, SemVer, StagingCheckError, VersionExistsError,
+                                VersionNotFoundError, diff_versions, gc, list_versions, open_store,
+                                publish_release, read_manifest, verify_release)
+from drivetrack.release.errors import CasConflictError
+from drivetrack.release.manifest import manifest_hash
+
+DS = "drivetrack-waymo"
+
+
+def make_output(root: Path, *, seed: int = 0, n_clips: int = 2, splits=("training", "validation")) -> Path:
+    """A small annotation output folder in the documented layout (docs/architecture.md)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for split in splits:
+        (root / split / "tapvid3d").mkdir(parents=True, exist_ok=True)
+        for i in range(n_clips):
+            name = f"waymo_seg{i}_FRONT_{split[:3]}{i}.npz"
+            n = 4 + i
+            np.savez(root / split / name, video=rng.integers(0, 255, (3, 6, 8, 3), dtype=np.uint8),
+                     tracks=rng.random((n, 3, 2)).astype(np.float32), visibles=rng.random((n, 3)) > 0.3)
+            np.savez(root / split / "tapvid3d" / name, tracks_XYZ=rng.random((3, n, 3)),
+                     visibility=rng.random((3, n)) > 0.3, fx_fy_cx_cy=np.array([100.0, 100.0, 4.0, 3.0]))
+            rows.append({"split": split, "segment": f"seg{i}", "camera": "FRONT", "object_id": f"{split[:3]}{i}",
+                         "object_type": "VEHICLE", "file": f"{split}/{name}", "num_tracks": n,
+                         "num_frames": 3, "visible_fraction": 0.5 + 0.1 * i, "speed_err_p50": 0.1 * (i + 1)})
+    (root / "stats").mkdir(exist_ok=True)
+    pd.DataFrame(rows).to_parquet(root / "stats" / "objects.parquet")
+    pd.DataFrame({"split": list(splits), "segment": ["seg0"] * len(splits), "status": ["done"] * len(splits),
+                  "rejected_too_far": [1] * len(splits)}).to_parquet(root / "stats" / "segments.parquet")
+    (root / "run.json").write_text(json.dumps({
+        "config": {"depth": {"completer": "nearest"}}, "code_version": {"drivetrack": "0.1.0"}, "seed": seed,
+        "segments": [{"segment": "seg0", "split": "training", "sources": {"camera_image": "a" * 64}}]}))
+    return root
+
+
+@pytest.fixture
+def output(tmp_path) -> Path:
+    return make_output(tmp_path / "out")
+
+
+def sha256sum_check(folder: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(["sha256sum", "-c", "--strict", "SHA256SUMS"], cwd=folder, capture_output=True, text=True)
+
+
+def test_publish_local_verifies_with_drivetrack_and_sha256sum(output, tmp_path):
+    store = tmp_path / "store"
+    result = publish_release(output, store, "1.0.0")
+    vdir = store / DS / "1.0.0"
+    assert result.latest == "1.0.0" and result.files == len(list(p for p in vdir.rglob("*") if p.is_file())) - 1
+    report = verify_release(store, "1.0.0")
+    assert report.ok and report.files_checked == result.files
+    done = sha256sum_check(vdir)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.count(": OK") == result.files - 1  # SHA256SUMS does not list itself
+    # Nothing left of the transaction; the release files are read-only.
+    assert not list((store / DS).glob("_staging/*")) and not list((store / DS).glob("_txn/*"))
+    assert not os.access(vdir / "manifest.json", os.W_OK) or os.geteuid() == 0
+    assert not (os.stat(vdir / "manifest.json").st_mode & 0o222)
+
+
+def test_manifest_records_inputs_and_hash(output, tmp_path):
+    publish_release(output, tmp_path / "store", "1.0.0", config={"note": "first"})
+    m = read_manifest(tmp_path / "store", "1.0.0")
+    assert m["manifest_sha256"] == manifest_hash(m)
+    files = {f["path"]: f for f in m["files"]}
+    src = output / "training" / "waymo_seg0_FRONT_tra0.npz"
+    import hashlib
+    assert files["training/waymo_seg0_FRONT_tra0.npz"] == {
+        "path": "training/waymo_seg0_FRONT_tra0.npz", "size": src.stat().st_size,
+        "sha256": hashlib.sha256(src.read_bytes()).hexdigest()}
+    assert {"README.md", "croissant.json", "SHA256SUMS", "run.json", "stats/objects.parquet"} <= set(files)
+    assert m["segments"][0]["sources"]["camera_image"] == "a" * 64
+    assert m["config"] == {"annotation": {"depth": {"completer": "nearest"}}, "publish": {"note": "first"}}
+    assert m["run"]["seed"] == 0 and m["code_version"]["drivetrack"]
+    assert m["counts"]["splits"]["training"] == {"clips": 2, "tapvid3d_clips": 2,
+                                                 "bytes": m["counts"]["splits"]["training"]["bytes"]}
+    assert m["statistics"]["objects"]["num_tracks_total"] == 2 * (4 + 5)
+    assert m["statistics"]["segments"]["rejected_too_far_total"] == 2
+    # Editing the manifest breaks its top-level hash, and verify refuses it.
+    path = tmp_path / "store" / DS / "1.0.0" / "manifest.json"
+    os.chmod(path, 0o644)
+    path.write_text(path.read_text().replace('"note": "first"', '"note": "edited"'))
+    with pytest.raises(ManifestError, match="manifest_sha256"):
+        verify_release(tmp_path / "store", "1.0.0")
+
+
+def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
+    import mlcroissant as mlc
+
+    gate_report = {"success": True, "results": [{"gate": "speed_err_p50", "success": True}]}
+    publish_release(output, tmp_path / "store", "1.0.0", gate_report=gate_report)
+    vdir = tmp_path / "store" / DS / "1.0.0"
+    text = (vdir / "README.md").read_text()
+    front = yaml.safe_load(text.split("---\n")[1])
+    assert front["license"] and front["pretty_name"] and front["size_categories"] == ["n<1K"]
+    assert front["task_categories"]
+    configs = {c["config_name"]: c for c in front["configs"]}
+    assert configs["drivetrack"]["data_files"] == [{"split": "training", "path": "training/*.npz"},
+                                                   {"split": "validation", "path": "validation/*.npz"}]
+    assert configs["tapvid3d"]["data_files"][0] == {"split": "training", "path": "training/tapvid3d/*.npz"}
+    assert "speed_err_p50 | pass" in text and "Citation" in text and "sha256sum -c SHA256SUMS" in text
+
+    doc = json.loads((vdir / "croissant.json").read_text())
+    assert doc["conformsTo"] == "http://mlcommons.org/croissant/1.1"
+    sums = dict(reversed(line.split("  ", 1)) for line in (vdir / "SHA256SUMS").read_text().splitlines())
+    objects = [d for d in doc["distribution"] if d["@type"] == "cr:FileObject"]
+    assert objects and all(d["sha256"] == sums[d["contentUrl"]] for d in objects)
+    ds = mlc.Dataset(jsonld=str(vdir / "croissant.json"))
+    assert not ds.metadata.issues.errors, ds.metadata.issues.report()
+    fields = {f.name: f for rs in ds.metadata.record_sets if rs.name == "drivetrack" for f in rs.fields}
+    assert fields["tracks"].is_array and fields["tracks"].array_shape == "-1,3,2"
+    # The stats record set really loads through mlcroissant from the release folder.
+    records = list(ds.records("stats-objects"))
+    assert len(records) == 4 and sorted(r["stats-objects/num_tracks"] for r in records) == [4, 4, 5, 5]
+
+
+def test_second_publish_of_same_version_fails_and_leaves_first_untouched(output, tmp_path):
+    store = tmp_path / "store"
+    publish_release(output, store, "1.0.0")
+    before = {p: p.read_bytes() for p in (store / DS / "1.0.0").rglob("*") if p.is_file()}
+    other = make_output(tmp_path / "other", seed=5)
+    with pytest.raises(VersionExistsError, match="already published"):
+        publish_release(other, store, "1.0.0")
+    after = {p: p.read_bytes() for p in (store / DS / "1.0.0").rglob("*") if p.is_file()}
+    assert after == before
+    assert verify_release(store, "1.0.0").ok
+
+
+@pytest.mark.parametrize("bad", ["1.0", "v1.0.0", "01.0.0", "1.0.0-", "latest", "1.0.0+build+x", "1.0.0+b5"])
+def test_versions_are_checked(output, tmp_path, bad):
+    import re
+
+    with pytest.raises(InvalidVersionError, match=re.escape(repr(bad))):
+        publish_release(output, tmp_path / "store", bad)
+    assert not (tmp_path / "store").exists()
+
+
+def test_semver_precedence():
+    order = ["1.0.0-alpha", "1.0.0-alpha.1", "1.0.0-alpha.beta", "1.0.0-beta", "1.0.0-beta.2",
+             "1.0.0-beta.11", "1.0.0-rc.1", "1.0.0", "1.0.1", "1.2.0", "10.0.0"]
+    assert sorted(order[::-1], key=SemVer.parse) == order
+    assert SemVer.parse("1.0.0+build.5") == SemVer.parse("1.0.0")
+
+
+def test_failed_gates_write_nothing_unless_accepted(output, tmp_path):
+    store = tmp_path / "store"
+    failed = {"success": False, "results": [{"gate": "speed_err_p50", "success": False},
+                                            {"gate": "nonfinite", "success": True}]}
+    with pytest.raises(GatesFailedError, match="speed_err_p50"):
+        publish_release(output, store, "1.0.0", gate_report=failed)
+    assert not store.exists()
+    publish_release(output, store, "1.0.0", gate_report=failed, accept_failed_gates="known label noise in seg0")
+    m = read_manifest(store, "1.0.0")
+    assert m["gates"]["success"] is False and m["gates"]["accepted_failure_reason"] == "known label noise in seg0"
+    assert "known label noise in seg0" in (store / DS / "1.0.0" / "README.md").read_text()
+    with pytest.raises(ValueError, match="'success'"):
+        publish_release(output, store, "1.1.0", gate_report={"results": []})
+
+
+def test_bad_sources_raise_clear_errors(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InvalidSourceError, match="holds no files"):
+        publish_release(empty, tmp_path / "store", "1.0.0")
+    with pytest.raises(InvalidSourceError, match="does not exist"):
+        publish_release(tmp_path / "missing", tmp_path / "store", "1.0.0")
+    reserved = tmp_path / "reserved"
+    reserved.mkdir()
+    (reserved / "README.md").write_text("mine")
+    with pytest.raises(InvalidSourceError, match="README.md"):
+        publish_release(reserved, tmp_path / "store", "1.0.0")
+    badrun = tmp_path / "badrun"
+    badrun.mkdir()
+    (badrun / "run.json").write_text("{not json")
+    with pytest.raises(InvalidSourceError, match=r"badrun/run.json: run.json is not valid JSON"):
+        publish_release(badrun, tmp_path / "store", "1.0.0")
+    badnpz = make_output(tmp_path / "badnpz")
+    (badnpz / "validation" / "waymo_seg0_FRONT_val0.npz").write_bytes(b"not a zip")
+    with pytest.raises(InvalidSourceError, match=r"validation/waymo_seg0_FRONT_val0.npz: not a readable .npz"):
+        publish_release(badnpz, tmp_path / "store", "1.0.0")
+    assert not (tmp_path / "store").exists()
+
+
+def test_arbitrary_folder_without_run_json_or_stats(tmp_path):
+    src = tmp_path / "plain"
+    (src / "a").mkdir(parents=True)
+    (src / "a" / "x.bin").write_bytes(b"\x00" * 10)
+    (src / "top.txt").write_text("hello")
+    (src / "empty.dat").write_bytes(b"")
+    publish_release(src, tmp_path / "store", "0.1.0")
+    m = read_manifest(tmp_path / "store", "0.1.0")
+    assert m["run"] is None and m["segments"] == [] and m["statistics"] == {}
+    assert verify_release(tmp_path / "store", "0.1.0").ok
+    assert sha256sum_check(tmp_path / "store" / DS / "0.1.0").returncode == 0
+
+
+def test_verify_reports_missing_extra_and_corrupt(output, tmp_path):
+    store = tmp_path / "store"
+    publish_release(output, store, "1.0.0")
+    vdir = store / DS / "1.0.0"
+    victim = vdir / "training" / "waymo_seg0_FRONT_tra0.npz"
+    os.chmod(victim, 0o644)
+    data = bytearray(victim.read_bytes())
+    data[100] ^= 0xFF  # same size, different content
+    victim.write_bytes(bytes(data))
+    short = vdir / "validation" / "waymo_seg1_FRONT_val1.npz"
+    os.chmod(short, 0o644)
+    short.write_bytes(short.read_bytes()[:-1])
+    (vdir / "stats" / "segments.parquet").unlink()
+    (vdir / "training" / "intruder.npz").write_bytes(b"x")
+    report = verify_release(store, "1.0.0")
+    assert not report.ok
+    assert report.missing == ["stats/segments.parquet"]
+    assert report.extra == ["training/intruder.npz"]
+    assert [(c["path"], c["problem"]) for c in report.corrupt] == [
+        ("training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("validation/waymo_seg1_FRONT_val1.npz", "size")]
+    assert sha256sum_check(vdir).returncode != 0
+    assert cli(["verify", str(store), "--version", "1.0.0"]) == 1
+
+
+def test_concurrent_publishes_of_one_version_exactly_one_wins(tmp_path):
+    store = tmp_path / "store"
+    sources = [make_output(tmp_path / f"src{i}", seed=i, n_clips=3) for i in range(4)]
+    barrier = threading.Barrier(len(sources))
+    outcomes: list = [None] * len(sources)
+
+    def attempt(i):
+        barrier.wait()
+        try:
+            outcomes[i] = publish_release(sources[i], store, "2.0.0", workers=2)
+        except PublishConflictError as e:
+            outcomes[i] = e
+
+    threads = [threading.Thread(target=attempt, args=(i,)) for i in range(len(sources))]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    winners = [i for i, o in enumerate(outcomes) if not isinstance(o, Exception)]
+    assert len(winners) == 1, outcomes
+    losers = [o for o in outcomes if isinstance(o, Exception)]
+    assert all(isinstance(e, (ConcurrentPublishError, VersionExistsError)) for e in losers)
+    assert all("2.0.0" in str(e) for e in losers)
+    assert verify_release(store, "2.0.0").ok
+    m = read_manifest(store, "2.0.0")
+    assert m["source"] == str(sources[winners[0]])
+    assert [v["version"] for v in list_versions(store)] == ["2.0.0"]
+
+
+def test_concurrent_publishes_of_different_versions_all_indexed(output, tmp_path):
+    store = tmp_path / "store"
+    versions = ["1.0.0", "1.1.0", "1.2.0-rc.1", "0.9.0", "1.0.1"]
+    errors = []
+
+    def attempt(v):
+        try:
+            publish_release(output, store, v, workers=1)
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=attempt, args=(v,)) for v in versions]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    assert not errors
+    index = json.loads((store / DS / "versions.json").read_text())
+    assert [v["version"] for v in index["versions"]] == ["0.9.0", "1.0.0", "1.0.1", "1.1.0", "1.2.0-rc.1"]
+    assert json.loads((store / DS / "latest.json").read_text())["version"] == "1.1.0"  # rc is not latest
+    assert all(v["indexed"] for v in list_versions(store))
+
+
+def test_compare_and_swap_local(tmp_path):
+    store = open_store(tmp_path / "s")
+    store.put_if_absent("d/x.json", b"1")
+    with pytest.raises(FileExistsError):
+        store.put_if_absent("d/x.json", b"2")
+    data, token = store.read_with_token("d/x.json")
+    assert data == b"1"
+    store.compare_and_swap("d/x.json", b"3", token)
+    with pytest.raises(CasConflictError, match="changed underneath"):
+        store.compare_and_swap("d/x.json", b"4", token)  # stale token
+    with pytest.raises(CasConflictError):
+        store.compare_and_swap("d/x.json", b"5", None)  # expected absent
+    assert store.read_bytes("d/x.json") == b"3"
+
+
+def test_write_error_interrupts_cleanly_then_gc_and_republish(output, tmp_path):
+    store = tmp_path / "store"
+    # A regular file where the staging folder of one split must go: the OS refuses the write.
+    blocker = store / DS / "_staging" / "1.0.0"
+    blocker.parent.mkdir(parents=True)
+
+    def block(event, info):
+        if event == "uploaded" and not (blocker / "validation").exists():
+            (blocker / "validation").write_text("in the way")
+
+    with pytest.raises(PublishInterruptedError) as err:
+        publish_release(output, store, "1.0.0", workers=1, progress=block)
+    msg = str(err.value)
+    assert "uploading" in msg and "validation/" in msg and "No version is visible" in msg
+    assert "drivetrack gc" in msg
+    assert list_versions(store) == []
+    with pytest.raises(VersionNotFoundError, match="interrupted"):
+        verify_release(store, "1.0.0")
+    with pytest.raises(ConcurrentPublishError, match="resume"):
+        publish_release(output, store, "1.0.0")  # the claim is still held
+    report = gc(store, DS, older_than_s=0)
+    assert any("claim" in a for a in report.actions)
+    assert not list((store / DS).glob("_txn/*")) and not list((store / DS).glob("_staging/*"))
+    publish_release(output, store, "1.0.0")
+    assert verify_release(store, "1.0.0").ok
+
+
+def test_interrupted_publish_can_be_resumed(output, tmp_path):
+    store = tmp_path / "store"
+
+    class Crash(Exception):
+        pass
+
+    def crash_after_promotion(event, info):
+        if event == "promoted":
+            raise Crash("simulated crash before commit")
+
+    with pytest.raises(PublishInterruptedError, match="simulated crash"):
+        publish_release(output, store, "1.0.0", progress=crash_after_promotion)
+    # The files are in the version folder but without a manifest there is no version.
+    assert (store / DS / "1.0.0" / "SHA256SUMS").exists() and list_versions(store) == []
+    assert cli(["verify", str(store), "--version", "1.0.0"]) == 2
+    result = publish_release(output, store, "1.0.0", resume=True)
+    assert result.reused_files == sum(1 for p in output.rglob("*") if p.is_file())
+    assert verify_release(store, "1.0.0").ok
+    assert [v["version"] for v in list_versions(store)] == ["1.0.0"]
+
+
+def test_staged_object_corrupted_before_check_is_caught(output, tmp_path):
+    store = tmp_path / "store"
+
+    def corrupt(event, info):
+        if event == "staged":
+            p = store / DS / "_staging" / "1.0.0" / "run.json"
+            p.write_bytes(p.read_bytes().replace(b"nearest", b"NEAREST"))
+
+    with pytest.raises(PublishInterruptedError) as err:
+        publish_release(output, store, "1.0.0", progress=corrupt)
+    assert isinstance(err.value.__cause__, StagingCheckError)
+    assert "run.json" in str(err.value) and "sha256" in str(err.value)
+    assert list_versions(store) == [] and not (store / DS / "1.0.0" / "manifest.json").exists()
+
+
+def test_gc_keeps_recent_claims_and_repairs_index(output, tmp_path):
+    store = tmp_path / "store"
+    publish_release(output, store, "1.0.0")
+    (store / DS / "versions.json").unlink()
+    (store / DS / "latest.json").unlink()
+    (store / DS / "_txn").mkdir(exist_ok=True)
+    (store / DS / "_txn" / "1.1.0.json").write_text(json.dumps({"txid": "x", "started_unix": 4e9}))
+    report = gc(store, DS)  # default age threshold: the (future-dated) claim is kept
+    assert report.skipped_recent and (store / DS / "_txn" / "1.1.0.json").exists()
+    assert json.loads((store / DS / "latest.json").read_text())["version"] == "1.0.0"
+    assert [v["version"] for v in json.loads((store / DS / "versions.json").read_text())["versions"]] == ["1.0.0"]
+    assert verify_release(store, "latest").ok
+
+
+def test_diff_versions(tmp_path):
+    store = tmp_path / "store"
+    a = make_output(tmp_path / "a", seed=0, n_clips=2)
+    publish_release(a, store, "1.0.0")
+    np.savez(a / "training" / "waymo_seg0_FRONT_tra0.npz", tracks=np.zeros((2, 3, 2), np.float32))
+    (a / "validation" / "waymo_seg1_FRONT_val1.npz").unlink()
+    np.savez(a / "validation" / "waymo_seg9_FRONT_val9.npz", tracks=np.zeros((1, 3, 2), np.float32))
+    publish_release(a, store, "1.1.0")
+    d = diff_versions(store, "1.0.0", "1.1.0")
+    assert d.added == ["validation/waymo_seg9_FRONT_val9.npz"]
+    assert d.removed == ["validation/waymo_seg1_FRONT_val1.npz"]
+    assert d.changed == ["training/waymo_seg0_FRONT_tra0.npz"]
+    assert "counts.files" not in d.deltas  # one removed, one added: unchanged values are not listed
+    bytes_old = read_manifest(store, "1.0.0")["counts"]["bytes"]
+    bytes_new = read_manifest(store, "1.1.0")["counts"]["bytes"]
+    assert d.deltas["counts.bytes"] == {"old": bytes_old, "new": bytes_new, "delta": bytes_new - bytes_old}
+    with pytest.raises(VersionNotFoundError, match="Published: 1.0.0, 1.1.0"):
+        diff_versions(store, "1.0.0", "3.0.0")
+
+
+def test_cli_publish_versions_diff_verify_gc(output, tmp_path, capsys):
+    store = str(tmp_path / "store")
+    report = tmp_path / "gates.json"
+    report.write_text(json.dumps({"success": False, "results": [{"gate": "visible_fraction", "success": False}]}))
+    assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report)]) == 3
+    assert "visible_fraction" in capsys.readouterr().err
+    assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report),
+                "--accept-failed-gates", "reviewed by hand"]) == 0
+    assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report),
+                "--accept-failed-gates", "again"]) == 1
+    assert "already published" in capsys.readouterr().err
+    assert cli(["publish", str(output), "--store", store, "--version", "1.0", "--gate-report", str(report)]) == 1
+    assert cli(["verify", store, "--version", "1.0.0"]) == 0
+    assert "OK:" in capsys.readouterr().out
+    assert cli(["versions", store, "--json"]) == 0
+    assert [v["version"] for v in json.loads(capsys.readouterr().out)] == ["1.0.0"]
+    assert cli(["diff", store, "1.0.0", "1.0.0"]) == 0
+    assert "0 added, 0 removed, 0 changed" in capsys.readouterr().out
+    assert cli(["gc", store, "--older-than", "0"]) == 0
