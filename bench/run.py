@@ -1,0 +1,61 @@
+"""Run the benchmarks: every ``bench/bench_*.py`` module's ``main()``, or the ones named.
+
+    python -m bench.run                 # all
+    python -m bench.run depth release   # bench_depth.py and bench_release.py only
+
+Each benchmark prints its figures and updates its own section of docs/benchmarks.md together
+with the machine description, so that the recorded numbers always come from a run of the code.
+"""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+import time
+from pathlib import Path
+
+
+def machine_description() -> str:
+    """One line: cores, CPU model, memory, Python; written beside every benchmark figure."""
+    import os
+    import platform
+
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = ""
+    try:
+        kb = int(Path("/proc/meminfo").read_text().split()[1])
+        mem = f", {kb / 2**20:.0f} GiB RAM"
+    except (OSError, ValueError, IndexError):
+        pass
+    return f"{os.cpu_count()} cores ({cpu}){mem}, Python {platform.python_version()}, {platform.system()}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    wanted = set(argv if argv is not None else sys.argv[1:])
+    here = Path(__file__).parent
+    names = sorted(m.name for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("bench_"))
+    if wanted:
+        names = [n for n in names if n.removeprefix("bench_") in wanted or n in wanted]
+    print(f"machine: {machine_description()}")
+    failures = 0
+    for name in names:
+        print(f"\n=== {name}")
+        start = time.perf_counter()
+        try:
+            importlib.import_module(f"bench.{name}").main()
+        except Exception as exc:  # report and go on with the other benchmarks
+            failures += 1
+            print(f"{name} FAILED: {type(exc).__name__}: {exc}")
+        print(f"=== {name}: {time.perf_counter() - start:.1f} s")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
