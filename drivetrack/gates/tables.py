@@ -1,0 +1,158 @@
+"""Read the statistics tables of an annotation output folder and derive the columns gates check.
+
+Layout (docs/architecture.md): ``OUT/stats/objects.parquet`` (one row per annotated
+(segment, camera, object) clip), ``OUT/stats/segments.parquet`` (one row per segment, with one
+``rejected_<reason>`` count per filter), ``OUT/stats/rejections.parquet`` (one row per rejected
+(segment, camera, object, reason)). Paths go through fsspec, so ``OUT`` may be local or a URL.
+"""
+from __future__ import annotations
+
+import posixpath
+from dataclasses import dataclass, field
+
+import fsspec
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from drivetrack.gates.config import PERCENTILES
+
+SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
+
+OBJECT_COLUMNS = ("split", "segment", "camera", "object_id", "file", "num_tracks", "num_frames",
+                  "visible_fraction", "min_camera_distance_m", *SPEED_ERR_COLUMNS,
+                  "num_nonfinite_visible", "num_visible_outside_image")
+SEGMENT_COLUMNS = ("split", "segment", "status", "num_object_clips_considered",
+                   "num_object_clips_annotated")
+REJECTION_COLUMNS = ("segment", "reason")
+
+#: Columns that identify a row in each table (shown for every failing row).
+OBJECT_KEYS = ("split", "segment", "camera", "object_id")
+SEGMENT_KEYS = ("split", "segment")
+SPLIT_KEYS = ("split",)
+
+REJECTED_PREFIX = "rejected_"
+SHARE_PREFIX = "rejected_share_"
+
+
+class GateInputError(ValueError):
+    """An input table is missing or lacks columns: names the file and the columns."""
+
+
+@dataclass
+class GateTables:
+    """The tables the suites validate (pandas DataFrames, one row per entity)."""
+
+    objects: pd.DataFrame
+    segments: pd.DataFrame
+    splits: pd.DataFrame
+    rejection_reasons: list[str] = field(default_factory=list)
+    files: dict[str, str] = field(default_factory=dict)  # table name -> path read
+
+
+def _read_table(fs, root: str, name: str, required: tuple[str, ...],
+                optional: bool = False) -> tuple[pd.DataFrame | None, str]:
+    path = posixpath.join(root, "stats", f"{name}.parquet")
+    if not fs.exists(path):
+        if optional:
+            return None, path
+        raise GateInputError(f"statistics table {path} does not exist (expected layout: "
+                             f"OUT/stats/{name}.parquet, see docs/architecture.md)")
+    try:
+        table = pq.read_table(path, filesystem=fs)
+    except Exception as exc:  # pyarrow raises several types for corrupt files
+        raise GateInputError(f"statistics table {path} cannot be read as parquet: {exc}") from exc
+    missing = [c for c in required if c not in table.column_names]
+    if missing:
+        raise GateInputError(f"statistics table {path} lacks column(s) {missing}; "
+                             f"found {table.column_names}")
+    return table.to_pandas(), path
+
+
+def _relative(file_value: str, root: str, protocol_root: str) -> str:
+    """The path of ``file_value`` relative to the output folder (``file`` may be relative or not)."""
+    value = str(file_value)
+    for prefix in (protocol_root.rstrip("/") + "/", root.rstrip("/") + "/"):
+        if value.startswith(prefix):
+            return value[len(prefix):]
+    return value[2:] if value.startswith("./") else value
+
+
+def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
+    """Read ``OUT/stats/*.parquet`` and add the derived columns the gates validate.
+
+    Derived columns:
+      objects: ``speed_err_num_nonfinite`` (NaN or infinite speed-error percentiles, 0..5),
+        ``file_exists`` (bool: the row's ``file`` is in the output folder).
+      segments: ``rejected_share_<reason>`` (rejected_<reason> / num_object_clips_considered, NaN
+        when fewer than ``rejected_share_min_considered`` clips were considered),
+        ``num_object_rows`` (rows of objects.parquet for the segment), ``rejections_mismatch``
+        (sum over reasons of |rejected_<reason> - rows of rejections.parquet|).
+      splits (built here): ``split``, ``num_segments``, ``num_object_clips``, ``num_tracks``,
+        ``num_files_on_disk`` (``{split}/waymo_*.npz`` files).
+    """
+    fs, root = fsspec.core.url_to_fs(out_dir)
+    root = root.rstrip("/") or "/"
+    if not fs.isdir(root):
+        raise GateInputError(f"annotation output folder {out_dir} does not exist")
+    objects, objects_path = _read_table(fs, root, "objects", OBJECT_COLUMNS)
+    segments, segments_path = _read_table(fs, root, "segments", SEGMENT_COLUMNS)
+    check_rej = bool(cfg["segment"]["check_rejections_table"]["value"])
+    rejections, rejections_path = _read_table(fs, root, "rejections", REJECTION_COLUMNS,
+                                              optional=not check_rej)
+
+    for col in ("split", "segment", "camera", "object_id", "file"):
+        objects[col] = objects[col].astype(str)
+    for col in ("split", "segment", "status"):
+        segments[col] = segments[col].astype(str)
+
+    # -- objects ---------------------------------------------------------------------------------
+    speed = objects[list(SPEED_ERR_COLUMNS)].apply(pd.to_numeric, errors="coerce")
+    objects["speed_err_num_nonfinite"] = (~np.isfinite(speed.to_numpy(dtype=float))).sum(axis=1)
+    all_files = {p[len(root):].lstrip("/") for p in fs.find(root)} if root != "/" else set()
+    protocol_root = out_dir.rstrip("/")
+    rel = objects["file"].map(lambda f: _relative(f, root, protocol_root))
+    objects["file_exists"] = rel.isin(all_files)
+
+    # -- segments --------------------------------------------------------------------------------
+    reasons = sorted(c[len(REJECTED_PREFIX):] for c in segments.columns
+                     if c.startswith(REJECTED_PREFIX) and not c.startswith(SHARE_PREFIX))
+    considered = pd.to_numeric(segments["num_object_clips_considered"], errors="coerce")
+    min_considered = cfg["segment"]["rejected_share_min_considered"]["value"]
+    judged = considered >= max(min_considered, 1)
+    for reason in reasons:
+        count = pd.to_numeric(segments[REJECTED_PREFIX + reason], errors="coerce")
+        segments[SHARE_PREFIX + reason] = (count / considered).where(judged)
+    per_segment = objects.groupby("segment").size()
+    segments["num_object_rows"] = segments["segment"].map(per_segment).fillna(0).astype(int)
+    if rejections is not None:
+        rejections["segment"] = rejections["segment"].astype(str)
+        rejections["reason"] = rejections["reason"].astype(str)
+        listed = rejections.groupby(["segment", "reason"]).size().unstack(fill_value=0)
+        listed = listed.reindex(index=segments["segment"], fill_value=0)
+        mismatch = np.zeros(len(segments), dtype=np.int64)
+        for reason in sorted(set(reasons) | set(listed.columns)):
+            stated = (pd.to_numeric(segments[REJECTED_PREFIX + reason], errors="coerce")
+                      .fillna(0).to_numpy() if reason in reasons else np.zeros(len(segments)))
+            found = listed[reason].to_numpy() if reason in listed.columns else np.zeros(len(segments))
+            mismatch += np.abs(stated - found).astype(np.int64)
+        segments["rejections_mismatch"] = mismatch
+
+    # -- splits ----------------------------------------------------------------------------------
+    split_names = sorted(set(segments["split"]) | set(objects["split"]))
+    by_split = objects.groupby("split")
+    splits = pd.DataFrame({"split": split_names})
+    splits["num_segments"] = splits["split"].map(segments.groupby("split").size()).fillna(0).astype(int)
+    splits["num_object_clips"] = splits["split"].map(by_split.size()).fillna(0).astype(int)
+    tracks = pd.to_numeric(objects["num_tracks"], errors="coerce").groupby(objects["split"]).sum()
+    splits["num_tracks"] = splits["split"].map(tracks).fillna(0).astype(int)
+    on_disk = pd.Series([f.split("/", 1)[0] for f in all_files
+                         if f.count("/") == 1 and f.split("/", 1)[1].startswith("waymo_")
+                         and f.endswith(".npz")], dtype=object)
+    splits["num_files_on_disk"] = (splits["split"].map(on_disk.value_counts())
+                                   .fillna(0).astype(int))
+    paths = {"objects": objects_path, "segments": segments_path}
+    if rejections is not None:
+        paths["rejections"] = rejections_path
+    return GateTables(objects=objects, segments=segments, splits=splits,
+                      rejection_reasons=reasons, files=paths)
