@@ -1,0 +1,224 @@
+"""The procedural world: ego trajectory and objects with closed-form motion.
+
+Everything is a closed-form function of time (seconds since frame 0), so any sensor can ask for
+the exact pose at its own capture time (lidar columns, camera rows) and velocities are exact
+derivatives. The world frame has z up and the ground is the plane z = 0; traffic drives along
+world +x (lanes at ``y = LANES``), oncoming traffic along -x.
+
+Motion model shared by the ego and every object ("weave"): in a local frame rotated by the
+initial heading ``h0`` about z and placed at ``p0``, ``local x = s t`` and
+``local y = a (1 - cos(w t))``; the heading is ``h0 + atan2(a w sin(w t), s)``. Parked objects have
+``s = a = 0``. The ego adds a small pitch and roll oscillation (about its origin on the ground).
+"""
+from __future__ import annotations
+
+import string
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
+from drivetrack.waymo.schema import BoxType
+
+__all__ = ["Motion", "SynthObject", "World", "make_world", "LANE_WIDTH"]
+
+LANE_WIDTH = 3.5
+#: lane centres (world y, metres): ego direction at negative y, oncoming at positive y.
+EGO_LANES = (-1.75, -5.25, -8.75)
+ONCOMING_LANES = (1.75, 5.25)
+CURB_Y = -10.5          # right edge of the road; sidewalk beyond
+FAR_CURB_Y = 7.0        # left edge of the road (oncoming side)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Closed-form planar motion (see module docstring). Units: metres, radians, seconds."""
+    p0: tuple[float, float]
+    h0: float
+    s: float = 0.0
+    a: float = 0.0
+    w: float = 0.0
+
+    def position_xy(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 2] world (x, y) at times ``t`` float [...], seconds."""
+        t = np.asarray(t, dtype=np.float64)
+        lx, ly = self.s * t, self.a * (1.0 - np.cos(self.w * t))
+        c, s = np.cos(self.h0), np.sin(self.h0)
+        return np.stack([self.p0[0] + c * lx - s * ly, self.p0[1] + s * lx + c * ly], axis=-1)
+
+    def velocity_xy(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 2] world-frame velocity (m/s)."""
+        t = np.asarray(t, dtype=np.float64)
+        vx, vy = np.full_like(t, self.s), self.a * self.w * np.sin(self.w * t)
+        c, s = np.cos(self.h0), np.sin(self.h0)
+        return np.stack([c * vx - s * vy, s * vx + c * vy], axis=-1)
+
+    def acceleration_xy(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 2] world-frame acceleration (m/s^2)."""
+        t = np.asarray(t, dtype=np.float64)
+        ax, ay = np.zeros_like(t), self.a * self.w * self.w * np.cos(self.w * t)
+        c, s = np.cos(self.h0), np.sin(self.h0)
+        return np.stack([c * ax - s * ay, s * ax + c * ay], axis=-1)
+
+    def heading(self, t: np.ndarray) -> np.ndarray:
+        """float64 [...] yaw about world z (radians)."""
+        t = np.asarray(t, dtype=np.float64)
+        if self.s == 0.0 and self.a == 0.0:
+            return np.full_like(t, self.h0)
+        return self.h0 + np.arctan2(self.a * self.w * np.sin(self.w * t), self.s)
+
+    def yaw_rate(self, t: np.ndarray) -> np.ndarray:
+        """float64 [...] d heading / dt (rad/s)."""
+        t = np.asarray(t, dtype=np.float64)
+        if self.s == 0.0:
+            return np.zeros_like(t)
+        vy = self.a * self.w * np.sin(self.w * t)
+        ay = self.a * self.w * self.w * np.cos(self.w * t)
+        return self.s * ay / (self.s * self.s + vy * vy)
+
+
+@dataclass(frozen=True)
+class SynthObject:
+    """One labelled object: an oriented box moving with ``motion``.
+
+    ``size`` (length along heading, width, height) in metres; the box sits on the ground unless
+    ``z_center`` says otherwise. ``color`` float RGB in [0, 1], ``pattern`` 0 = checker,
+    1 = stripes, ``texture_scale`` metres per texture cell, ``seed`` for its noise.
+    """
+    object_id: str
+    type: int
+    size: tuple[float, float, float]
+    z_center: float
+    motion: Motion
+    color: tuple[float, float, float]
+    pattern: int
+    texture_scale: float
+    seed: int
+    role: str
+
+    def center(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 3] box centre in the world at times ``t``."""
+        xy = self.motion.position_xy(t)
+        return np.concatenate([xy, np.full(xy.shape[:-1] + (1,), self.z_center)], axis=-1)
+
+    def heading(self, t: np.ndarray) -> np.ndarray:
+        return self.motion.heading(t)
+
+    def velocity(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 3] world-frame velocity of the box centre, m/s."""
+        v = self.motion.velocity_xy(t)
+        return np.concatenate([v, np.zeros(v.shape[:-1] + (1,))], axis=-1)
+
+    def acceleration(self, t: np.ndarray) -> np.ndarray:
+        a = self.motion.acceleration_xy(t)
+        return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
+
+    def world_from_box(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 4, 4]."""
+        from drivetrack.geometry import rotation_z
+        return rigid_from_rotation_translation(rotation_z(self.heading(t)), self.center(t))
+
+
+@dataclass(frozen=True)
+class World:
+    """Ego motion (with pitch/roll oscillation) and the objects of one segment."""
+    ego: Motion
+    pitch_amplitude: float
+    roll_amplitude: float
+    objects: tuple[SynthObject, ...]
+    ground_seed: int
+
+    def _rp(self, t):
+        t = np.asarray(t, dtype=np.float64)
+        pitch = self.pitch_amplitude * np.sin(2 * np.pi * t / 3.1)
+        roll = self.roll_amplitude * np.sin(2 * np.pi * t / 2.3 + 1.0)
+        dpitch = self.pitch_amplitude * 2 * np.pi / 3.1 * np.cos(2 * np.pi * t / 3.1)
+        droll = self.roll_amplitude * 2 * np.pi / 2.3 * np.cos(2 * np.pi * t / 2.3 + 1.0)
+        return pitch, roll, dpitch, droll
+
+    def ego_rpy_xyz(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 6] ego pose [roll, pitch, yaw, x, y, z] (Waymo ``lidar_pose`` layout)."""
+        t = np.asarray(t, dtype=np.float64)
+        pitch, roll, _, _ = self._rp(t)
+        xy = self.ego.position_xy(t)
+        return np.stack([roll, pitch, self.ego.heading(t), xy[..., 0], xy[..., 1],
+                         np.zeros_like(t)], axis=-1)
+
+    def world_from_vehicle(self, t: np.ndarray) -> np.ndarray:
+        """float64 [..., 4, 4] ego pose at times ``t`` (seconds since frame 0)."""
+        p = self.ego_rpy_xyz(t)
+        return rigid_from_rotation_translation(rotation_from_rpy(p[..., 0], p[..., 1], p[..., 2]),
+                                               p[..., 3:])
+
+    def ego_velocity(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(linear [..., 3] m/s, angular [..., 3] rad/s), both in the world frame.
+
+        Angular velocity is the exact world-frame rate of ``Rz(yaw) Ry(pitch) Rx(roll)``:
+        ``w = yaw' z + pitch' Rz(yaw) y + roll' Rz(yaw) Ry(pitch) x``.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        v = self.ego.velocity_xy(t)
+        linear = np.concatenate([v, np.zeros(v.shape[:-1] + (1,))], axis=-1)
+        pitch, roll, dpitch, droll = self._rp(t)
+        yaw, dyaw = self.ego.heading(t), self.ego.yaw_rate(t)
+        cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+        y_axis = np.stack([-sy, cy, np.zeros_like(t)], -1)
+        x_axis = np.stack([cy * cp, sy * cp, -sp], -1)
+        angular = (dyaw[..., None] * np.array([0.0, 0.0, 1.0]) + dpitch[..., None] * y_axis
+                   + droll[..., None] * x_axis)
+        return linear, angular
+
+
+def _object_id(rng: np.random.Generator) -> str:
+    alphabet = np.array(list(string.ascii_letters + string.digits + "-_"))
+    return "".join(rng.choice(alphabet, size=22))
+
+
+def make_world(rng: np.random.Generator, duration: float) -> World:
+    """Sample one segment's world from ``rng``; ``duration`` (s) shapes where objects start.
+
+    Roles: ``lead`` (ahead in the ego lane), ``overtaking`` (from behind, in the next lane),
+    ``slow`` (ahead, in the outer lane: overtaken, occluded by the lead car), ``oncoming``
+    (x2, one starting beyond the 75 m label range so it enters late), ``crossing`` (drives
+    across the road in front, passing in front of other cars), ``parked`` (x3 along the curb, some
+    beyond 20 m), ``pedestrian`` (x3, type 2; one crosses), ``sign`` (type 3).
+    """
+    u = rng.uniform
+    v_ego = u(7.0, 9.5)
+    ego = Motion(p0=(0.0, EGO_LANES[0]), h0=0.0, s=v_ego, a=-u(1.4, 1.75), w=2 * np.pi / u(5.0, 7.0))
+    objects: list[SynthObject] = []
+
+    def add(role, type_, size, motion, z=None, pattern=None):
+        color = tuple(float(c) for c in rng.uniform(0.15, 0.95, size=3))
+        objects.append(SynthObject(
+            object_id=_object_id(rng), type=int(type_), size=tuple(float(s) for s in size),
+            z_center=float(size[2] / 2 if z is None else z), motion=motion, color=color,
+            pattern=int(rng.integers(0, 2) if pattern is None else pattern),
+            texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role))
+
+    def car_size():
+        return (u(4.2, 5.0), u(1.8, 2.05), u(1.45, 1.8))
+
+    vehicle, pedestrian, sign = BoxType.VEHICLE, BoxType.PEDESTRIAN, BoxType.SIGN
+    add("lead", vehicle, car_size(), Motion((u(13.0, 17.0), EGO_LANES[0]), 0.0, s=v_ego + u(-0.5, 0.5)))
+    add("overtaking", vehicle, car_size(),
+        Motion((u(-14.0, -8.0), EGO_LANES[1]), 0.0, s=v_ego + u(4.0, 6.0)))
+    add("slow", vehicle, car_size(), Motion((u(24.0, 32.0), EGO_LANES[2]), 0.0, s=u(2.0, 3.5)))
+    add("oncoming", vehicle, car_size(), Motion((u(45.0, 60.0), ONCOMING_LANES[0]), np.pi, s=u(8.0, 11.0)))
+    add("oncoming", vehicle, car_size(),
+        Motion((85.0 + v_ego * duration * 0.3, ONCOMING_LANES[1]), np.pi, s=u(9.0, 12.0)))
+    cross_x = u(30.0, 38.0) + v_ego * duration * 0.25
+    add("crossing", vehicle, car_size(), Motion((cross_x, CURB_Y - 6.0), np.pi / 2, s=u(5.0, 7.0)))
+    for x in (u(10.0, 16.0), u(22.0, 28.0), u(40.0, 55.0)):
+        add("parked", vehicle, car_size(), Motion((x, CURB_Y + 1.1), u(-0.05, 0.05)))
+    add("pedestrian", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
+        Motion((u(12.0, 20.0), CURB_Y - 1.5), 0.0, s=u(1.0, 1.5)))
+    add("pedestrian", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
+        Motion((u(25.0, 35.0), CURB_Y - 2.5), np.pi, s=u(1.0, 1.5), a=0.4, w=2 * np.pi / 4.0))
+    add("pedestrian", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
+        Motion((u(18.0, 26.0) + v_ego * duration * 0.5, FAR_CURB_Y + 1.0), -np.pi / 2, s=u(1.2, 1.6)))
+    add("sign", sign, (0.12, 0.9, 0.9), Motion((u(20.0, 30.0), CURB_Y - 0.8), np.pi / 2),
+        z=2.4, pattern=1)
+    return World(ego=ego, pitch_amplitude=float(u(0.003, 0.008)),
+                 roll_amplitude=float(u(0.002, 0.006)), objects=tuple(objects),
+                 ground_seed=int(rng.integers(0, 2**31 - 1)))
