@@ -1,0 +1,192 @@
+"""Release gates run with Great Expectations on statistics tables written by the tests.
+
+One module-scoped fixture runs the gates once per folder (good data and one folder per defect);
+the tests then check the verdicts, the named expectations, the failing objects/segments and the
+artefacts under OUT/validation/.
+"""
+from __future__ import annotations
+
+import json
+import re
+
+import fsspec
+import pytest
+
+from drivetrack.cli import main as cli_main
+from drivetrack.gates import card_summary, run_gates
+from test_gates_fixtures import (EMPTY_SEGMENT, NAN_SPEED, NOISY, NONFINITE, OUTSIDE, apply_defect,
+                                 good_tables, make_output, write_output)
+
+SPEED_MEDIANS = {f"release.speed_err_median.{p}" for p in ("p25", "p50", "p75", "p95", "p99")}
+
+
+def _inconsistent(root):
+    """Segment-level defects: a failed segment, a filter rejecting 39 of 40 clips, a rejections
+    table that disagrees with the counts, and a track file missing from disk."""
+    objects, segments, rejections = good_tables()
+    segments.loc[segments["segment"] == "seg_b1", "status"] = "failed"
+    b0 = segments["segment"] == "seg_b0"
+    segments.loc[b0, ["num_object_clips_considered", "rejected_too_far"]] = [40, 39]
+    rejections = rejections[~((rejections["segment"] == "seg_b0") & (rejections["reason"] == "too_far"))]
+    extra = [dict(segment="seg_b0", camera="FRONT", object_id=f"far_{i}", reason="too_far") for i in range(39)]
+    rejections = rejections.__class__([*rejections.to_dict("records"), *extra])
+    rejections = rejections[~((rejections["segment"] == "seg_a0") & (rejections["reason"] == "not_front_camera"))]
+    segments.loc[segments["segment"] == "seg_a0", "rejected_not_front_camera"] += 1
+    write_output(root, objects, segments, rejections)
+    (root / objects.loc[4, "file"]).unlink()
+    return root
+
+
+@pytest.fixture(scope="module")
+def reports(tmp_path_factory):
+    out = {}
+    for name in ("good", "label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err"):
+        root = tmp_path_factory.mktemp(name)
+        make_output(root, None if name == "good" else name)
+        docs = name in ("good", "label_noise")  # Data Docs cost ~2 s per run: build them twice
+        out[name] = (root, run_gates(str(root), data_docs=docs))
+    root = _inconsistent(tmp_path_factory.mktemp("inconsistent"))
+    out["inconsistent"] = (root, run_gates(str(root), data_docs=False))
+    return out
+
+
+def _failed(report):
+    return {f.gate for f in report.failures}
+
+
+def _objects(result):
+    return {(r["segment"], r["camera"], r["object_id"]) for r in result.failing}
+
+
+def _failure(report, gate):
+    return next(f for f in report.failures if f.gate == gate)
+
+
+def test_good_release_passes_and_writes_its_report(reports):
+    root, report = reports["good"]
+    assert report.success and report.failures == [], [f.gate for f in report.failures]
+    levels = {r.level for r in report.results}
+    assert levels == {"object", "segment", "release"}
+    val = root / "validation"
+    saved = json.loads((val / "gates.json").read_text())  # strict JSON
+    assert saved == json.loads(json.dumps(report.to_dict(), allow_nan=False))
+    assert saved["success"] is True and saved["failures"] == []
+    assert {p.name for p in (val / "gx_results").iterdir()} == {
+        "drivetrack_object_objects.json", "drivetrack_segment_segments.json",
+        "drivetrack_release_objects.json", "drivetrack_release_splits.json"}
+    # the Waymo 'validation' split shares the folder: its track files survive the gate run
+    assert len(list(val.glob("waymo_*.npz"))) == 6
+    assert "passed" in card_summary(report)
+
+
+def test_reports_render_offline(reports):
+    root, report = reports["label_noise"]
+    docs = root / "validation" / "data_docs"
+    pages = list(docs.rglob("*.html"))
+    assert len(pages) >= 9  # index + 4 suites + 4 validation results
+    for page in pages:
+        text = page.read_text()
+        loaded = re.findall(r"<(?:script|link|img)[^>]*(?:src|href)=\"(https?://[^\"]*)\"", text)
+        assert loaded == [], (page, loaded)
+        assert "<style>" in text
+    index = (docs / "index.html").read_text()
+    assert "drivetrack-offline-index" in index
+    for page in docs.glob("validations/*/*/*/*.html"):
+        assert page.relative_to(docs).as_posix() in index
+    results = next(docs.glob("validations/drivetrack_object_objects/*/*/*.html")).read_text()
+    assert "speed_err_p50" in results
+    html = (root / "validation" / "report.html").read_text()
+    assert "<script" not in html and "<link" not in html and "http" not in html.split("<body>")[0]
+    assert "object.speed_err_p50_max" in html and "seg_a0" in html and "obj_1" in html
+
+
+def test_label_noise_blocks_naming_speed_error_and_objects(reports):
+    _, report = reports["label_noise"]
+    assert not report.success
+    assert _failed(report) == {"object.speed_err_p50_max", "object.speed_err_p95_max"} | SPEED_MEDIANS
+    for gate in ("object.speed_err_p50_max", "object.speed_err_p95_max"):
+        f = _failure(report, gate)
+        assert f.level == "object" and f.expectation == "ExpectColumnValuesToBeBetween"
+        assert _objects(f) == set(NOISY) and f.num_failing == len(NOISY)
+        assert all(r[f.columns[0]] > f.expected["max_value"] for r in f.failing)
+    f = _failure(report, "release.speed_err_median.p50")
+    assert f.expectation == "ExpectColumnMedianToBeBetween" and f.level == "release"
+    assert f.observed > 1.0 and f.expected["max_value"] == pytest.approx(2 * 0.1260)
+    assert _objects(f) == set(NOISY)  # the objects that pull the median over the bound
+    d = report.to_dict()
+    assert d["success"] is False and len(d["failures"]) == 7
+    json.dumps(d, allow_nan=False)
+    card = card_summary(d)
+    assert "object.speed_err_p50_max" in card and "seg_a0/FRONT/obj_0" in card
+
+
+def test_corrupt_tracks_fail_nonfinite_and_outside_image(reports):
+    _, report = reports["corrupt_tracks"]
+    assert _failed(report) == {"object.no_nonfinite_visible", "object.visible_inside_image"}
+    f = _failure(report, "object.no_nonfinite_visible")
+    assert _objects(f) == {NONFINITE} and f.failing[0]["num_nonfinite_visible"] == 7
+    f = _failure(report, "object.visible_inside_image")
+    assert _objects(f) == {OUTSIDE} and f.failing[0]["num_visible_outside_image"] == 12
+    assert f.expected == {"min_value": 0, "max_value": 0}
+
+
+def test_empty_segment_fails_segment_gate(reports):
+    _, report = reports["empty_segment"]
+    assert _failed(report) == {"segment.min_object_clips_annotated"}
+    f = _failure(report, "segment.min_object_clips_annotated")
+    assert f.level == "segment"
+    assert f.failing == [{"num_object_clips_annotated": 0, "split": "training", "segment": EMPTY_SEGMENT}]
+
+
+def test_nan_speed_error_fails_finite_gate(reports):
+    _, report = reports["nan_speed_err"]
+    assert _failed(report) == {"object.speed_err_finite"}
+    f = _failure(report, "object.speed_err_finite")
+    assert _objects(f) == {NAN_SPEED}
+    assert f.failing[0]["speed_err_p75"] == "NaN" and f.failing[0]["speed_err_p99"] == "Infinity"
+
+
+def test_inconsistent_statistics_fail_segment_and_file_gates(reports):
+    _, report = reports["inconsistent"]
+    assert _failed(report) == {"segment.status", "segment.rejected_share.too_far",
+                               "segment.rejections_table_agrees", "object.file_exists",
+                               "release.split_files_agree"}
+    segs = lambda gate: {r["segment"] for r in _failure(report, gate).failing}  # noqa: E731
+    assert segs("segment.status") == {"seg_b1"}
+    assert segs("segment.rejected_share.too_far") == {"seg_b0"}
+    assert _failure(report, "segment.rejected_share.too_far").failing[0]["rejected_share_too_far"] \
+        == pytest.approx(39 / 40)
+    assert segs("segment.rejections_table_agrees") == {"seg_a0"}
+    assert _objects(_failure(report, "object.file_exists")) == {("seg_a1", "FRONT", "obj_1")}
+    assert _failure(report, "release.split_files_agree").failing == [
+        {"num_object_clips": 6, "num_files_on_disk": 5, "split": "training"}]
+
+
+def test_cli_exit_codes_and_config_override(tmp_path, capsys):
+    make_output(tmp_path)
+    cfg = tmp_path / "gates-override.yaml"
+    cfg.write_text("release:\n  required_splits: [training, testing]\n")
+    assert cli_main(["gates", str(tmp_path), "--config", str(cfg), "--no-data-docs"]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED release.required_splits" in out and "testing" in out
+    saved = json.loads((tmp_path / "validation" / "gates.json").read_text())
+    assert saved["config"]["source"]["override"] == str(cfg)
+    assert cli_main(["gates", str(tmp_path / "missing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_gates_over_an_fsspec_url():
+    fs = fsspec.filesystem("memory")
+    objects, segments, rejections = apply_defect(*good_tables(seed=3), "corrupt_tracks")
+    root = "memory://gates-test/out"
+    fs.makedirs(root, exist_ok=True)
+    for name, df in (("objects", objects), ("segments", segments), ("rejections", rejections)):
+        with fs.open(f"{root}/stats/{name}.parquet", "wb") as fh:
+            df.to_parquet(fh, index=False)
+    for f in objects["file"]:
+        fs.pipe(f"{root}/{f}", b"")
+    report = run_gates(root, data_docs=False)
+    assert _failed(report) == {"object.no_nonfinite_visible", "object.visible_inside_image"}
+    saved = json.loads(fs.cat(f"{root}/validation/gates.json"))
+    assert saved["success"] is False and fs.exists(f"{root}/validation/report.html")
+    fs.rm("memory://gates-test", recursive=True)

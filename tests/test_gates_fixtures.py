@@ -1,0 +1,101 @@
+"""Helpers (no tests): annotation output folders with statistics tables written directly.
+
+``make_output(root, defect=None)`` writes a small, plausible release (2 splits, 4 segments, 3
+objects per segment, FRONT camera) whose speed errors sit at the paper's scale, then applies one
+defect. The npz files are empty placeholders: the gates read only the statistics tables and check
+that each named file exists.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+PAPER = np.array([0.0651, 0.1260, 0.2471, 0.5497, 0.8687])
+REASONS = ("too_few_frames", "too_far", "not_front_camera")
+
+#: The objects a defect touches, as (segment, camera, object_id).
+NOISY = [("seg_a0", "FRONT", "obj_0"), ("seg_a0", "FRONT", "obj_1"), ("seg_a1", "FRONT", "obj_2"),
+         ("seg_b0", "FRONT", "obj_0"), ("seg_b0", "FRONT", "obj_1"), ("seg_b1", "FRONT", "obj_0"),
+         ("seg_b1", "FRONT", "obj_2")]
+NONFINITE = ("seg_a1", "FRONT", "obj_1")
+OUTSIDE = ("seg_b0", "FRONT", "obj_2")
+NAN_SPEED = ("seg_b1", "FRONT", "obj_1")
+EMPTY_SEGMENT = "seg_a1"
+
+DEFECTS = ("label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err")
+
+
+def good_tables(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """(objects, segments, rejections) of a release that passes every default gate."""
+    rng = np.random.default_rng(seed)
+    rows, seg_rows, rej_rows = [], [], []
+    for split, tag in (("training", "a"), ("validation", "b")):
+        for s in range(2):
+            segment = f"seg_{tag}{s}"
+            for o in range(3):
+                scale = rng.uniform(0.6, 1.4)
+                err = PAPER * scale
+                rows.append(dict(
+                    split=split, segment=segment, camera="FRONT", object_id=f"obj_{o}",
+                    object_type="VEHICLE", file=f"{split}/waymo_{segment}_FRONT_obj_{o}.npz",
+                    num_tracks=int(rng.integers(200, 2000)), num_frames=int(rng.integers(24, 199)),
+                    visible_fraction=float(rng.uniform(0.3, 0.95)),
+                    min_camera_distance_m=float(rng.uniform(4, 19)),
+                    box_speed_mean_mps=float(rng.uniform(0, 15)),
+                    **{f"speed_err_{p}": float(v) for p, v in zip(("p25", "p50", "p75", "p95", "p99"), err)},
+                    num_nonfinite_visible=0, num_visible_outside_image=0))
+            rejected = {r: int(rng.integers(0, 4)) for r in REASONS}
+            seg_rows.append(dict(split=split, segment=segment, status="done", error="",
+                                 num_frames=199, num_objects_labelled=40,
+                                 num_object_clips_considered=3 + sum(rejected.values()),
+                                 num_object_clips_annotated=3,
+                                 **{f"rejected_{r}": n for r, n in rejected.items()}))
+            for r, n in rejected.items():
+                rej_rows += [dict(segment=segment, camera="FRONT_LEFT", object_id=f"rej_{r}_{i}",
+                                  reason=r) for i in range(n)]
+    return pd.DataFrame(rows), pd.DataFrame(seg_rows), pd.DataFrame(rej_rows)
+
+
+def _match(objects: pd.DataFrame, key: tuple[str, str, str]) -> pd.Series:
+    return ((objects["segment"] == key[0]) & (objects["camera"] == key[1])
+            & (objects["object_id"] == key[2]))
+
+
+def apply_defect(objects, segments, rejections, defect):
+    objects, segments, rejections = objects.copy(), segments.copy(), rejections.copy()
+    cols = [f"speed_err_{p}" for p in ("p25", "p50", "p75", "p95", "p99")]
+    if defect == "label_noise":
+        # boxes jittered by decimetres per frame: track speeds differ from box speeds by m/s
+        for i, key in enumerate(NOISY):
+            objects.loc[_match(objects, key), cols] = PAPER * 25 + 0.1 * i
+    elif defect == "corrupt_tracks":
+        objects.loc[_match(objects, NONFINITE), "num_nonfinite_visible"] = 7
+        objects.loc[_match(objects, OUTSIDE), "num_visible_outside_image"] = 12
+    elif defect == "empty_segment":
+        objects = objects[objects["segment"] != EMPTY_SEGMENT].reset_index(drop=True)
+        segments.loc[segments["segment"] == EMPTY_SEGMENT, "num_object_clips_annotated"] = 0
+    elif defect == "nan_speed_err":
+        objects.loc[_match(objects, NAN_SPEED), "speed_err_p75"] = np.nan
+        objects.loc[_match(objects, NAN_SPEED), "speed_err_p99"] = np.inf
+    elif defect is not None:
+        raise ValueError(f"unknown defect {defect!r}; known {DEFECTS}")
+    return objects, segments, rejections
+
+
+def write_output(root: Path, objects, segments, rejections, files: bool = True) -> Path:
+    stats = root / "stats"
+    stats.mkdir(parents=True, exist_ok=True)
+    objects.to_parquet(stats / "objects.parquet", index=False)
+    segments.to_parquet(stats / "segments.parquet", index=False)
+    rejections.to_parquet(stats / "rejections.parquet", index=False)
+    if files:
+        for f in objects["file"]:
+            (root / f).parent.mkdir(parents=True, exist_ok=True)
+            (root / f).write_bytes(b"")
+    return root
+
+
+def make_output(root: Path, defect: str | None = None, seed: int = 0) -> Path:
+    return write_output(root, *apply_defect(*good_tables(seed), defect))
