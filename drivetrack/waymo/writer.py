@@ -76,17 +76,27 @@ def _as_array(comp: Component, name: str, values, expected: pa.DataType) -> pa.A
                         f"{expected}: {exc}") from exc
 
 
+def _nulls(comp: Component, name: str, n: int, type_: pa.DataType) -> pa.Array:
+    if pa.types.is_fixed_size_list(type_) and n:
+        raise ValueError(
+            f"component {comp.name!r}: column {name!r} ({type_}) is missing; null fixed-size "
+            f"lists cannot be read back from parquet by pyarrow, so give its values")
+    return pa.nulls(n, type=type_)
+
+
 def build_table(component: str | Component, columns: Mapping[str, object] | pa.Table) -> pa.Table:
     """A table with exactly the official columns, order and types of ``component``.
 
     Args:
         component: a component name (``"lidar_box"``) or :class:`Component`.
         columns: a ``pa.Table`` or a mapping column name -> values (pyarrow array, numpy array,
-            or list). Columns the component has but ``columns`` lacks become all-null.
+            or list). Columns the component has but ``columns`` lacks become all-null, except
+            fixed-size lists (transforms, shapes): pyarrow cannot read null fixed-size lists
+            back from parquet, so those must be given, without nulls.
     Raises:
         KeyError: an unknown column (named, with the component).
         TypeError: a column whose type is not the official one (named, expected and found).
-        ValueError: columns of different lengths.
+        ValueError: columns of different lengths; a missing or null fixed-size-list column.
     """
     comp = component if isinstance(component, Component) else _component(component)
     if isinstance(columns, pa.Table):
@@ -102,7 +112,12 @@ def build_table(component: str | Component, columns: Mapping[str, object] | pa.T
         raise ValueError(f"component {comp.name!r}: columns have different lengths "
                          f"{ {n: len(a) for n, a in arrays.items()} }")
     n = lengths.pop() if lengths else 0
-    full = [arrays.get(c.name, pa.nulls(n, type=c.type)) for c in comp.columns]
+    for name, arr in arrays.items():
+        if pa.types.is_fixed_size_list(arr.type) and arr.null_count:
+            raise ValueError(f"component {comp.name!r}: column {name!r} has {arr.null_count} null "
+                             f"row(s); null fixed-size lists cannot be read back from parquet")
+    full = [arrays[c.name] if c.name in arrays else _nulls(comp, c.name, n, c.type)
+            for c in comp.columns]
     return pa.Table.from_arrays(full, schema=comp.arrow_schema())
 
 
