@@ -199,6 +199,8 @@ class _ComponentFile:
 
     def _filter(self, data):
         mask = pc.fill_null(pc.equal(data[KEY_SEGMENT], self.segment), False)
+        if pc.all(mask).as_py() is not False and data.num_rows:
+            return data  # the usual case: one segment per file; filtering would copy it all
         return data.filter(mask)
 
     def _check_unique(self, keys: pa.Table) -> None:
