@@ -55,7 +55,6 @@ class S3Server:
         """
         opts: dict = {"client_kwargs": {"endpoint_url": self.endpoint_url}, "skip_instance_cache": True}
         if fail_fast:
-            opts["retries"] = 1
             opts["config_kwargs"] = {"retries": {"max_attempts": 1}, "connect_timeout": 1, "read_timeout": 2}
         return opts
 

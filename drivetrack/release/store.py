@@ -93,6 +93,13 @@ class Store:
         if self.is_local:
             return os.path.exists(p)
         self.fs.invalidate_cache(p)
+        if self.protocol == "s3":  # one HEAD, no directory listing fallback: objects only
+            bucket, key, _ = self.fs.split_path(p)
+            try:
+                self.fs.call_s3("head_object", Bucket=bucket, Key=key)
+                return True
+            except FileNotFoundError:
+                return False
         return self.fs.exists(p)
 
     def size(self, rel: str) -> int:
