@@ -141,10 +141,12 @@ table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding
 .table-sm td,.table-sm th{font-size:13px}.d-none{display:none}
 nav .breadcrumb{list-style:none;display:flex;gap:.5em;padding:0}.text-danger{color:#c62828}.text-success{color:#1a7f37}
 .card{border:1px solid #ddd;margin:.5em 0;padding:.5em}.alert{padding:.5em;border:1px solid #ccc}
+.fa-check-circle::before{content:"\\2714 pass";font-style:normal;font-weight:bold}
+.fa-times::before{content:"\\2718 FAIL";font-style:normal;font-weight:bold}
 </style>"""
 
 
-def _make_offline(docs: Path, pages: list[str]) -> None:
+def _make_offline(docs: Path, pages: list[tuple[str, str]]) -> None:
     """Strip CDN stylesheets/scripts from the GX pages, inline a small stylesheet, list the pages
     on the index in plain HTML (the GX index table is filled by a CDN script), and drop static
     files no page references."""
@@ -155,7 +157,8 @@ def _make_offline(docs: Path, pages: list[str]) -> None:
         text = _EXTERNAL_IMG.sub(f'src="{logo}"', text)
         text = text.replace("<head>", "<head>\n" + _OFFLINE_CSS, 1)
         if page == docs / "index.html":
-            items = "".join(f'<li><a href="{html.escape(p)}">{html.escape(p)}</a></li>' for p in pages)
+            items = "".join(f'<li><a href="{html.escape(p)}">{html.escape(p)}</a> {html.escape(label)}</li>'
+                            for p, label in pages)
             text = re.sub(r"<body[^>]*>", lambda m: m.group(0) + (
                 "\n<div id='drivetrack-offline-index'><h2>Validation results and suites</h2><ul>"
                 f"{items}</ul><p><a href='../report.html'>DriveTrack gate report</a></p></div>"), text, 1)
@@ -190,6 +193,7 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
     for spec in specs:
         by_suite.setdefault(spec.suite, []).append(spec)
     results: list[GateResult] = []
+    suite_ok: dict[str, bool] = {}
     for suite_name, suite_specs in by_suite.items():
         table = suite_specs[0].table
         frame = frames[table]
@@ -208,6 +212,8 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
         for r in validation.results:  # GX returns numpy.bool for some expectations (STACK.md)
             r.success = bool(r.success)
         validation.success = bool(validation.success)
+        validation.meta["run_id"] = run_id  # shown as run name/time in Data Docs
+        suite_ok[suite_name] = validation.success
         spec_of = {s.gate: s for s in suite_specs}
         for r in validation.results:
             results.append(_gate_result(spec_of[r.expectation_config.meta["gate"]], r, frame))
@@ -219,8 +225,13 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
         ctx.validation_results_store.set(key, validation)
     if data_docs:
         ctx.build_data_docs(site_names=[DOCS_SITE])
-        pages = sorted(p.relative_to(docs_dir).as_posix() for p in docs_dir.rglob("*.html")
-                       if p.name != "index.html")
+        pages = []
+        for page in sorted(docs_dir.rglob("*.html")):
+            rel = page.relative_to(docs_dir).as_posix()
+            if rel.startswith("validations/"):
+                pages.append((rel, "(passed)" if suite_ok[page.stem] else "(FAILED)"))
+            elif rel != "index.html":
+                pages.append((rel, "(expectation suite)"))
         _make_offline(docs_dir, pages)
     order = {s.gate: i for i, s in enumerate(specs)}
     results.sort(key=lambda r: order[r.gate])
