@@ -1,0 +1,71 @@
+"""Assemble the release folder from the work folder: every done segment's files (hard links
+when local), the per-segment statistics tables merged into ``stats/*.parquet`` (failed segments
+added to ``stats/segments.parquet`` as ``status=failed`` rows with their error), ``run.json``."""
+from __future__ import annotations
+
+import io
+import json
+import os
+
+import fsspec
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from flows.jobs import DONE
+
+
+def _is_local(fs) -> bool:
+    protocols = fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)
+    return "file" in protocols or "local" in protocols
+
+
+def assemble_release_folder(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
+    """``records``: completion records with ``dir`` (their segment folder). Returns counts."""
+    ofs, oroot = fsspec.core.url_to_fs(str(out))
+    oroot = oroot.rstrip("/")
+    tables: dict[str, list[pa.Table]] = {}
+    placed: dict[str, str] = {}
+    n_files = 0
+    for rec in records:
+        sfs, sroot = fsspec.core.url_to_fs(rec["dir"])
+        sroot = sroot.rstrip("/")
+        for rel in sorted(rec.get("files") or {}):
+            if rel == DONE:
+                continue
+            src = f"{sroot}/{rel}"
+            if rel.startswith("stats/") and rel.endswith(".parquet") and rel.count("/") == 1:
+                with sfs.open(src, "rb") as f:
+                    tables.setdefault(rel, []).append(pq.read_table(f))
+                continue
+            if rel in placed:
+                raise ValueError(f"{rel} is written by two segments ({placed[rel]} and "
+                                 f"{rec['split']}/{rec['segment']}): file names must be unique per segment")
+            placed[rel] = f"{rec['split']}/{rec['segment']}"
+            dst = f"{oroot}/{rel}"
+            ofs.makedirs(dst.rsplit("/", 1)[0], exist_ok=True)
+            if _is_local(sfs) and _is_local(ofs):
+                try:
+                    os.link(src, dst)
+                except OSError:
+                    ofs.put_file(src, dst)
+            else:
+                with sfs.open(src, "rb") as fi, ofs.open(dst, "wb") as fo:
+                    while block := fi.read(1 << 23):
+                        fo.write(block)
+            n_files += 1
+    if failed:
+        rows = pa.table({"split": [f["split"] for f in failed], "segment": [f["segment"] for f in failed],
+                         "status": ["failed"] * len(failed), "error": [f["error"] for f in failed]})
+        tables.setdefault("stats/segments.parquet", []).append(rows)
+    for rel, parts in sorted(tables.items()):
+        merged = pa.concat_tables(parts, promote_options="permissive")
+        buf = io.BytesIO()
+        pq.write_table(merged, buf)
+        ofs.makedirs(f"{oroot}/stats", exist_ok=True)
+        with ofs.open(f"{oroot}/{rel}", "wb") as f:
+            f.write(buf.getvalue())
+        n_files += 1
+    with ofs.open(f"{oroot}/run.json", "w") as f:
+        json.dump(run, f, indent=1, sort_keys=True, default=str)
+    return {"files": n_files + 1, "segments": len(records), "failed": len(failed),
+            "tables": {rel: sum(t.num_rows for t in parts) for rel, parts in tables.items()}}

@@ -1,0 +1,487 @@
+"""The ``release`` flow: list segments, per-segment jobs (ingestion, depth completion on the GPU
+queue, per-object tracks, writing), statistics, gates, publish - staged by Prefect on Dask.
+
+    python -m flows.release --version 1.2.3 --source data/synthetic --store ./store
+    make release VERSION=1.2.3 [SOURCE=...] [STORE=...] [SEGMENTS='a b']
+
+Tasks are thin and coarse: one Prefect task per segment (fine work fans out on Dask inside it,
+see :mod:`flows.jobs`); the release-wide steps are one task each. Segment results are keyed on
+content (:mod:`flows.keys`): a re-run after an interruption or a change recomputes only the
+segments whose key has no completion record. A failed segment is reported with its error and
+does not stop the others; the gates decide whether the release publishes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from flows import REPO  # sets Prefect/Dask environment defaults before Prefect is imported
+
+from prefect import flow, get_run_logger, task  # noqa: E402
+from prefect.artifacts import create_progress_artifact, create_table_artifact, update_progress_artifact  # noqa: E402
+from prefect.futures import wait  # noqa: E402
+
+from drivetrack.status import SEGMENT_STAGES, ReleaseStatus, StageStatus, write_status  # noqa: E402
+from flows import jobs, keys  # noqa: E402
+from flows.runtime import ClusterConfig, dask_cluster, prefect_api  # noqa: E402
+
+DEFAULT_DATASET = "drivetrack-waymo"
+DEFAULT_WORK = str(REPO / "build" / "release-work")
+STATUS_EVERY_S = 1.0
+
+
+# ---- tasks -------------------------------------------------------------------------------------
+
+@task(name="list-segments", retries=2, retry_delay_seconds=2,
+      retry_condition_fn=lambda t, r, s: jobs.is_transient(s.result(raise_on_failure=False)))
+def list_segments_task(source: str, splits: list[str], segments: list[str] | None,
+                       storage_options: dict | None = None) -> list[tuple[str, str]]:
+    """(split, segment) pairs to build; requested segments missing from every split are an error."""
+    from drivetrack.waymo.reader import list_segments
+
+    found = {split: list_segments(source, split, storage_options) for split in splits}
+    if segments:
+        wanted = []
+        for seg in segments:
+            hits = [split for split in splits if seg in found[split]]
+            if not hits:
+                raise ValueError(f"segment {seg!r} is not in {source} (splits {', '.join(splits)}; "
+                                 f"found {sum(len(v) for v in found.values())} segments)")
+            wanted += [(split, seg) for split in hits]
+        return wanted
+    pairs = [(split, seg) for split in splits for seg in found[split]]
+    if not pairs:
+        raise ValueError(f"no segments under {source} in splits {', '.join(splits)}")
+    return pairs
+
+
+@task(name="plan", retries=2, retry_delay_seconds=2,
+      retry_condition_fn=lambda t, r, s: jobs.is_transient(s.result(raise_on_failure=False)))
+def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: str, code_fp: str,
+              storage_options: dict | None = None) -> list[dict]:
+    """Per segment: source checksums and content key, and its completion record if one exists."""
+    memo_url = f"{work}/checksums.json"
+    memo = {k: tuple(v) for k, v in (jobs.read_json(memo_url) or {}).items()}
+    plan = []
+    for split, seg in pairs:
+        sums = keys.source_checksums(source, split, seg, storage_options=storage_options, memo=memo)
+        key = keys.segment_key(split, seg, sums, config_fp, code_fp)
+        plan.append({"split": split, "segment": seg, "key": key, "checksums": sums,
+                     "record": jobs.completion_record(work, split, seg, key)})
+    jobs.write_json(memo_url, memo)
+    return plan
+
+
+def _segment_cache_key(context, parameters) -> str:
+    return f"drivetrack-segment-{parameters['key']}"
+
+
+@task(name="segment", task_run_name="segment {split}/{segment}", retries=2, retry_delay_seconds=[2, 10],
+      retry_condition_fn=lambda t, r, s: jobs.is_transient(s.result(raise_on_failure=False)),
+      cache_key_fn=_segment_cache_key, persist_result=True)
+def segment_task(source: str, split: str, segment: str, key: str, work: str, config: dict,
+                 storage_options: dict | None = None) -> dict:
+    """One segment: a thin wrapper around :func:`flows.jobs.run_segment` (reuses a completion
+    record with the same content key)."""
+    rec = jobs.completion_record(work, split, segment, key, storage_options)
+    if rec is not None:
+        return rec
+    return jobs.run_segment(source, split, segment, key, work, config, storage_options)
+
+
+@task(name="statistics")
+def statistics_task(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
+    """Assemble the release folder: every done segment's files, merged stats tables (failed
+    segments as ``status=failed`` rows), ``run.json``."""
+    from flows.assemble import assemble_release_folder
+
+    return assemble_release_folder(out, records, failed, run, work)
+
+
+@task(name="gates")
+def gates_task(out: str, gates_config) -> dict:
+    from drivetrack.gates import run_gates
+
+    return run_gates(out, gates_config).to_dict()
+
+
+@task(name="publish", retries=2, retry_delay_seconds=[2, 10],
+      retry_condition_fn=lambda t, r, s: _publish_retryable(s.result(raise_on_failure=False)))
+def publish_task(out: str, store: str, version: str, dataset: str, gate_report: dict,
+                 accept_failed_gates: str | None, config: dict, storage_options: dict | None) -> dict:
+    """Publish; a retry after an interrupted attempt resumes its staged files."""
+    from prefect.context import TaskRunContext
+
+    from drivetrack.release import publish_release
+
+    ctx = TaskRunContext.get()
+    resume = bool(ctx and ctx.task_run.run_count > 1)
+    res = publish_release(out, store, version, dataset=dataset, storage_options=storage_options,
+                          gate_report=gate_report, accept_failed_gates=accept_failed_gates, config=config,
+                          resume=resume)
+    return {k: v for k, v in vars(res).items() if isinstance(v, (str, int, float, bool, type(None)))}
+
+
+def _publish_retryable(exc) -> bool:
+    from drivetrack.release import PublishInterruptedError
+
+    return isinstance(exc, PublishInterruptedError) and jobs.is_transient(exc.__cause__)
+
+
+# ---- status plumbing ---------------------------------------------------------------------------
+
+class _Board:
+    """The parent's single writer of the status: status.json/html in the work and release
+    folders, and the Prefect table and progress artifacts."""
+
+    def __init__(self, status: ReleaseStatus, out: str, work: str):
+        self.status, self.out, self.work = status, out, work
+        self.key = "release-" + "".join(c if c.isalnum() else "-" for c in status.version.lower())
+        self.progress_id = None
+        self.last_table = 0.0
+
+    def flush(self, *, table: bool = False, final: bool = False) -> None:
+        write_status(self.out, self.status, refresh_s=None if final else 5)
+        n = len(self.status.segments)
+        finished = sum(1 for s in self.status.segments if s.state in ("done", "failed"))
+        pct = 100.0 * finished / n if n else 100.0
+        try:
+            if self.progress_id is None:
+                self.progress_id = create_progress_artifact(pct, key=f"{self.key}-progress",
+                                                            description=f"segments finished of {n}")
+            else:
+                update_progress_artifact(self.progress_id, pct)
+            if table or final or time.monotonic() - self.last_table > 5:
+                create_table_artifact(self.status.table_rows(), key=f"{self.key}-segments",
+                                      description=self._describe())
+                self.last_table = time.monotonic()
+        except Exception as e:  # the UI is advisory; the files are the record
+            get_run_logger().warning(f"could not update Prefect artifacts: {type(e).__name__}: {e}")
+
+    def _describe(self) -> str:
+        c = self.status.counts()
+        return (f"{self.status.dataset} {self.status.version}: " + ", ".join(f"{k} {v}" for k, v in c.items() if v)
+                + (f". {self.status.message}" if self.status.message else ""))
+
+    def merge_progress(self, split: str, segment: str, doc: dict | None) -> None:
+        """Copy a job's live stage states (``WORK/progress``) into the status."""
+        if not doc:
+            return
+        for name, info in (doc.get("stages") or {}).items():
+            if name in SEGMENT_STAGES:
+                fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
+                self.status.update(split, segment, name, info["state"], **fields)
+
+
+def _mark_from_record(status: ReleaseStatus, split: str, segment: str, rec: dict, cached: bool) -> None:
+    for name in SEGMENT_STAGES:
+        info = (rec.get("stages") or {}).get(name, {})
+        fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
+        status.update(split, segment, name, "done", cached=cached, **fields)
+
+
+def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict | None, error: str) -> None:
+    stages = (progress or {}).get("stages") or {}
+    failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") == "failed"), None)
+    if failed_at is None:  # failed before or between recorded stages
+        failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") != "done"), SEGMENT_STAGES[0])
+    after = False
+    for name in SEGMENT_STAGES:
+        if name == failed_at:
+            info = stages.get(name, {})
+            status.update(split, segment, name, "failed", error=error,
+                          **({"started": info["started"]} if info.get("started") else {}))
+            after = True
+        elif after:
+            status.update(split, segment, name, "skipped")
+
+
+def _latest_published(store: str, dataset: str, storage_options: dict | None) -> tuple[str | None, dict | None]:
+    """(latest version, its run.json) or (None, None) when nothing is published."""
+    from drivetrack.release import VersionNotFoundError, open_store
+    from drivetrack.release.catalog import resolve_version
+
+    try:
+        st = open_store(store, storage_options)
+        v = resolve_version(st, dataset, "latest")
+        rel = f"{dataset}/{v}/run.json"
+        return v, (json.loads(st.read_bytes(rel)) if st.exists(rel) else {})
+    except (VersionNotFoundError, FileNotFoundError):
+        return None, None
+
+
+def next_version(latest: str | None) -> str:
+    """``auto`` versions: the next patch after the latest release, ``0.1.0`` for the first."""
+    if latest is None:
+        return "0.1.0"
+    core = latest.split("+")[0].split("-")[0]
+    try:
+        major, minor, patch = (int(x) for x in core.split("."))
+    except ValueError:
+        raise ValueError(f"latest version {latest!r} is not x.y.z: give an explicit version") from None
+    return f"{major}.{minor}.{patch + 1}"
+
+
+# ---- flows -------------------------------------------------------------------------------------
+
+@flow(name="release-build", log_prints=True)
+def build(version: str, source: str, store: str, splits: list[str], segments: list[str] | None,
+          config: dict, dataset: str, work: str, gates_config, accept_failed_gates: str | None,
+          skip_unchanged: bool, storage_options: dict | None, store_options: dict | None) -> dict:
+    """The staged recipe; runs with the Dask task runner the ``release`` flow gives it."""
+    from drivetrack.annotate import AnnotateConfig
+    from drivetrack.release.manifest import code_version
+
+    logger = get_run_logger()
+    cfg = AnnotateConfig.from_dict(config or {})
+    config = cfg.to_dict()
+    config_fp, code_out, code_all = cfg.fingerprint(), keys.code_fingerprint(outputs_only=True), keys.code_fingerprint()
+    latest, latest_run = _latest_published(store, dataset, store_options)
+    if version == "auto":
+        version = next_version(latest)
+    out = f"{work.rstrip('/')}/releases/{version}"
+    status = ReleaseStatus(dataset=dataset, version=version, source=source, store=store)
+    board = _Board(status, out, work)
+    jobs_fs_reset(out)
+
+    status.update_release("list", "running")
+    board.flush()
+    try:
+        pairs = list_segments_task(source, splits, segments, storage_options)
+        plan = plan_task(source, pairs, work, config_fp, code_out, storage_options)
+    except Exception as e:
+        status.update_release("list", "failed", error=jobs.failure_summary(e))
+        status.message = "could not list the source: nothing was built"
+        board.flush(final=True)
+        raise
+    status.update_release("list", "done", count=len(plan), unit="segments")
+    for p in plan:
+        status.add_segment(p["split"], p["segment"], p["key"])
+    cached = [p for p in plan if p["record"]]
+    for p in cached:
+        _mark_from_record(status, p["split"], p["segment"], p["record"], cached=True)
+    todo = [p for p in plan if not p["record"]]
+    logger.info(f"{len(plan)} segments: {len(cached)} reused (same content key), {len(todo)} to compute")
+    status.update_release("segments", "running")
+    board.flush(table=True)
+
+    futures = {}
+    for p in todo:
+        f = segment_task.submit(source, p["split"], p["segment"], p["key"], work, config, storage_options)
+        futures[f] = p
+    records = {(p["split"], p["segment"]): p["record"] for p in cached}
+    failed = []
+    pending = set(futures)
+    while pending:
+        done, pending = wait(list(pending), timeout=STATUS_EVERY_S)
+        pending = set(pending)
+        for p in (futures[f] for f in pending):
+            board.merge_progress(p["split"], p["segment"],
+                                 jobs.read_json(jobs.progress_path(work, p["split"], p["segment"])))
+        for f in done:
+            p = futures[f]
+            split, seg = p["split"], p["segment"]
+            progress = jobs.read_json(jobs.progress_path(work, split, seg))
+            state = f.state
+            rec = f.result(raise_on_failure=False) if state.is_completed() else None
+            if isinstance(rec, dict) and rec.get("status") == "done" and \
+                    jobs.completion_record(work, split, seg, p["key"], storage_options) is not None:
+                records[(split, seg)] = rec
+                _mark_from_record(status, split, seg, rec, cached=bool(state.name == "Cached"))
+            else:
+                exc = f.result(raise_on_failure=False) if not state.is_completed() else None
+                error = jobs.failure_summary(exc) if isinstance(exc, BaseException) else (
+                    f"{state.name}: {state.message}" if rec is None else
+                    "the task reported done but its completion record is missing (work folder cleaned?): "
+                    "run again")
+                _mark_failed(status, split, seg, progress, error)
+                failed.append({"split": split, "segment": seg, "key": p["key"], "error": error})
+                logger.error(f"segment {split}/{seg} failed: {error}")
+        board.flush(table=bool(done))
+    c = status.counts()
+    status.update_release("segments", "failed" if failed else "done", count=c["done"], unit="segments done",
+                          error=f"{len(failed)} of {len(plan)} segments failed" if failed else None)
+    board.flush(table=True)
+
+    seg_rows = [{"split": s.split, "segment": s.segment, "key": s.key, "state": s.state} for s in status.segments]
+    fingerprint = keys.release_fingerprint(dataset, seg_rows, config_fingerprint=config_fp, gates=gates_config,
+                                           code=code_all)
+    status.fingerprint = fingerprint
+    run = {"config": config, "config_fingerprint": config_fp, "code_version": code_version(REPO),
+           "code_fingerprint": code_all, "release_fingerprint": fingerprint, "dataset": dataset,
+           "version": version, "source": source, "splits": splits,
+           "segments": [{"split": p["split"], "segment": p["segment"], "key": p["key"],
+                         "source_checksums": p["checksums"],
+                         "status": "failed" if (p["split"], p["segment"]) not in records else "done"}
+                        for p in plan]}
+
+    status.update_release("statistics", "running")
+    board.flush()
+    try:
+        stats = statistics_task(out, [records[k] | {"dir": jobs.segment_dir(work, *k, records[k]["key"])}
+                                      for k in sorted(records)], failed, run, work)
+    except Exception as e:
+        status.update_release("statistics", "failed", error=jobs.failure_summary(e))
+        status.message = "statistics could not be assembled: nothing published"
+        board.flush(final=True)
+        raise
+    status.update_release("statistics", "done", count=stats.get("files"), unit="files")
+
+    if skip_unchanged and latest_run and latest_run.get("release_fingerprint") == fingerprint:
+        status.update_release("gates", "skipped")
+        status.update_release("publish", "skipped")
+        status.message = (f"inputs, configuration and code are unchanged since {latest}: no new version "
+                          f"(fingerprint {fingerprint[:16]})")
+        board.flush(final=True)
+        logger.info(status.message)
+        return {"version": None, "unchanged_since": latest, "published": False, "out": out,
+                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+
+    status.update_release("gates", "running")
+    board.flush()
+    try:
+        report = gates_task(out, gates_config)
+    except Exception as e:
+        status.update_release("gates", "failed", error=jobs.failure_summary(e))
+        status.message = "the gates could not run: nothing published"
+        board.flush(final=True)
+        raise
+    n_failed_gates = sum(1 for r in report.get("results", []) if not r.get("success", True))
+    status.update_release("gates", "done" if report.get("success") else "failed",
+                          count=len(report.get("results", [])), unit="gates",
+                          error=None if report.get("success") else f"{n_failed_gates} gates failed"
+                          + (f" (accepted: {accept_failed_gates})" if accept_failed_gates else ""))
+
+    # status.json/html go into the release itself: written as they will be once it is visible
+    status.update_release("publish", "done")
+    status.published = True
+    status.message = f"published {dataset} {version} to {store}"
+    write_status(out, status)
+    status.update_release("publish", "running")
+    board.flush(table=True)
+    try:
+        res = publish_task(out, store, version, dataset, report, accept_failed_gates,
+                           {"release_fingerprint": fingerprint, "source": source, "splits": splits,
+                            "segments_failed": [f"{x['split']}/{x['segment']}" for x in failed]},
+                           store_options)
+    except Exception as e:
+        status.published = False
+        status.update_release("publish", "failed", error=jobs.failure_summary(e))
+        status.message = f"not published: {type(e).__name__}"
+        board.flush(final=True)
+        logger.error(f"publish of {version} failed: {jobs.failure_summary(e)}")
+        return {"version": version, "published": False, "out": out, "error": jobs.failure_summary(e),
+                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+    status.update_release("publish", "done")
+    status.published = True
+    status.message = f"published {dataset} {version} to {store}"
+    board.flush(final=True)
+    return {"version": version, "published": True, "out": out, "store": store, "dataset": dataset,
+            "publish": res, "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+
+
+def jobs_fs_reset(out: str) -> None:
+    """The release folder is rebuilt from the work folder on every run."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(out)
+    if fs.exists(path):
+        fs.rm(path, recursive=True)
+    fs.makedirs(path, exist_ok=True)
+
+
+@flow(name="release", log_prints=True)
+def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"), store: str = str(REPO / "store"),
+            splits: list[str] | None = None, segments: list[str] | None = None, config: dict | None = None,
+            dataset: str = DEFAULT_DATASET, work: str = DEFAULT_WORK, gates_config: dict | str | None = None,
+            accept_failed_gates: str | None = None, skip_unchanged: bool = True,
+            dask_address: str | None = None, n_workers: int | None = None, threads_per_worker: int | None = None,
+            storage_options: dict | None = None, store_options: dict | None = None) -> dict:
+    """Build and publish one release. ``version="auto"``: the next patch version, and nothing at
+    all when inputs, configuration and code are unchanged since the latest release (scheduled
+    regeneration). The Dask cluster: ``dask_address`` (an existing scheduler) or a local one of
+    ``n_workers`` x ``threads_per_worker`` (environment ``DRIVETRACK_DASK_*`` otherwise)."""
+    from prefect_dask import DaskTaskRunner
+
+    splits = list(splits or ["training"])
+    cfg = ClusterConfig.from_env(address=dask_address, n_workers=n_workers, threads_per_worker=threads_per_worker)
+    with dask_cluster(cfg) as (client, address):
+        get_run_logger().info(f"Dask scheduler {address}, dashboard {client.dashboard_link}, "
+                              f"{len(client.scheduler_info()['workers'])} workers")
+        runner = DaskTaskRunner(address=address)
+        return build.with_options(task_runner=runner)(
+            version=version, source=source, store=store, splits=splits, segments=segments, config=config or {},
+            dataset=dataset, work=work, gates_config=gates_config, accept_failed_gates=accept_failed_gates,
+            skip_unchanged=skip_unchanged, storage_options=storage_options, store_options=store_options)
+
+
+# ---- command line (make release) ----------------------------------------------------------------
+
+def synthesize_default_source(path: Path, segments: int = 3, frames: int = 30, seed: int = 7) -> str:
+    """A small synthetic source (``drivetrack synth``), generated once."""
+    from drivetrack.synth import SynthConfig, generate_segment
+
+    split_dir = path / "training"
+    if split_dir.is_dir() and any(split_dir.glob("camera_image/*.parquet")):
+        return str(path)
+    cfg = SynthConfig(seed=seed, frames=frames, preset="small")
+    t0 = time.perf_counter()
+    for i in range(segments):
+        generate_segment(str(path), cfg, i)
+    print(f"synthesised {segments} segments x {frames} frames into {path} in {time.perf_counter() - t0:.1f} s",
+          flush=True)
+    return str(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m flows.release", description=__doc__.split("\n\n")[0])
+    p.add_argument("--version", required=True, help="semantic version (x.y.z), or 'auto'")
+    p.add_argument("--source", default=None, help="Waymo v2 root (default: synthesise into ./data/synthetic)")
+    p.add_argument("--store", default="./store")
+    p.add_argument("--segments", default=None, help="space- or comma-separated segment names (default: all)")
+    p.add_argument("--splits", default="training")
+    p.add_argument("--config", default=None, help="YAML/JSON file with the annotation configuration")
+    p.add_argument("--dataset", default=DEFAULT_DATASET)
+    p.add_argument("--work", default=DEFAULT_WORK)
+    p.add_argument("--dask-address", default=None)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--accept-failed-gates", default=None, metavar="REASON")
+    args = p.parse_args(argv)
+    source = args.source or synthesize_default_source(REPO / "data" / "synthetic")
+    config = None
+    if args.config:
+        import yaml
+        config = yaml.safe_load(Path(args.config).read_text())
+    store = args.store if "://" in args.store else str(Path(args.store).resolve())
+    segments = args.segments.replace(",", " ").split() if args.segments else None
+    with prefect_api():
+        result = release(version=args.version, source=source, store=store,
+                         splits=args.splits.replace(",", " ").split(), segments=segments, config=config,
+                         dataset=args.dataset, work=args.work, accept_failed_gates=args.accept_failed_gates,
+                         dask_address=args.dask_address, n_workers=args.workers, threads_per_worker=args.threads,
+                         skip_unchanged=args.version == "auto")
+    c = result.get("counts", {})
+    print(f"\nsegments: {c.get('done', 0)} done, {c.get('failed', 0)} failed")
+    for f in result.get("failed", []):
+        print(f"  FAILED {f['split']}/{f['segment']}: {f['error']}")
+    print(f"status page: {result['out']}/status.html")
+    if result.get("published"):
+        v = result["version"]
+        print(f"released {args.dataset} {v} at {store}/{args.dataset}/{v}\n"
+              f"verify it:   drivetrack verify {args.store} --version {v}\n"
+              f"status page: drivetrack status {args.store} --version {v}")
+        return 0
+    if result.get("unchanged_since"):
+        print(f"nothing to release: unchanged since {result['unchanged_since']}")
+        return 0
+    print(f"NOT released: {result.get('error', 'see the status page')}", file=sys.stderr)
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,159 @@
+"""Orchestration plumbing without a full release: the GPU queue on Dask, its guard, content
+keys, transient-error classification, and the scheduled deployment's definition."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from flows import jobs, keys  # noqa: E402
+from flows.runtime import (GPU, ClusterConfig, NoWorkerForResourceError, dask_cluster,  # noqa: E402
+                           require_resource, submit_resource_jobs, worker_specs, workers_with)
+
+
+def complete_nearest(sparse):
+    """A real depth job: the registry's nearest completer on one sparse map."""
+    from drivetrack.depth import get_completer
+
+    return get_completer("nearest")(sparse)
+
+
+def test_depth_jobs_land_only_on_the_gpu_worker():
+    cfg = ClusterConfig(n_workers=1, threads_per_worker=2, processes=False, gpus=1, cpu_drains_gpu=False)
+    specs = worker_specs(cfg)
+    assert GPU not in specs["cpu-0"]["options"].get("resources", {})
+    assert specs["gpu-0"]["options"]["resources"] == {GPU: 1}
+    rng = np.random.default_rng(0)
+    sparse = np.zeros((12, 48, 480), np.float32)  # reach of the nearest completer: width / 96 px
+    sparse[:, ::3, ::3] = rng.uniform(2, 50, size=(12, 16, 160))  # a lidar-like lattice
+    with dask_cluster(cfg, specs=specs) as (client, _):
+        gpu_workers = workers_with(client, GPU)
+        assert len(gpu_workers) == 1
+        (gpu_addr,) = gpu_workers
+        all_workers = set(client.scheduler_info()["workers"])
+        assert len(all_workers) == 2
+        # plain jobs may go anywhere; depth jobs only where the resource is
+        futures = submit_resource_jobs(client, complete_nearest, list(sparse))
+        results = client.gather(futures)
+        assert {addr for _, addr, _ in results} == {gpu_addr}
+        for s, (dense, _, secs) in zip(sparse, results):
+            assert dense.shape == s.shape and dense.dtype == np.float32 and secs >= 0
+            known = s > 0
+            np.testing.assert_array_equal(dense[known], s[known])
+            assert (dense > 0).sum() > known.sum()  # it did complete something
+
+
+def test_no_gpu_worker_fails_clearly_and_cpu_workers_can_drain_the_queue():
+    cfg = ClusterConfig(n_workers=2, processes=False, gpus=0, cpu_drains_gpu=False)
+    with dask_cluster(cfg) as (client, _):
+        with pytest.raises(NoWorkerForResourceError, match=r"no worker of the cluster .* offers it"):
+            submit_resource_jobs(client, complete_nearest, [np.zeros((4, 4), np.float32)])
+        with pytest.raises(NoWorkerForResourceError, match=r"resources=\{\}"):
+            require_resource(client, wait_s=0.6)
+    # the default local cluster on a machine without GPUs: every worker takes one depth job at a time
+    drain = ClusterConfig(n_workers=2, processes=False, gpus=0)
+    specs = worker_specs(drain)
+    assert [s["options"]["resources"] for s in specs.values()] == [{GPU: 1}, {GPU: 1}]
+
+
+def test_cluster_config_from_env(monkeypatch):
+    monkeypatch.setenv("DRIVETRACK_DASK_WORKERS", "3")
+    monkeypatch.setenv("DRIVETRACK_DASK_THREADS", "2")
+    cfg = ClusterConfig.from_env(threads_per_worker=4)
+    assert (cfg.n_workers, cfg.threads_per_worker, cfg.address) == (3, 4, None)
+    monkeypatch.setenv("DRIVETRACK_DASK_WORKERS", "three")
+    with pytest.raises(ValueError, match="DRIVETRACK_DASK_WORKERS='three'"):
+        ClusterConfig.from_env()
+    monkeypatch.delenv("DRIVETRACK_DASK_WORKERS")
+    with pytest.raises(ValueError, match="n_workers >= 1"):
+        ClusterConfig.from_env(n_workers=0)
+    monkeypatch.setenv("DRIVETRACK_DASK_ADDRESS", "tcp://10.0.0.1:8786")
+    assert ClusterConfig.from_env().address == "tcp://10.0.0.1:8786"
+
+
+def test_segment_keys_follow_content_config_and_code(tmp_path):
+    root = tmp_path / "src"
+    for comp in ("camera_image", "lidar"):
+        (root / "training" / comp).mkdir(parents=True)
+        for seg in ("a", "b"):
+            (root / "training" / comp / f"{seg}.parquet").write_bytes(f"{comp}-{seg}".encode())
+    memo = {}
+    sums = keys.source_checksums(str(root), "training", "a", memo=memo)
+    assert set(sums) == {"camera_image", "lidar"} and all(v.startswith("sha256:") for v in sums.values())
+    k = keys.segment_key("training", "a", sums, "cfg1", "code1")
+    assert k == keys.segment_key("training", "a", dict(sums), "cfg1", "code1")
+    assert k != keys.segment_key("training", "a", sums, "cfg2", "code1")
+    assert k != keys.segment_key("training", "a", sums, "cfg1", "code2")
+    (root / "training" / "lidar" / "a.parquet").write_bytes(b"changed bytes")
+    changed = keys.source_checksums(str(root), "training", "a", memo=memo)
+    assert changed["lidar"] != sums["lidar"] and changed["camera_image"] == sums["camera_image"]
+    with pytest.raises(FileNotFoundError, match="segment 'zzz'"):
+        keys.source_checksums(str(root), "training", "zzz")
+    assert len(keys.code_fingerprint()) == 64
+    assert keys.code_fingerprint(outputs_only=True) != keys.code_fingerprint()
+
+
+def test_completion_records_detect_missing_or_changed_files(tmp_path):
+    work = str(tmp_path / "work")
+    d = Path(jobs.segment_dir(work, "training", "s1", "k" * 64))
+    (d / "training").mkdir(parents=True)
+    (d / "training" / "clip.npz").write_bytes(b"12345")
+    jobs.write_json(str(d / jobs.DONE), {"status": "done", "key": "k" * 64,
+                                         "files": {"training/clip.npz": 5}})
+    assert jobs.completion_record(work, "training", "s1", "k" * 64)["status"] == "done"
+    assert jobs.completion_record(work, "training", "s1", "j" * 64) is None
+    (d / "training" / "clip.npz").write_bytes(b"123")
+    assert jobs.completion_record(work, "training", "s1", "k" * 64) is None
+
+
+def test_transient_errors_are_retried_and_data_errors_are_not():
+    import errno
+
+    assert jobs.is_transient(TimeoutError("read timed out"))
+    assert jobs.is_transient(ConnectionResetError(errno.ECONNRESET, "reset"))
+    wrapped = RuntimeError("publish interrupted")
+    wrapped.__cause__ = OSError(errno.ETIMEDOUT, "timed out")
+    assert jobs.is_transient(wrapped)
+    assert not jobs.is_transient(FileNotFoundError(2, "missing", "x.parquet"))
+    assert not jobs.is_transient(ValueError("column '[CameraImageComponent].image' is null"))
+    assert not jobs.is_transient(None)
+
+
+def test_next_version():
+    from flows.release import next_version
+
+    assert next_version(None) == "0.1.0"
+    assert next_version("1.2.3") == "1.2.4"
+    assert next_version("1.2.3-rc.1") == "1.2.4"
+
+
+def test_deployment_definition_loads_with_its_schedule():
+    from prefect.flows import load_flow_from_entrypoint
+
+    from flows.serve import DEFAULT_CRON, DEPLOYMENT_NAME, build_deployment
+
+    d = build_deployment(cron="15 4 * * 1", source="s3://bucket/waymo", store="s3://bucket/releases")
+    assert d.name == DEPLOYMENT_NAME and d.entrypoint == "flows.release.release"
+    (sched,) = d.schedules
+    assert sched.schedule.cron == "15 4 * * 1" and sched.active
+    assert d.parameters["version"] == "auto" and d.parameters["skip_unchanged"] is True
+    assert d.parameters["source"] == "s3://bucket/waymo"
+    assert build_deployment().schedules[0].schedule.cron == DEFAULT_CRON
+
+    doc = yaml.safe_load((REPO / "infra" / "prefect.yaml").read_text())
+    (dep,) = doc["deployments"]
+    assert dep["name"] == DEPLOYMENT_NAME
+    assert dep["schedules"][0]["cron"] == DEFAULT_CRON and dep["schedules"][0]["active"] is True
+    path, _, name = dep["entrypoint"].partition(":")
+    assert (REPO / path).is_file()
+    loaded = load_flow_from_entrypoint(str(REPO / dep["entrypoint"]))
+    assert loaded.name == "release"
+    params = set(loaded.parameters.properties)
+    assert set(dep["parameters"]) <= params and {"version", "source", "store", "dask_address"} <= params
