@@ -2,9 +2,9 @@
 
 Jump flooding (Rong and Tan, 2006) propagates, for every pixel, the coordinates of the nearest
 seed found so far: at step ``k`` each pixel looks at the seeds held by the 8 pixels ``k`` away
-and keeps the nearest. With reach ``R``, starting at the power of two ``k >= R`` and halving to 1
-lets a seed reach every pixel within ``R`` (each offset up to ``2k - 1`` is a sum of steps); a
-final extra pass at step 1 (JFA+1) corrects most of the rare misses. Cost: ``9 (log2 k + 2)``
+and keeps the nearest. With reach ``R``, starting at the power of two ``k >= (R + 1) / 2`` and
+halving to 1 lets a seed reach every pixel within ``R`` (each offset up to ``2k - 1`` is a sum of
+steps); a final extra pass at step 1 (JFA+1) corrects most of the rare misses. Cost: ``9 (log2 k + 2)``
 element-wise passes over the batch, no per-pixel Python.
 """
 from __future__ import annotations
@@ -51,7 +51,8 @@ def nearest_seed_jfa(known, reach: float):
     seed_x = torch.where(known, cols.expand(batch, height, width), far)
     best = (seed_y - rows) ** 2 + (seed_x - cols) ** 2
     limit = max(height, width) if not math.isfinite(reach) else min(reach, max(height, width))
-    step = 1 << max(int(math.ceil(math.log2(max(limit, 1.0)))), 0)
+    # steps k, k/2, ..., 1 reach every offset up to 2k - 1: start at the power of two k >= (R + 1) / 2
+    step = 1 << max(int(math.ceil(math.log2(max((limit + 1) / 2, 1.0)))), 0)
     steps = []
     while step >= 1:
         steps.append(step)
@@ -128,14 +129,24 @@ class TorchNearestCompleter(DepthCompleter):
         _, height, width = batch.shape
         reach = self.reach_for(width)
         known = batch > 0
-        seed_y, seed_x, distance_sq = nearest_seed_jfa(known, reach)
+        out = torch.zeros_like(batch)
+        rows = torch.nonzero(known.any(dim=2).any(dim=0)).flatten()
+        if rows.numel() == 0:
+            return out[0] if single else out
+        # only rows within reach of some return can be filled (like the CPU completer's band)
+        pad = int(math.floor(reach)) if math.isfinite(reach) else height
+        top = max(int(rows[0]) - pad, 0)
+        bottom = min(int(rows[-1]) + pad + 1, height)
+        band = batch[:, top:bottom]
+        seed_y, seed_x, distance_sq = nearest_seed_jfa(known[:, top:bottom], reach)
         found = seed_y >= 0
         if math.isfinite(reach):
             found &= distance_sq.to(torch.float64) <= reach * reach
-        index = (seed_y.clamp(min=0).long() * width + seed_x.clamp(min=0).long()).view(batch.shape[0], -1)
-        dense = torch.gather(batch.reshape(batch.shape[0], -1), 1, index).view(batch.shape)
-        dense = torch.where(found, dense, torch.zeros((), dtype=dense.dtype, device=dense.device))
-        return dense[0] if single else dense
+        index = (seed_y.clamp(min=0).long() * width + seed_x.clamp(min=0).long()).view(band.shape[0], -1)
+        dense = torch.gather(band.reshape(band.shape[0], -1), 1, index).view(band.shape)
+        out[:, top:bottom] = torch.where(found, dense, torch.zeros((), dtype=dense.dtype,
+                                                                    device=dense.device))
+        return out[0] if single else out
 
     def __repr__(self) -> str:
         return f"TorchNearestCompleter(max_reach_px={self.max_reach_px!r}, device={str(self.device)!r})"
