@@ -10,6 +10,7 @@ import json
 import re
 
 import fsspec
+import pandas as pd
 import pytest
 
 from drivetrack.cli import main as cli_main
@@ -21,17 +22,19 @@ SPEED_MEDIANS = {f"release.speed_err_median.{p}" for p in ("p25", "p50", "p75", 
 
 
 def _inconsistent(root):
-    """Segment-level defects: a failed segment, a filter rejecting 39 of 40 clips, a rejections
-    table that disagrees with the counts, and a track file missing from disk."""
+    """Segment-level defects: a failed segment, a filter rejecting 36 of the 39 clips it examined,
+    a rejections table that disagrees with the counts, and a track file missing from disk."""
     objects, segments, rejections = good_tables()
     segments.loc[segments["segment"] == "seg_b1", "status"] = "failed"
     b0 = segments["segment"] == "seg_b0"
-    segments.loc[b0, ["num_object_clips_considered", "rejected_too_far"]] = [40, 39]
-    rejections = rejections[~((rejections["segment"] == "seg_b0") & (rejections["reason"] == "too_far"))]
-    extra = [dict(segment="seg_b0", camera="FRONT", object_id=f"far_{i}", reason="too_far") for i in range(39)]
-    rejections = rejections.__class__([*rejections.to_dict("records"), *extra])
-    rejections = rejections[~((rejections["segment"] == "seg_a0") & (rejections["reason"] == "not_front_camera"))]
-    segments.loc[segments["segment"] == "seg_a0", "rejected_not_front_camera"] += 1
+    segments.loc[b0, ["num_object_clips_considered", "rejected_camera", "rejected_too_few_frames",
+                      "rejected_no_visible_points"]] = [40, 0, 1, 36]
+    rejections = pd.concat([
+        rejections[rejections["segment"] != "seg_b0"],
+        pd.DataFrame([dict(segment="seg_b0", camera="FRONT", object_id=f"o{i}",
+                           reason="no_visible_points" if i else "too_few_frames") for i in range(37)])])
+    a0 = segments["segment"] == "seg_a0"
+    segments.loc[a0, "rejected_camera"] += 1  # one more than rejections.parquet lists
     write_output(root, objects, segments, rejections)
     (root / objects.loc[4, "file"]).unlink()
     return root
@@ -148,14 +151,15 @@ def test_nan_speed_error_fails_finite_gate(reports):
 
 def test_inconsistent_statistics_fail_segment_and_file_gates(reports):
     _, report = reports["inconsistent"]
-    assert _failed(report) == {"segment.status", "segment.rejected_share.too_far",
+    assert _failed(report) == {"segment.status", "segment.rejected_share.no_visible_points",
                                "segment.rejections_table_agrees", "object.file_exists",
                                "release.split_files_agree"}
     segs = lambda gate: {r["segment"] for r in _failure(report, gate).failing}  # noqa: E731
     assert segs("segment.status") == {"seg_b1"}
-    assert segs("segment.rejected_share.too_far") == {"seg_b0"}
-    assert _failure(report, "segment.rejected_share.too_far").failing[0]["rejected_share_too_far"] \
-        == pytest.approx(39 / 40)
+    assert segs("segment.rejected_share.no_visible_points") == {"seg_b0"}
+    row = _failure(report, "segment.rejected_share.no_visible_points").failing[0]
+    assert row["rejected_share_no_visible_points"] == pytest.approx(36 / 39)
+    assert row["reached_no_visible_points"] == 39 and row["rejected_no_visible_points"] == 36
     assert segs("segment.rejections_table_agrees") == {"seg_a0"}
     assert _objects(_failure(report, "object.file_exists")) == {("seg_a1", "FRONT", "obj_1")}
     assert _failure(report, "release.split_files_agree").failing == [

@@ -30,9 +30,12 @@ def test_defaults_have_values_and_reasons():
 
 
 def test_override_plain_value_keeps_reason_and_dict_replaces_it(tmp_path):
-    cfg = load_gate_config({"object": {"min_num_tracks": 5,
+    cfg = load_gate_config({"segment": {"rejected_share_max": {"no_points": 0.5}},
+                            "object": {"min_num_tracks": 5,
                                        "max_visible_outside_image": {"value": 2, "reason": "test"}}})
     assert cfg["object"]["min_num_tracks"]["value"] == 5
+    shares = cfg["segment"]["rejected_share_max"]["value"]
+    assert shares["no_points"] == 0.5 and shares["default"] == 0.9  # merged by name
     assert "overridden by dict" in cfg["object"]["min_num_tracks"]["reason"]
     assert cfg["object"]["max_visible_outside_image"] == {"value": 2, "reason": "test"}
     f = tmp_path / "g.yaml"
@@ -47,7 +50,8 @@ def test_override_plain_value_keeps_reason_and_dict_replaces_it(tmp_path):
     ({"object": {"min_num_trax": 3}}, ["unknown gate 'object.min_num_trax'", "min_num_tracks"]),
     ({"object": {"speed_err_mostly": 1.5}}, ["object.speed_err_mostly", "1.5"]),
     ({"object": {"require_files": "yes"}}, ["object.require_files", "'yes'"]),
-    ({"segment": {"rejected_share_max": {"too_far": 0.5}}}, ["rejected_share_max", "default"]),
+    ({"segment": {"rejected_share_max": {"no_points": 1.5}}}, ["rejected_share_max.no_points", "1.5"]),
+    ({"segment": {"rejected_share_max": {"default": None}}}, ["rejected_share_max.default", "None"]),
     ({"release": {"required_splits": "training"}}, ["release.required_splits", "list of strings"]),
     ({"version": 2}, ["version 2"]),
 ])
@@ -90,18 +94,30 @@ def test_derived_columns(tmp_path):
     objects.loc[0, "speed_err_p50"] = np.nan
     objects.loc[1, "speed_err_p99"] = -np.inf
     objects.loc[2, "file"] = str(tmp_path / objects.loc[2, "file"])  # absolute path form
-    segments.loc[0, ["num_object_clips_considered", "rejected_too_far"]] = [40, 30]
+    objects.loc[5, "file"] = (tmp_path / objects.loc[5, "file"]).as_uri()  # URL form
+    segments.loc[0, ["num_object_clips_considered", "rejected_camera", "rejected_too_few_frames",
+                     "rejected_no_visible_points"]] = [40, 10, 5, 20]
+    segments["rejected_zz_custom"] = 0  # a reason the track stage does not know: judged last
     write_output(tmp_path, objects, segments, rejections)
     (tmp_path / objects.loc[3, "file"]).unlink()
     t = read_gate_tables(str(tmp_path), load_gate_config())
     assert t.objects["speed_err_num_nonfinite"].tolist()[:3] == [1, 1, 0]
-    assert t.objects["file_exists"].tolist()[:4] == [True, True, True, False]
-    assert t.rejection_reasons == ["not_front_camera", "too_far", "too_few_frames"]
-    share = t.segments["rejected_share_too_far"]
-    assert share.iloc[0] == pytest.approx(30 / 40)
-    assert share.iloc[1:].isna().all()  # fewer than 10 clips considered: not judged
-    listed = (rejections["segment"] == segments.loc[0, "segment"]) & (rejections["reason"] == "too_far")
-    assert t.segments["rejections_mismatch"].iloc[0] == 30 - listed.sum()
+    assert t.objects["file_exists"].tolist()[:6] == [True, True, True, False, True, True]
+    # filters in the track stage's order; each rate is over the clips that reached the filter
+    assert t.rejection_reasons == ["camera", "too_few_frames", "no_visible_points", "zz_custom"]
+    row = t.segments.iloc[0]
+    assert [row[f"reached_{r}"] for r in t.rejection_reasons] == [40, 30, 25, 5]
+    assert row["rejected_share_camera"] == pytest.approx(0.25)
+    assert row["rejected_share_too_few_frames"] == pytest.approx(5 / 30)
+    assert row["rejected_share_no_visible_points"] == pytest.approx(0.8)
+    assert np.isnan(row["rejected_share_zz_custom"])  # 5 clips reached it: fewer than 10
+    for r in t.rejection_reasons:
+        judged = t.segments[f"reached_{r}"] >= 10
+        assert (t.segments[f"rejected_share_{r}"].notna() == judged).all()
+    seg0 = rejections["segment"] == segments.loc[0, "segment"]
+    expected = sum(abs(segments.loc[0, f"rejected_{r}"] - (seg0 & (rejections["reason"] == r)).sum())
+                   for r in ("camera", "too_few_frames", "no_visible_points"))
+    assert t.segments["rejections_mismatch"].iloc[0] == expected > 0
     assert (t.segments["rejections_mismatch"].iloc[1:] == 0).all()
     assert t.splits.set_index("split")["num_files_on_disk"].to_dict() == {"training": 5, "validation": 6}
     assert t.splits["num_tracks"].sum() == objects["num_tracks"].sum()
@@ -113,7 +129,9 @@ def test_release_bounds_are_margin_times_paper(tmp_path):
     specs = {s.gate: s for s in build_specs(cfg, read_gate_tables(str(tmp_path), cfg))}
     for p, paper in zip(("p25", "p50", "p75", "p95", "p99"), PAPER):
         assert specs[f"release.speed_err_median.{p}"].kwargs["max_value"] == pytest.approx(1.5 * paper)
-    assert {"segment.rejected_share.too_far", "segment.rejected_share.too_few_frames"} <= set(specs)
+    assert {"segment.rejected_share.camera", "segment.rejected_share.no_visible_points"} <= set(specs)
+    assert specs["segment.rejected_share.camera"].kwargs["max_value"] == 1.0
+    assert specs["segment.rejected_share.no_visible_points"].kwargs["max_value"] == 0.9
 
 
 def test_importing_gates_and_cli_does_not_import_great_expectations():

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 PAPER = np.array([0.0651, 0.1260, 0.2471, 0.5497, 0.8687])
-REASONS = ("too_few_frames", "too_far", "not_front_camera")
+REASONS = ("camera", "too_few_frames", "no_visible_points")  # a subset of the track stage's
 
 #: The objects a defect touches, as (segment, camera, object_id).
 NOISY = [("seg_a0", "FRONT", "obj_0"), ("seg_a0", "FRONT", "obj_1"), ("seg_a1", "FRONT", "obj_2"),
@@ -92,8 +92,9 @@ def write_output(root: Path, objects, segments, rejections, files: bool = True) 
     rejections.to_parquet(stats / "rejections.parquet", index=False)
     if files:
         for f in objects["file"]:
-            (root / f).parent.mkdir(parents=True, exist_ok=True)
-            (root / f).write_bytes(b"")
+            path = root / f.removeprefix("file://")  # relative, absolute or file:// URL
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(b"")
     return root
 
 

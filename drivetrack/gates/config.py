@@ -87,6 +87,9 @@ def _merge(defaults: dict, override: dict, source: str) -> dict:
             else:
                 value = entry
                 reason = merged[section][key]["reason"] + f" [overridden by {source}]"
+            old = merged[section][key]["value"]
+            if isinstance(old, dict) and isinstance(value, dict):
+                value = {**old, **value}  # mapping-valued gates: override entries by name
             merged[section][key] = {"value": value, "reason": reason}
     return merged
 

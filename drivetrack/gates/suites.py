@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivetrack.gates.config import PERCENTILES, gate_reason, gate_value
-from drivetrack.gates.tables import (OBJECT_KEYS, REJECTED_PREFIX, SEGMENT_KEYS, SHARE_PREFIX,
+from drivetrack.gates.tables import (OBJECT_KEYS, REACHED_PREFIX, REJECTED_PREFIX, SEGMENT_KEYS, SHARE_PREFIX,
                                      SPEED_ERR_COLUMNS, SPLIT_KEYS, GateTables)
 
 LEVELS = ("object", "segment", "release")
@@ -129,7 +129,7 @@ def segment_specs(cfg: dict, tables: GateTables) -> list[GateSpec]:
             {"column": SHARE_PREFIX + reason, "min_value": 0.0, "max_value": bound},
             f"Filter '{reason}' ({REJECTED_PREFIX}{reason}): " + r("rejected_share_max")
             + " | " + r("rejected_share_min_considered"), keys,
-            (REJECTED_PREFIX + reason, "num_object_clips_considered")))
+            (REJECTED_PREFIX + reason, REACHED_PREFIX + reason)))
     if v("check_rejections_table"):
         specs.append(GateSpec(
             "segment.rejections_table_agrees", "segment", "segments", "ExpectColumnValuesToBeBetween",

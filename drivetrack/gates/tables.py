@@ -33,6 +33,16 @@ SPLIT_KEYS = ("split",)
 
 REJECTED_PREFIX = "rejected_"
 SHARE_PREFIX = "rejected_share_"
+REACHED_PREFIX = "reached_"
+
+
+def filter_order(reasons: list[str]) -> list[str]:
+    """``reasons`` in the order the track stage applies its filters (``REJECTION_REASONS``);
+    reasons it does not know follow in the given order."""
+    from drivetrack.tracks.plan import REJECTION_REASONS
+
+    known = [r for r in REJECTION_REASONS if r in reasons]
+    return known + [r for r in reasons if r not in REJECTION_REASONS]
 
 
 class GateInputError(ValueError):
@@ -69,12 +79,16 @@ def _read_table(fs, root: str, name: str, required: tuple[str, ...],
     return table.to_pandas(), path
 
 
-def _relative(file_value: str, root: str, protocol_root: str) -> str:
-    """The path of ``file_value`` relative to the output folder (``file`` may be relative or not)."""
+def _relative(file_value: str, fs, root: str) -> str:
+    """The path of ``file_value`` relative to the output folder ``root`` (a path of ``fs``).
+
+    ``file`` may be relative to OUT (``training/waymo_....npz``), an absolute path or a URL.
+    """
     value = str(file_value)
-    for prefix in (protocol_root.rstrip("/") + "/", root.rstrip("/") + "/"):
-        if value.startswith(prefix):
-            return value[len(prefix):]
+    if "://" in value or value.startswith("/"):
+        value = fs._strip_protocol(value)
+        prefix = root.rstrip("/") + "/"
+        return value[len(prefix):] if value.startswith(prefix) else value
     return value[2:] if value.startswith("./") else value
 
 
@@ -84,8 +98,10 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     Derived columns:
       objects: ``speed_err_num_nonfinite`` (NaN or infinite speed-error percentiles, 0..5),
         ``file_exists`` (bool: the row's ``file`` is in the output folder).
-      segments: ``rejected_share_<reason>`` (rejected_<reason> / num_object_clips_considered, NaN
-        when fewer than ``rejected_share_min_considered`` clips were considered),
+      segments: ``reached_<reason>`` (clips that reached the filter: considered minus the clips
+        rejected by the filters applied before it, in the track stage's order) and
+        ``rejected_share_<reason>`` (rejected_<reason> / reached_<reason>, the filter's rejection
+        rate; NaN when fewer than ``rejected_share_min_considered`` clips reached it),
         ``num_object_rows`` (rows of objects.parquet for the segment), ``rejections_mismatch``
         (sum over reasons of |rejected_<reason> - rows of rejections.parquet|).
       splits (built here): ``split``, ``num_segments``, ``num_object_clips``, ``num_tracks``,
@@ -110,19 +126,20 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     speed = objects[list(SPEED_ERR_COLUMNS)].apply(pd.to_numeric, errors="coerce")
     objects["speed_err_num_nonfinite"] = (~np.isfinite(speed.to_numpy(dtype=float))).sum(axis=1)
     all_files = {p[len(root):].lstrip("/") for p in fs.find(root)} if root != "/" else set()
-    protocol_root = out_dir.rstrip("/")
-    rel = objects["file"].map(lambda f: _relative(f, root, protocol_root))
+    rel = objects["file"].map(lambda f: _relative(f, fs, root))
     objects["file_exists"] = rel.isin(all_files)
 
     # -- segments --------------------------------------------------------------------------------
-    reasons = sorted(c[len(REJECTED_PREFIX):] for c in segments.columns
-                     if c.startswith(REJECTED_PREFIX) and not c.startswith(SHARE_PREFIX))
+    reasons = filter_order([c[len(REJECTED_PREFIX):] for c in segments.columns
+                            if c.startswith(REJECTED_PREFIX) and not c.startswith(SHARE_PREFIX)])
     considered = pd.to_numeric(segments["num_object_clips_considered"], errors="coerce")
-    min_considered = cfg["segment"]["rejected_share_min_considered"]["value"]
-    judged = considered >= max(min_considered, 1)
-    for reason in reasons:
+    min_reached = max(cfg["segment"]["rejected_share_min_considered"]["value"], 1)
+    reached = considered.copy()
+    for reason in reasons:  # filters run in order: each sees the clips the earlier ones kept
         count = pd.to_numeric(segments[REJECTED_PREFIX + reason], errors="coerce")
-        segments[SHARE_PREFIX + reason] = (count / considered).where(judged)
+        segments[REACHED_PREFIX + reason] = reached
+        segments[SHARE_PREFIX + reason] = (count / reached).where(reached >= min_reached)
+        reached = reached - count
     per_segment = objects.groupby("segment").size()
     segments["num_object_rows"] = segments["segment"].map(per_segment).fillna(0).astype(int)
     if rejections is not None:
