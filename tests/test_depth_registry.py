@@ -66,8 +66,9 @@ def test_builtins_listed():
 
 
 def test_unknown_name_lists_known():
-    with pytest.raises(KeyError, match=r"unknown depth completer 'nope'; known: .*ipbasic, nearest"):
+    with pytest.raises(KeyError, match=r"unknown depth completer 'nope'; known: .*ipbasic, nearest") as info:
         get_completer("nope")
+    assert str(info.value).startswith("unknown depth completer 'nope'")
 
 
 def test_bad_parameters_name_the_completer():

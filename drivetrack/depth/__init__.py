@@ -15,14 +15,15 @@ group ``drivetrack.depth_completers`` or from :func:`register_completer`.
 from drivetrack.depth.completers import (DepthCompleter, IPBasicCompleter, NearestCompleter,
                                          default_max_reach_px)
 from drivetrack.depth.lookup import lookup_max4
-from drivetrack.depth.registry import (ENTRY_POINT_GROUP, CompleterPluginError, get_completer,
-                                       list_completers, register_completer)
+from drivetrack.depth.registry import (ENTRY_POINT_GROUP, CompleterPluginError,
+                                       UnknownCompleterError, get_completer, list_completers,
+                                       register_completer)
 from drivetrack.depth.sparse import sparse_depth_from_points
 from drivetrack.depth.torch_nearest import TorchNearestCompleter
 
 __all__ = ["sparse_depth_from_points", "get_completer", "list_completers", "lookup_max4",
            "register_completer", "DepthCompleter", "NearestCompleter", "IPBasicCompleter",
-           "TorchNearestCompleter", "CompleterPluginError", "ENTRY_POINT_GROUP",
+           "TorchNearestCompleter", "CompleterPluginError", "UnknownCompleterError", "ENTRY_POINT_GROUP",
            "default_max_reach_px"]
 
 register_completer(NearestCompleter.name, NearestCompleter)

@@ -16,8 +16,8 @@ from __future__ import annotations
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Callable
 
-__all__ = ["ENTRY_POINT_GROUP", "CompleterPluginError", "register_completer", "get_completer",
-           "list_completers"]
+__all__ = ["ENTRY_POINT_GROUP", "CompleterPluginError", "UnknownCompleterError",
+           "register_completer", "get_completer", "list_completers"]
 
 #: The entry-point group in which plugins publish completer factories.
 ENTRY_POINT_GROUP = "drivetrack.depth_completers"
@@ -27,6 +27,13 @@ _FACTORIES: dict[str, Callable[..., Any]] = {}
 
 class CompleterPluginError(ImportError):
     """A plugin's entry point could not be loaded or did not give a usable factory."""
+
+
+class UnknownCompleterError(KeyError):
+    """No completer is registered or published under the name (the message lists the known ones)."""
+
+    def __str__(self) -> str:  # KeyError would print the message inside quotes
+        return str(self.args[0]) if self.args else ""
 
 
 def register_completer(name: str, factory: Callable[..., Any], *, replace: bool = False) -> None:
@@ -86,7 +93,7 @@ def get_completer(name: str, **params: Any):
         name: e.g. ``"nearest"``, ``"ipbasic"``, ``"nearest-torch"`` or a plugin's name.
         **params: passed to the factory, e.g. ``max_reach_px=20``.
     Raises:
-        KeyError: unknown name (the message lists the known ones).
+        UnknownCompleterError (a KeyError): unknown name (the message lists the known ones).
         CompleterPluginError: a plugin's entry point fails to load or builds something unusable.
     """
     factory = _FACTORIES.get(name)
@@ -94,7 +101,7 @@ def get_completer(name: str, **params: Any):
     if factory is None:
         entry_point = _plugin_entry_points().get(name)
         if entry_point is None:
-            raise KeyError(f"unknown depth completer {name!r}; known: {', '.join(list_completers())}")
+            raise UnknownCompleterError(f"unknown depth completer {name!r}; known: {', '.join(list_completers())}")
         factory = _load_plugin(entry_point)
         origin = _describe(entry_point)
     try:
