@@ -470,3 +470,42 @@ def test_unsafe_object_id_is_refused_by_the_writer(tmp_path):
     _, results = annotate(b.build())
     with pytest.raises(ValueError, match="object_id 'a/b'"):
         write_object_outputs(str(tmp_path), "validation", results["a/b"])
+
+
+def test_staged_depth_gives_the_same_tracks_and_missing_maps_are_named():
+    from drivetrack.tracks import complete_depth, sparse_depth
+
+    b = SceneBuilder()
+    b.add_object("car", world_center(b, 10.0), spacing=0.25)
+    scene = b.build()
+    plan = plan_segment(scene, CONFIG)
+    staged = {}
+    for job in depth_jobs(scene, CONFIG, plan):          # what an orchestrator would fan out
+        maps = complete_depth(sparse_depth(scene, CONFIG, job), CONFIG)
+        frames, stack = staged.get(job.camera, (np.zeros(0, np.int64), np.zeros((0, H, W), np.float32)))
+        staged[job.camera] = (np.concatenate([frames, job.frames]), np.concatenate([stack, maps]))
+    ctx = prepare_segment(scene, CONFIG, depth=staged, plan=plan)
+    _, direct = annotate(scene)
+    staged_result = run_object_job(ctx, object_jobs(ctx)[0])
+    np.testing.assert_array_equal(staged_result.visibles, direct["car"].visibles)
+    frames, maps = staged[FRONT]
+    with pytest.raises(ValueError, match=r"seg_test-1.*FRONT.*missing for frames \[0\]"):
+        prepare_segment(scene, CONFIG, depth={FRONT: (frames[1:], maps[1:])}, plan=plan)
+
+
+def test_speed_filter_drops_points_far_from_the_box_centre_of_a_spinning_box():
+    b = SceneBuilder()
+    t = np.arange(b.t) * DT
+    b.add_object("spinner", world_center(b, 10.0), headings=1.0 * t, spacing=0.25)
+    scene = b.build()
+    _, plain = annotate(scene)
+    errors = plain["spinner"].speed_error_mps
+    # the box centre does not move: a point's speed is its lever arm times 1 rad/s
+    np.testing.assert_allclose(plain["spinner"].box_speed_mps, 0.0, atol=1e-9)
+    radius = np.linalg.norm((plain["spinner"].points3d[:, 0] - scene.boxes.center[0])[:, :2], axis=1)
+    np.testing.assert_allclose(errors, radius, rtol=0.02)
+    cfg = TrackConfig(rolling_shutter=False, max_speed_deviation_mps=1.5,
+                      depth_completer_options={"max_reach_px": 3.0})
+    _, filtered = annotate(scene, cfg)
+    assert filtered["spinner"].num_dropped_speed == int((errors > 1.5).sum()) > 0
+    assert np.all(filtered["spinner"].speed_error_mps <= 1.5)

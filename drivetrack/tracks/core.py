@@ -129,6 +129,11 @@ def _box_velocity_world(world_from_box: np.ndarray, timestamps_micros: np.ndarra
     return np.gradient(centres, timestamps_micros * 1e-6, axis=0)
 
 
+def _carry(dst_from_box: np.ndarray, points_box: np.ndarray) -> np.ndarray:
+    """float64 [T, n, 3]: box-frame points float64 [n, 3] through transforms [T, 4, 4] (BLAS matmul)."""
+    return np.matmul(points_box[None], np.swapaxes(dst_from_box[:, :3, :3], 1, 2)) + dst_from_box[:, None, :3, 3]
+
+
 def image_time_offsets(scene, camera: int, frames: np.ndarray) -> np.ndarray:
     """float64 [T]: image pose time minus frame time (s) of ``frames``; 0 where unknown.
 
@@ -187,39 +192,45 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
                          f"the segment context has no depth map for some clip frames")
 
+    slots = depth.slot[frames]
+    # A clip's frames are consecutive and all needed, so their maps are adjacent: a view, no copy.
+    clip_maps = (depth.maps[slots[0]:slots[-1] + 1] if np.all(np.diff(slots) == 1) else depth.maps[slots])
+
+    world_step = world_from_box[1:] - world_from_box[:-1]                    # affine differences [T-1]
+    duration_s = (timestamps[-1] - timestamps[0]) * 1e-6
+
     tracks = np.full((n, t_count, 2), np.nan, dtype=np.float32)
     visibles = np.zeros((n, t_count), dtype=bool)
     points3d = np.zeros((n, t_count, 3), dtype=np.float32)
     speeds = np.zeros(n, dtype=np.float64)
     for start in range(0, n, config.chunk_points):
         chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
-        points_camera = transform_points(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
-        points_world = transform_points(world_from_box, chunk)                              # [T, n, 3]
+        points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
         if projector is None:
             pixels, valid = model.pixels_from_camera(points_camera)
         else:
             pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
             valid = np.zeros(points_camera.shape[:2], dtype=bool)
             for tau, t in enumerate(frames.tolist()):
-                velocity = np.broadcast_to(velocity_world[tau], points_world[tau].shape)
-                px, ok, _ = projector(frames_meta, t, points_world[tau] + shift_world[tau], velocity)
+                velocity = np.broadcast_to(velocity_world[tau], chunk.shape)
+                px, ok, _ = projector(frames_meta, t, _carry(world_from_box[tau:tau + 1], chunk)[0]
+                                      + shift_world[tau], velocity)
                 pixels[tau], valid[tau] = px, ok
             valid &= points_camera[..., 0] > 0
         ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
-        z = points_camera[..., 0]
-        visible = ok.copy()
-        for tau, t in enumerate(frames.tolist()):
-            idx = np.flatnonzero(ok[tau])
-            if idx.size == 0:
-                continue
-            surface = np.asarray(lookup_max4(depth.of_frame(t), pixels[tau, idx]), dtype=np.float64)
-            occluded = (surface > 0) & (surface < config.occlusion_ratio * z[tau, idx])
-            visible[tau, idx[occluded]] = False
+        surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
+        occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
+        visible = ok & ~occluded
         stop = start + chunk.shape[0]
         tracks[start:stop] = np.swapaxes(pixels, 0, 1)
         visibles[start:stop] = visible.T
-        points3d[start:stop] = np.swapaxes(transform_points(vehicle_from_box, chunk), 0, 1)
-        speeds[start:stop] = track_speeds(points_world, timestamps)
+        points3d[start:stop] = np.swapaxes(_carry(vehicle_from_box, chunk), 0, 1)
+        # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
+        if t_count > 1 and duration_s > 0:
+            steps = _carry(world_step, chunk)                                      # [T-1, n, 3]
+            speeds[start:stop] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
+        else:
+            speeds[start:stop] = np.nan
 
     box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
     box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
