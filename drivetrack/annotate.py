@@ -1,0 +1,392 @@
+"""The annotation pipeline: ingest -> depth -> tracks -> files and tables, one segment at a time.
+
+Pure core (no Prefect): the ``drivetrack annotate`` command and the Prefect flows (``flows/``)
+call these functions. Each stage is a separate function so that an orchestrator can place it
+where it belongs (depth batches on GPU workers, object jobs fanned out on a cluster):
+
+    scene = load_scene_for(source, split, segment, config)            # ingest
+    plan = plan_segment(scene, config.track)                           # filters, object jobs
+    batches = sparse_depth_batches(scene, config, plan)                # CPU, per (camera, frames)
+    dense = [complete_depth_batch(b, config) for b in batches]         # the GPU-queue unit
+    result = track_segment(scene, dense, config, plan)                 # per-object jobs
+    write_segment_outputs(out, result)                                 # npz files + table rows
+
+``annotate_segment`` runs them all for one segment and never raises for a bad segment: it returns
+a failed :class:`SegmentResult` naming the error, so one bad segment never stops the others.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import traceback
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import fsspec
+import numpy as np
+import pandas as pd
+
+import drivetrack
+from drivetrack.scene import Scene
+from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
+                               object_stats, plan_segment, prepare_segment, rejection_stats,
+                               run_object_job, segment_stats, sparse_depth, write_object_outputs,
+                               write_table)
+from drivetrack.waymo.schema import CameraName
+
+__all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
+           "complete_depth_batch", "track_segment", "write_segment_outputs", "write_tables",
+           "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version"]
+
+_HASH_CHUNK = 8 << 20
+
+
+def code_version() -> str:
+    """``drivetrack.__version__`` (plus the git commit when run from a checkout)."""
+    import subprocess
+    from pathlib import Path
+
+    version = drivetrack.__version__
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parent, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip()
+        if commit:
+            version += f"+g{commit}" + (".dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return version
+
+
+@dataclass(frozen=True)
+class AnnotateConfig:
+    """Everything that decides the annotation of a segment (built once at the entry point).
+
+    Attributes:
+        track: the depth and track stage configuration (:class:`drivetrack.tracks.TrackConfig`).
+        refine_poses: refine each object's per-frame pose from its own LiDAR before tracking
+            (``drivetrack.refine``); falls back to the labels per object when untrustworthy.
+    """
+    track: TrackConfig = field(default_factory=TrackConfig)
+    refine_poses: bool = False
+
+    @property
+    def depth_method(self) -> str:
+        return self.track.depth_completer
+
+    def to_dict(self) -> dict:
+        return {"track": self.track.to_dict(), "refine_poses": self.refine_poses}
+
+    @classmethod
+    def from_dict(cls, values: dict | None) -> "AnnotateConfig":
+        values = dict(values or {})
+        unknown = sorted(set(values) - {"track", "refine_poses"})
+        if unknown:
+            raise ValueError(f"annotation config: unknown keys {unknown}; expected 'track', 'refine_poses'")
+        return cls(track=TrackConfig.from_dict(values.get("track") or {}),
+                   refine_poses=bool(values.get("refine_poses", False)))
+
+    def fingerprint(self) -> str:
+        """sha256 of the canonical JSON of the configuration (not of the code version)."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
+
+
+@dataclass
+class DepthBatch:
+    """Depth maps of one camera over a batch of frames of one segment.
+
+    Attributes:
+        segment: segment name (for error messages and routing).
+        camera: ``CameraName`` value.
+        frames: int64 [B], frame indices.
+        maps: float32 [B, H, W], z-depth in metres from the camera, 0 = unknown.
+        dense: False for sparse LiDAR maps, True once completed.
+        method: the completer that produced dense maps ("" for sparse).
+    """
+    segment: str
+    camera: int
+    frames: np.ndarray
+    maps: np.ndarray
+    dense: bool = False
+    method: str = ""
+
+
+@dataclass
+class SegmentResult:
+    """The outcome of one segment; tables are small pandas frames, files are URLs.
+
+    ``status`` is ``done`` or ``failed``; ``error`` holds the message of a failure and
+    ``stage`` the stage it happened in (ingest, plan, depth, tracks, write).
+    """
+    split: str
+    segment: str
+    status: str
+    error: str = ""
+    stage: str = ""
+    objects: pd.DataFrame | None = None
+    rejections: pd.DataFrame | None = None
+    segment_row: pd.DataFrame | None = None
+    files: list[str] = field(default_factory=list)
+    source_files: dict[str, str] = field(default_factory=dict)
+    source_sha256: dict[str, str] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    tracks: list[ObjectTracks] = field(default_factory=list, repr=False)
+
+    @property
+    def num_tracks(self) -> int:
+        return 0 if self.objects is None or self.objects.empty else int(self.objects["num_tracks"].sum())
+
+    def summary(self) -> dict:
+        """JSON-able summary for run.json and status pages (no arrays)."""
+        return {"split": self.split, "segment": self.segment, "status": self.status, "error": self.error,
+                "stage": self.stage, "num_files": len(self.files), "num_tracks": self.num_tracks,
+                "num_objects": 0 if self.objects is None else int(len(self.objects)),
+                "source_files": {k: {"url": v, "sha256": self.source_sha256.get(k)}
+                                 for k, v in sorted(self.source_files.items())},
+                "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()}}
+
+
+def source_checksums(source_files: dict[str, str], storage_options: dict | None = None) -> dict[str, str]:
+    """sha256 of each source file (component -> hex digest), streamed in 8 MiB chunks."""
+    out = {}
+    for component, url in sorted(source_files.items()):
+        fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
+        digest = hashlib.sha256()
+        try:
+            with fs.open(path, "rb") as handle:
+                while chunk := handle.read(_HASH_CHUNK):
+                    digest.update(chunk)
+        except OSError as error:
+            raise OSError(f"could not hash source file {url} (component {component}): {error}") from error
+        out[component] = digest.hexdigest()
+    return out
+
+
+def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig,
+                   storage_options: dict | None = None) -> Scene:
+    """Ingest one segment with what the configuration needs (its cameras, every laser, both returns).
+
+    Every laser and both returns are loaded because the occlusion depth maps use all of them
+    (``TrackConfig.depth_from_all_returns``); the object point clouds select their own subset.
+    """
+    from drivetrack.waymo.reader import load_scene
+
+    lasers = None if config.track.depth_from_all_returns else config.track.laser_values
+    returns = (1, 2) if config.track.depth_from_all_returns else config.track.returns
+    return load_scene(source, split, segment, cameras=config.track.camera_values, lasers=lasers,
+                      returns=returns, with_images=True, storage_options=storage_options)
+
+
+def sparse_depth_batches(scene: Scene, config: AnnotateConfig, plan: SegmentPlan | None = None) -> list[DepthBatch]:
+    """Sparse LiDAR depth maps of every frame an accepted clip needs, in batches per camera."""
+    plan = plan if plan is not None else plan_segment(scene, config.track)
+    return [DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
+            for job in depth_jobs(scene, config.track, plan)]
+
+
+def complete_depth_batch(batch: DepthBatch, config: AnnotateConfig, device: str | None = None) -> DepthBatch:
+    """Complete a sparse batch with the configured completer: the unit of the depth (GPU) queue.
+
+    ``device`` (e.g. ``"cuda:0"``) is passed to completers that take one (``nearest-torch``).
+    """
+    if batch.dense:
+        raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
+                         f"batch is already completed (by {batch.method!r})")
+    track = config.track
+    if device is not None:
+        options = {**track.depth_completer_options, "device": device}
+        track = TrackConfig.from_dict({**track.to_dict(), "depth_completer_options": options})
+    maps = complete_depth(batch.maps, track)
+    return DepthBatch(batch.segment, batch.camera, batch.frames, maps, dense=True, method=track.depth_completer)
+
+
+def _depth_by_camera(batches: Iterable[DepthBatch]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    grouped: dict[int, list[DepthBatch]] = {}
+    for batch in batches:
+        if not batch.dense:
+            raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
+                             f"depth batch of frames {batch.frames[:5].tolist()}... is not completed")
+        grouped.setdefault(batch.camera, []).append(batch)
+    out = {}
+    for camera, parts in grouped.items():
+        frames = np.concatenate([p.frames for p in parts])
+        maps = np.concatenate([p.maps for p in parts])
+        order = np.argsort(frames, kind="stable")
+        out[camera] = (frames[order], maps[order])
+    return out
+
+
+def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: AnnotateConfig,
+                  plan: SegmentPlan | None = None,
+                  map_fn: Callable[[Callable, list], Iterable[ObjectTracks]] | None = None) -> list[ObjectTracks]:
+    """Run every object job of a segment against its completed depth maps.
+
+    ``map_fn(function, jobs)`` fans the jobs out (default: the built-in ``map``, in process);
+    the segment context (scene, depth maps) is shared by reference, never copied per job.
+    """
+    plan = plan if plan is not None else plan_segment(scene, config.track)
+    ctx = prepare_segment(scene, config.track, depth=_depth_by_camera(dense_batches), plan=plan)
+    if config.refine_poses:
+        from drivetrack.tracks.refined import refine_context  # noqa: WPS433 (optional stage)
+
+        ctx = refine_context(ctx)
+    job = _ObjectJobRunner(ctx)
+    return list((map_fn or map)(job, list(plan.jobs)))
+
+
+class _ObjectJobRunner:
+    """Picklable ``job -> run_object_job(ctx, job)`` (a closure would not cross processes)."""
+
+    def __init__(self, ctx):
+        self.ctx = ctx
+
+    def __call__(self, job):
+        return run_object_job(self.ctx, job)
+
+
+def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
+                          writers: tuple[str, ...] = ("drivetrack", "tapvid3d")) -> dict[tuple[int, str], list[str]]:
+    """Write every accepted clip with each writer; (camera, object_id) -> written URLs.
+
+    If a write fails, the files already written for this segment are removed before the error
+    propagates, so a failed segment leaves no partial output behind.
+    """
+    written: dict[tuple[int, str], list[str]] = {}
+    try:
+        for tracks in results:
+            if tracks.rejection is None and tracks.num_tracks > 0:
+                written[(tracks.camera, tracks.object_id)] = write_object_outputs(out_url, split, tracks, writers)
+    except Exception:
+        for urls in written.values():
+            for url in urls:
+                fs, path = fsspec.core.url_to_fs(url)
+                if fs.exists(path):
+                    fs.rm(path)
+        raise
+    return written
+
+
+def annotate_segment(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig,
+                     storage_options: dict | None = None, keep_tracks: bool = False) -> SegmentResult:
+    """Ingest, complete depth, track and write one segment; failures come back as a result."""
+    result = SegmentResult(split=split, segment=segment, status="running")
+    plan = None
+    tracks: list[ObjectTracks] = []
+    stage = "ingest"
+    try:
+        start = time.perf_counter()
+        scene = load_scene_for(source, split, segment, config, storage_options)
+        result.source_files = dict(scene.source_files)
+        result.source_sha256 = source_checksums(scene.source_files, storage_options)
+        result.timings_s["ingest"] = time.perf_counter() - start
+
+        stage, start = "plan", time.perf_counter()
+        plan = plan_segment(scene, config.track)
+        result.timings_s["plan"] = time.perf_counter() - start
+
+        stage, start = "depth", time.perf_counter()
+        dense = [complete_depth_batch(b, config) for b in sparse_depth_batches(scene, config, plan)]
+        result.timings_s["depth"] = time.perf_counter() - start
+
+        stage, start = "tracks", time.perf_counter()
+        tracks = track_segment(scene, dense, config, plan)
+        del dense
+        result.timings_s["tracks"] = time.perf_counter() - start
+
+        stage, start = "write", time.perf_counter()
+        written = write_segment_outputs(out_url, split, tracks, config.track.writers)
+        result.files = [u for urls in written.values() for u in urls]
+        result.timings_s["write"] = time.perf_counter() - start
+        files = {key: urls[0] for key, urls in written.items()}
+        result.objects = object_stats(tracks, {k: _relative(out_url, v) for k, v in files.items()})
+        result.rejections = rejection_stats(plan, tracks)
+        result.segment_row = segment_stats(split, segment, plan, tracks)
+        result.status, result.stage = "done", ""
+    except Exception as error:  # isolate the segment: report, never raise
+        result.status, result.stage = "failed", stage
+        result.error = f"{type(error).__name__}: {error}"
+        result.traceback = traceback.format_exc()  # type: ignore[attr-defined]
+        result.segment_row = segment_stats(split, segment, plan if stage not in ("ingest", "plan") else None,
+                                           (), status="failed", error=f"[{stage}] {result.error}")
+    if keep_tracks:
+        result.tracks = tracks
+    return result
+
+
+def _relative(root: str, url: str) -> str:
+    root = root.rstrip("/") + "/"
+    return url[len(root):] if url.startswith(root) else url
+
+
+def write_tables(out_url: str, results: list[SegmentResult]) -> dict[str, str]:
+    """``stats/objects.parquet``, ``stats/segments.parquet``, ``stats/rejections.parquet``."""
+    from drivetrack.tracks.stats import OBJECT_COLUMNS, REJECTION_COLUMNS, SEGMENT_COLUMNS
+
+    def concat(frames, columns):
+        frames = [f for f in frames if f is not None and not f.empty]
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=list(columns))
+
+    base = out_url.rstrip("/")
+    tables = {
+        "objects": concat([r.objects for r in results], OBJECT_COLUMNS),
+        "segments": concat([r.segment_row for r in results], SEGMENT_COLUMNS),
+        "rejections": concat([r.rejections for r in results], REJECTION_COLUMNS),
+    }
+    return {name: write_table(f"{base}/stats/{name}.parquet", table) for name, table in tables.items()}
+
+
+def write_run_json(out_url: str, source: str, config: AnnotateConfig, results: list[SegmentResult],
+                   extra: dict | None = None) -> str:
+    """``run.json``: configuration, code version, source and every segment with its checksums."""
+    run = {"format": "drivetrack-run/1", "code_version": code_version(), "source": source,
+           "config": config.to_dict(), "config_fingerprint": config.fingerprint(),
+           "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+           "segments": [r.summary() for r in results], **(extra or {})}
+    fs, path = fsspec.core.url_to_fs(f"{out_url.rstrip('/')}/run.json")
+    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
+    with fs.open(path, "w") as handle:
+        json.dump(run, handle, indent=2, sort_keys=True)
+    return f"{out_url.rstrip('/')}/run.json"
+
+
+def _annotate_one(args):
+    return annotate_segment(*args)
+
+
+def annotate(source: str, split: str, segments: list[str], out_url: str, config: AnnotateConfig,
+             workers: int = 1, storage_options: dict | None = None,
+             on_result: Callable[[SegmentResult], None] | None = None) -> list[SegmentResult]:
+    """Annotate ``segments`` (in ``workers`` processes), then write the tables and ``run.json``.
+
+    A failed segment is reported through its result and ``on_result`` and does not stop the
+    others. Results come back in the order of ``segments``.
+    """
+    jobs = [(source, split, s, out_url, config, storage_options) for s in segments]
+    by_segment: dict[str, SegmentResult] = {}
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            by_segment[job[2]] = r = _annotate_one(job)
+            if on_result:
+                on_result(r)
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = {pool.submit(_annotate_one, job): job[2] for job in jobs}
+            for future in as_completed(futures):
+                segment = futures[future]
+                try:
+                    r = future.result()
+                except Exception as error:  # the worker process itself died
+                    r = SegmentResult(split, segment, "failed", error=f"{type(error).__name__}: {error}",
+                                      stage="worker")
+                    r.segment_row = segment_stats(split, segment, None, (), status="failed",
+                                                  error=f"[worker] {r.error}")
+                by_segment[segment] = r
+                if on_result:
+                    on_result(r)
+    results = [by_segment[s] for s in segments]
+    write_tables(out_url, results)
+    write_run_json(out_url, source, config, results)
+    return results
