@@ -1,0 +1,51 @@
+"""Session-wide fixtures shared by the test modules.
+
+Generating a synthetic segment costs tens of CPU-seconds, so the suite makes ONE small source
+(two segments, 30 frames) and ONE annotation of it, and every module that only reads them uses
+these fixtures instead of generating its own. Modules that need a special scene (box noise, a
+corrupted file) still make their own, as small as they can.
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("DO_NOT_TRACK", "1")
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+SYNTH_SEED = 7
+SYNTH_FRAMES = 30
+SYNTH_SEGMENTS = 2
+
+
+@pytest.fixture(scope="session")
+def synth_source(tmp_path_factory) -> str:
+    """Root of a small synthetic Waymo v2 source: split ``training``, two segments, 30 frames,
+    exact ground truth beside it (see docs/synthetic.md)."""
+    from drivetrack.synth import SynthConfig, generate_segment
+
+    root = tmp_path_factory.mktemp("synth_source")
+    config = SynthConfig(seed=SYNTH_SEED, frames=SYNTH_FRAMES, preset="small")
+    for index in range(SYNTH_SEGMENTS):
+        generate_segment(str(root), config, index)
+    return str(root)
+
+
+@pytest.fixture(scope="session")
+def synth_segments(synth_source) -> list[str]:
+    from drivetrack.synth import segment_name
+
+    return [segment_name(SYNTH_SEED, i) for i in range(SYNTH_SEGMENTS)]
+
+
+@pytest.fixture(scope="session")
+def annotated_output(synth_source, synth_segments, tmp_path_factory) -> str:
+    """An annotation output folder of ``synth_source`` (default configuration)."""
+    from drivetrack.annotate import AnnotateConfig, annotate
+
+    out = tmp_path_factory.mktemp("annotated")
+    results = annotate(synth_source, "training", synth_segments, str(out), AnnotateConfig())
+    failed = [r for r in results if r.status != "done"]
+    assert not failed, [(r.segment, r.error) for r in failed]
+    return str(out)
