@@ -6,9 +6,9 @@ depth by intersecting every pixel-centre ray. Two LiDAR patterns: ``waymo-top`` 
 2650 columns, like Waymo's TOP LiDAR, about 0.7% of the pixels) and ``dense-5pct`` (200 x 6000,
 about 5%). Errors are scored where the exact depth is known and within the LiDAR's 75 m range.
 
-    .venv/bin/python bench/bench_depth.py                 # full size, prints markdown
-    .venv/bin/python bench/bench_depth.py --quick         # 480x320 smoke run
-    .venv/bin/python bench/bench_depth.py --update-docs   # also rewrite the section of docs/benchmarks.md
+    .venv/bin/python bench/bench_depth.py             # full size; rewrites its block of docs/benchmarks.md
+    .venv/bin/python -m bench.run depth               # the same through the benchmark runner
+    .venv/bin/python bench/bench_depth.py --quick     # 480x320 smoke run, docs untouched
 """
 from __future__ import annotations
 
@@ -154,7 +154,8 @@ def to_markdown(results: dict) -> str:
     m = results["machine"]
     lines = [
         f"Machine: {m['nproc']} CPUs ({m['cpu']}), {m['ram_gib']} GiB RAM, 1-min load "
-        f"{m['load_avg_1m']:.2f} at start (the machine is shared, CPU times vary about 20%); "
+        f"{m['load_avg_1m']:.2f} at start (a shared machine: under load CPU times run up to ~1.5x "
+        f"those of a quiet one); "
         f"Python {m['python']}, numpy {m['numpy']}, OpenCV {m['opencv']}, scipy {m['scipy']}, "
         f"torch {m.get('torch')} (CUDA: {m.get('cuda', False)}).",
         f"Image {results['width']}x{results['height']}, analytic street scene "
@@ -210,9 +211,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-baseline", action="store_true",
                         help="skip the slow released-code baseline (NearestNDInterpolator)")
     parser.add_argument("--json", type=Path, help="also write the raw results here")
-    parser.add_argument("--update-docs", action="store_true",
-                        help="rewrite the depth block of docs/benchmarks.md")
-    args = parser.parse_args(argv)
+    parser.add_argument("--no-docs", action="store_true",
+                        help="do not rewrite the depth block of docs/benchmarks.md "
+                             "(never rewritten by --quick runs)")
+    # bench/run.py calls main() with no arguments: a full run that records its figures
+    args = parser.parse_args([] if argv is None else argv)
     width, height = (480, 320) if args.quick else (1920, 1280)
     repeats = args.repeats or (2 if args.quick else 10)
     results = run(width, height, repeats, with_baseline=not (args.no_baseline or args.quick))
@@ -220,10 +223,10 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown)
     if args.json:
         args.json.write_text(json.dumps(results, indent=2, default=float))
-    if args.update_docs:
+    if not (args.quick or args.no_docs):
         update_docs(markdown, ROOT / "docs" / "benchmarks.md")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

@@ -23,8 +23,8 @@ from drivetrack.depth.torch_nearest import TorchNearestCompleter
 
 __all__ = ["sparse_depth_from_points", "get_completer", "list_completers", "lookup_max4",
            "register_completer", "DepthCompleter", "NearestCompleter", "IPBasicCompleter",
-           "TorchNearestCompleter", "CompleterPluginError", "UnknownCompleterError", "ENTRY_POINT_GROUP",
-           "default_max_reach_px"]
+           "TorchNearestCompleter", "CompleterPluginError", "UnknownCompleterError",
+           "ENTRY_POINT_GROUP", "default_max_reach_px"]
 
 register_completer(NearestCompleter.name, NearestCompleter)
 register_completer(IPBasicCompleter.name, IPBasicCompleter)
