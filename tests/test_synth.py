@@ -288,3 +288,45 @@ def test_load_ground_truth_missing_names_the_file(tmp_path):
         truth_root = tmp_path / "x"
         generate_segment(str(truth_root), SynthConfig(seed=1, frames=1, cameras=("FRONT",)), 0)
         load_ground_truth(str(truth_root), "training", "drivetrack_synth_s1_0000").camera_axis("SIDE_LEFT")
+
+
+def test_screen_rectangles_contain_every_object_pixel():
+    """Casting objects only inside their screen rectangles gives the same image as casting
+    every pixel against every object (the rectangle is a speed-up, never an approximation)."""
+    from drivetrack.synth.generate import _Generator, _box_matrix, _pixel_rays, _rect_indices, _screen_rect, _undistorted_extent
+    from drivetrack.synth.raycast import cast
+
+    g = _Generator(SynthConfig(seed=3, frames=12, preset="small"), 0)
+    checked = 0
+    for cam, model in g.cameras.items():
+        rays = _pixel_rays(model)
+        extent = _undistorted_extent(model, rays)
+        for t in (0, 11):
+            world_from_camera = g.world_from_vehicle[t] @ model.vehicle_from_camera
+            dirs = rays @ world_from_camera[:3, :3].T
+            origins = np.broadcast_to(world_from_camera[:3, 3], dirs.shape)
+            everything = np.arange(dirs.shape[0])
+            rects = [_screen_rect(model, extent, invert_rigid(world_from_camera)
+                                  @ _box_matrix(g.centers[k, t], g.headings[k, t]), g.sizes[k])
+                     for k in range(g.K)]
+
+            def pose_of(k, idx, t=t):
+                return g.centers[k, t], g.headings[k, t]
+
+            fast = cast(origins, dirs, g.world, pose_of,
+                        [None if r is None else _rect_indices(r, model.width) for r in rects])
+            slow = cast(origins, dirs, g.world, pose_of, [everything] * g.K)
+            assert np.array_equal(fast.obj, slow.obj)
+            assert np.array_equal(fast.t, slow.t)
+            checked += int((slow.obj >= 0).sum())
+    assert checked > 1000
+
+
+def test_preview_renders(segment):
+    from drivetrack.synth.preview import render_preview
+
+    root, summary = segment
+    img = render_preview(root, "training", summary["segment"], frame=7)
+    assert img.shape == (640, 1440, 3) and img.dtype == np.uint8
+    with pytest.raises(IndexError, match="frame 99"):
+        render_preview(root, "training", summary["segment"], frame=99)

@@ -80,7 +80,8 @@ _RAY_CACHE: dict[tuple, np.ndarray] = {}
 
 def _pixel_rays(model: CameraModel) -> np.ndarray:
     """float64 [H * W, 3] unit camera-frame rays of every pixel centre (row-major), from
-    :meth:`CameraModel.rays_from_pixels`; computed in chunks and cached per intrinsics."""
+    :meth:`CameraModel.rays_from_pixels` with 10 iterations (they reproject onto their pixel
+    centre within 1e-8 px for these calibrations); computed in chunks, cached per intrinsics."""
     key = (model.f_u, model.f_v, model.c_u, model.c_v, model.k1, model.k2, model.p1, model.p2,
            model.k3, model.width, model.height)
     rays = _RAY_CACHE.get(key)
@@ -92,7 +93,7 @@ def _pixel_rays(model: CameraModel) -> np.ndarray:
         for y0 in range(0, H, step):
             ys = np.arange(y0, min(H, y0 + step)) + 0.5
             px = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None]), -1).reshape(-1, 2)
-            rays[y0 * W:y0 * W + px.shape[0]] = model.rays_from_pixels(px)
+            rays[y0 * W:y0 * W + px.shape[0]] = model.rays_from_pixels(px, iterations=10)
         if len(_RAY_CACHE) > 8:
             _RAY_CACHE.clear()
         _RAY_CACHE[key] = rays
