@@ -64,6 +64,8 @@ def test_torch_tensor_in_tensor_out_and_empty():
     assert isinstance(single, np.ndarray) and single.shape == (10, 12)
     with pytest.raises(TypeError, match="expected dtype float32, found torch.float64"):
         completer(torch.zeros(3, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="up to 8192 px per side, found 9000x1"):
+        completer(np.ones((1, 9000), np.float32))
     with pytest.raises(ValueError, match="bad device 'nonsense'"):
         get_completer("nearest-torch", device="nonsense")
 

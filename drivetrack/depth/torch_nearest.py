@@ -43,6 +43,9 @@ def nearest_seed_jfa(known, reach: float):
     """
     torch = import_torch()
     batch, height, width = known.shape
+    if max(height, width) > 8192:  # int32 squared distances to _FAR must not overflow
+        raise ValueError(f"completer 'nearest-torch': images up to 8192 px per side, found "
+                         f"{width}x{height}")
     device = known.device
     rows = torch.arange(height, device=device, dtype=torch.int32).view(1, height, 1)
     cols = torch.arange(width, device=device, dtype=torch.int32).view(1, 1, width)
