@@ -509,3 +509,19 @@ def test_speed_filter_drops_points_far_from_the_box_centre_of_a_spinning_box():
     _, filtered = annotate(scene, cfg)
     assert filtered["spinner"].num_dropped_speed == int((errors > 1.5).sum()) > 0
     assert np.all(filtered["spinner"].speed_error_mps <= 1.5)
+
+
+def test_writers_go_through_fsspec_for_remote_urls():
+    import fsspec
+
+    from drivetrack.tracks.writers import write_npz
+
+    url = write_npz("memory://tracks-test/validation/x.npz", {"a": np.arange(3, dtype=np.int32)})
+    with fsspec.open(url, "rb") as handle, np.load(handle, allow_pickle=False) as d:
+        np.testing.assert_array_equal(d["a"], [0, 1, 2])
+    with pytest.raises(ValueError, match=r"memory://tracks-test/y.npz.*'b'.*dtype object"):
+        write_npz("memory://tracks-test/y.npz", {"b": np.array([None])})
+    table = pd.DataFrame({"x": [1]})
+    url = write_table("memory://tracks-test/stats/t.parquet", table)
+    with fsspec.open(url, "rb") as handle:
+        assert pd.read_parquet(handle).x.tolist() == [1]
