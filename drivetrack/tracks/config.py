@@ -60,7 +60,7 @@ class TrackConfig:
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
     depth_completer: str = "nearest"
-    depth_completer_options: dict = field(default_factory=dict)
+    depth_completer_options: dict = field(default_factory=dict, hash=False)
     depth_batch: int = 16
     depth_from_all_returns: bool = True
     rolling_shutter: bool = True
