@@ -117,36 +117,45 @@ class NearestCompleter(DepthCompleter):
         self.backend = backend
 
     def complete_map(self, sparse: np.ndarray) -> np.ndarray:
-        out = np.zeros_like(sparse)
         known = sparse > 0
         if not known.any():
-            return out
+            return np.zeros_like(sparse)
         reach = self.reach_for(sparse.shape[1])
         rows, cols = _band(known, reach)
         known_band = np.ascontiguousarray(known[rows, cols])
+        sparse_band = np.ascontiguousarray(sparse[rows, cols])
         if self.backend == "scipy":
-            out[rows, cols] = self._complete_exact(sparse[rows, cols], known_band, reach)
-            return out
-        # zero pixels of the source are the seeds; DIST_LABEL_PIXEL numbers them 1.. in raster order
+            dense = self._complete_exact(sparse_band, known_band, reach)
+        else:
+            dense = self._complete_opencv(sparse_band, known_band, reach)
+        if dense.shape == sparse.shape:
+            return dense
+        out = np.zeros_like(sparse)
+        out[rows, cols] = dense
+        return out
+
+    @staticmethod
+    def _complete_opencv(sparse: np.ndarray, known: np.ndarray, reach: float) -> np.ndarray:
+        # zero pixels of the source are the seeds; DIST_LABEL_PIXEL numbers them 1.. in raster
+        # order, the order of flatnonzero, so label l is the return at seed_index[l - 1]
+        seed_index = np.flatnonzero(known)
         distance, labels = cv2.distanceTransformWithLabels(
-            np.logical_not(known_band).view(np.uint8), cv2.DIST_L2, 5,
-            labelType=cv2.DIST_LABEL_PIXEL)
-        depth_of_label = np.empty(int(known_band.sum()) + 1, dtype=np.float32)
+            np.logical_not(known).view(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        depth_of_label = np.empty(seed_index.size + 1, dtype=np.float32)
         depth_of_label[0] = 0.0
-        depth_of_label[1:] = sparse[rows, cols][known_band]
+        np.take(sparse.reshape(-1), seed_index, out=depth_of_label[1:])
         dense = np.take(depth_of_label, labels)
         if math.isfinite(reach):
             # The chamfer distance is within a few % of the Euclidean one: decide the pixels near
             # the reach with the exact distance to their chosen return, the rest directly.
             margin = 0.05 * reach + 0.5
             dense[distance > reach + margin] = 0.0
-            near_rows, near_cols = np.nonzero(np.abs(distance - reach) <= margin)
-            seed_rows, seed_cols = np.nonzero(known_band)  # raster order = label order
-            label = labels[near_rows, near_cols] - 1
-            too_far = np.hypot(seed_rows[label] - near_rows, seed_cols[label] - near_cols) > reach
-            dense[near_rows[too_far], near_cols[too_far]] = 0.0
-        out[rows, cols] = dense
-        return out
+            near = np.flatnonzero(cv2.inRange(distance, reach - margin, reach + margin))
+            seed = seed_index[labels.reshape(-1)[near] - 1]
+            width = known.shape[1]
+            too_far = np.hypot(seed // width - near // width, seed % width - near % width) > reach
+            dense.reshape(-1)[near[too_far]] = 0.0
+        return dense
 
     @staticmethod
     def _complete_exact(sparse: np.ndarray, known: np.ndarray, reach: float) -> np.ndarray:
