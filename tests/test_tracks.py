@@ -409,8 +409,8 @@ def test_outputs_load_without_pickle_with_documented_layout(tmp_path):
     ctx, results = annotate(scene)
     r = results["car-1"]
     urls = write_object_outputs(str(tmp_path), "validation", r)
-    assert urls[0].endswith("validation/waymo_seg_test-1_FRONT_car-1.npz")
-    assert urls[1].endswith("validation/tapvid3d/waymo_seg_test-1_FRONT_car-1.npz")
+    assert urls[0].endswith("tracks/validation/waymo_seg_test-1_FRONT_car-1.npz")
+    assert urls[1].endswith("tapvid3d/validation/waymo_seg_test-1_FRONT_car-1.npz")
     n, t = r.num_tracks, b.t
     with np.load(urls[0], allow_pickle=False) as d:
         expect = {"video": (np.uint8, (t, H, W, 3)), "tracks": (np.float32, (n, t, 2)),

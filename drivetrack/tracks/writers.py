@@ -167,11 +167,11 @@ def write_npz(url: str, arrays: dict[str, np.ndarray], compresslevel: int = NPZ_
 
 
 def _drivetrack_writer(out_root_url: str, split: str, tracks: ObjectTracks) -> str:
-    return write_npz(f"{out_root_url.rstrip('/')}/{split}/{clip_stem(tracks)}.npz", drivetrack_arrays(tracks))
+    return write_npz(f"{out_root_url.rstrip('/')}/tracks/{split}/{clip_stem(tracks)}.npz", drivetrack_arrays(tracks))
 
 
 def _tapvid3d_writer(out_root_url: str, split: str, tracks: ObjectTracks) -> str:
-    return write_npz(f"{out_root_url.rstrip('/')}/{split}/tapvid3d/{clip_stem(tracks)}.npz",
+    return write_npz(f"{out_root_url.rstrip('/')}/tapvid3d/{split}/{clip_stem(tracks)}.npz",
                      tapvid3d_arrays(tracks))
 
 
