@@ -1,0 +1,655 @@
+"""Per-object pose refinement: each object's per-frame box pose estimated from its own LiDAR.
+
+Hand labels jitter by centimetres and about a degree from frame to frame; the track stage carries
+every point with the labelled boxes, so every jitter moves every track. This module re-estimates
+the pose of each object in every frame from the LiDAR itself, with the labels as starting point
+and prior, and returns boxes the track stage can use in place of the labels.
+
+Model (one object, T frames, all vectorised; see docs/refinement.md):
+
+- State per frame ``s_t = (c_t, psi_t)``: box centre (metres) and heading (radians, yaw about +z)
+  in the vehicle frame of frame t, exactly the parametrisation of a ``lidar_box`` label, so a
+  refined box is again a label (``box_from_center_heading``) and a zero correction is the label.
+- Body points: a return ``x`` (vehicle frame of its frame t) has body coordinates
+  ``q = box_from_vehicle(s_t) x``; a rigid object's body points are fixed, so the body points of
+  all frames form one *model* of the object. A return is used when it lies inside the current box
+  grown by ``inlier_margin_m`` and at least ``ground_clearance_m`` above the box bottom (ground).
+- Data term (point-to-plane ICP against the other frames): each body point is matched to its
+  nearest model point *from another frame* (``scipy.spatial.cKDTree``), with the model normal
+  from a local PCA; residual ``r = n . (q - m)``, Huber-weighted with a robust (MAD) scale and
+  gated by a point-to-point distance that shrinks over the iterations.
+- Label prior: ``(s_t - label_t) / sigma_label`` for every frame. It fixes the gauge (a rigid
+  re-definition of the box frame shared by all frames leaves the data term unchanged): the box
+  frame ends where the labels put it *on average*, and frames with no points keep the label
+  where the motion model has nothing better.
+- Motion model: constant velocity and yaw rate in the world frame, i.e. the second divided
+  difference of the world centre (``world_from_vehicle_t c_t``) and of the world heading, divided
+  by ``accel_sigma_mps2`` (``vertical_accel_sigma_mps2`` for world z) / ``yaw_accel_sigma_radps2``; frames with few points borrow from their
+  neighbours.
+- All three terms are solved jointly by Gauss-Newton on the 4T unknowns (sparse normal
+  equations), re-associating correspondences at every iteration.
+
+Fallback to the labels when registration is not trustworthy: too few points (in total or frames
+with points), a large final robust residual, a correction beyond ``max_correction_m`` /
+``max_correction_deg``, or a non-finite result. Every outcome is reported in
+:class:`RefinedPoses` (``reason``, corrections, residuals before and after, points per frame).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from drivetrack.geometry import box_from_center_heading, invert_rigid
+
+__all__ = ["RefineConfig", "RefinedPoses", "refine_object_poses", "refine_scene_boxes",
+           "REFINE_REASONS", "poses_from_center_heading", "center_heading_from_poses"]
+
+#: ``RefinedPoses.reason`` values. ``refined``: refined poses returned; ``disabled``: refinement
+#: off by configuration; ``labels_consistent``: the labels are already as consistent with the
+#: LiDAR as the refined poses (within ``min_improvement``), so they are kept unchanged; the others
+#: are fallbacks to the labels (``used_fallback``).
+REFINE_REASONS = ("refined", "disabled", "labels_consistent", "too_few_points", "large_residual", "large_correction",
+                  "not_finite")
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Every knob of the pose refinement (defaults tuned on synthetic scenes, see benchmarks).
+
+    Attributes:
+        enabled: refine (True) or return the labels unchanged with reason ``disabled``.
+        iterations: maximum Gauss-Newton iterations (each re-associates correspondences).
+        candidate_margin_m: (``refine_scene_boxes``) candidates are the returns inside the label
+            box grown by this much.
+        inlier_margin_m: a return takes part when inside the *current* box grown by this.
+        ground_clearance_m: returns less than this above the current box bottom are ignored.
+        max_correspondence_m, min_correspondence_m: point-to-point gate of a correspondence,
+            shrinking geometrically from the first to the second over the iterations.
+        huber_k: Huber threshold in units of the robust residual scale.
+        point_sigma_floor_m: floor of the robust residual scale (LiDAR noise), metres.
+        normal_neighbours: model points in the PCA giving each model normal.
+        min_planarity: a correspondence's weight is scaled by the planarity of its model
+            neighbourhood ((l2 - l1) / l3 of the PCA eigenvalues) over this, capped at 1: points
+            on a scan line or an edge, whose normal is undefined, count less or not at all.
+        association_neighbours: nearest model points examined to find one from another frame.
+        max_points_per_frame: at most this many returns per frame take part (a fixed
+            pseudo-random subset, deterministic); bounds the cost on near objects.
+        label_sigma_m, label_sigma_deg: the labels' per-frame noise (prior strength).
+        accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
+            stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
+            of a roof, so z is the least observed direction) and yaw acceleration.
+        min_points_total, min_frames_with_points, min_points_per_frame: fallback
+            ``too_few_points`` unless the labels select at least ``min_points_total`` returns and
+            at least ``min_frames_with_points`` frames have ``min_points_per_frame`` returns.
+        max_residual_m: fallback ``large_residual`` when the final robust point-to-plane
+            residual (1.4826 x median |r|) exceeds this.
+        max_correction_m, max_correction_deg: fallback ``large_correction`` beyond these.
+        min_improvement: keep the labels (reason ``labels_consistent``) unless the refined robust
+            residual is lower than the labels' by more than this fraction.
+        tolerance_m, tolerance_deg: stop when no frame moves by more than these in an iteration.
+    """
+    enabled: bool = True
+    iterations: int = 12
+    candidate_margin_m: float = 0.4
+    inlier_margin_m: float = 0.15
+    ground_clearance_m: float = 0.2
+    max_correspondence_m: float = 0.3
+    min_correspondence_m: float = 0.06
+    huber_k: float = 2.0
+    point_sigma_floor_m: float = 0.005
+    normal_neighbours: int = 20
+    min_planarity: float = 0.3
+    association_neighbours: int = 12
+    max_points_per_frame: int = 400
+    label_sigma_m: float = 0.05
+    label_sigma_deg: float = 1.0
+    accel_sigma_mps2: float = 2.0
+    vertical_accel_sigma_mps2: float = 0.3
+    yaw_accel_sigma_radps2: float = 1.0
+    min_points_total: int = 60
+    min_frames_with_points: int = 3
+    min_points_per_frame: int = 10
+    max_residual_m: float = 0.05
+    max_correction_m: float = 0.5
+    max_correction_deg: float = 10.0
+    min_improvement: float = 0.15
+    tolerance_m: float = 1e-3
+    tolerance_deg: float = 0.02
+
+    def __post_init__(self):
+        positive = ("iterations", "max_correspondence_m", "min_correspondence_m", "huber_k",
+                    "point_sigma_floor_m", "min_planarity", "label_sigma_m", "label_sigma_deg", "accel_sigma_mps2",
+                    "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "max_residual_m", "max_correction_m",
+                    "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg")
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
+        for name in ("candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
+                     "min_improvement"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"RefineConfig.{name} must be >= 0, got {value!r}")
+        if self.normal_neighbours < 3:
+            raise ValueError(f"RefineConfig.normal_neighbours must be >= 3, got {self.normal_neighbours}")
+        if self.association_neighbours < 2:
+            raise ValueError(f"RefineConfig.association_neighbours must be >= 2, got {self.association_neighbours}")
+        if self.min_frames_with_points < 2:
+            raise ValueError(f"RefineConfig.min_frames_with_points must be >= 2 (registration needs another "
+                             f"frame), got {self.min_frames_with_points}")
+        if self.min_correspondence_m > self.max_correspondence_m:
+            raise ValueError(f"RefineConfig.min_correspondence_m ({self.min_correspondence_m}) exceeds "
+                             f"max_correspondence_m ({self.max_correspondence_m})")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "RefineConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise, naming them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"RefineConfig: unknown keys {unknown}")
+        return cls(**values)
+
+
+@dataclass
+class RefinedPoses:
+    """Result of :func:`refine_object_poses` for one object over its T frames.
+
+    Attributes:
+        vehicle_from_box: float64 [T, 4, 4], refined box poses (the labels on fallback); yaw-only
+            in each frame's vehicle frame, like a label.
+        world_from_box: float64 [T, 4, 4] = ``world_from_vehicle @ vehicle_from_box``.
+        center_vehicle: float64 [T, 3] metres and heading: float64 [T] radians in (-pi, pi] of
+            the returned boxes (vehicle frame of each frame).
+        correction_translation_m: float64 [T, 3], returned centre minus label centre (vehicle
+            frame), zero on fallback.
+        correction_rotation_deg: float64 [T], returned heading minus label heading, wrapped to
+            (-180, 180], zero on fallback.
+        residual_m: robust point-to-plane residual (1.4826 x median |r|, metres) of the refined
+            poses; NaN when never computed (too few points, disabled).
+        residual_label_m: the same measure at the labels (the labels' own consistency).
+        residual_per_frame_m: float64 [T], RMS of the Huber-inlier residuals per frame at the
+            refined poses (NaN where a frame has no correspondence).
+        num_points: int64 [T], returns taking part in the registration per frame.
+        refined: True when refined poses are returned.
+        used_fallback: True when refinement ran but the labels are returned.
+        reason: one of :data:`REFINE_REASONS`; ``detail``: human-readable numbers behind it.
+        iterations: Gauss-Newton iterations run.
+        cpu_seconds: process CPU time spent in the call.
+    """
+    vehicle_from_box: np.ndarray
+    world_from_box: np.ndarray
+    center_vehicle: np.ndarray
+    heading: np.ndarray
+    correction_translation_m: np.ndarray
+    correction_rotation_deg: np.ndarray
+    residual_m: float
+    residual_label_m: float
+    residual_per_frame_m: np.ndarray
+    num_points: np.ndarray
+    refined: bool
+    used_fallback: bool
+    reason: str
+    detail: str = ""
+    iterations: int = 0
+    cpu_seconds: float = 0.0
+
+    def summary(self) -> dict:
+        """Flat dict for the statistics tables and the gates (one row per object)."""
+        translation = np.linalg.norm(self.correction_translation_m, axis=-1)
+        rotation = np.abs(self.correction_rotation_deg)
+        has = translation.size > 0
+        return {
+            "refine_reason": self.reason,
+            "refine_applied": bool(self.refined),
+            "refine_fallback": bool(self.used_fallback),
+            "refine_translation_p50_m": float(np.median(translation)) if has else 0.0,
+            "refine_translation_max_m": float(translation.max()) if has else 0.0,
+            "refine_rotation_p50_deg": float(np.median(rotation)) if has else 0.0,
+            "refine_rotation_max_deg": float(rotation.max()) if has else 0.0,
+            "refine_residual_m": float(self.residual_m),
+            "refine_residual_label_m": float(self.residual_label_m),
+            "refine_num_points": int(self.num_points.sum()),
+            "refine_frames_without_points": int((self.num_points == 0).sum()),
+            "refine_iterations": int(self.iterations),
+            "refine_cpu_seconds": float(self.cpu_seconds),
+        }
+
+
+# ----------------------------------------------------------------------------- small helpers
+
+def poses_from_center_heading(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """float64 [T, 4, 4] ``vehicle_from_box`` of centres [T, 3] and headings [T] (radians)."""
+    return box_from_center_heading(center, heading)
+
+
+def center_heading_from_poses(vehicle_from_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre float64 [T, 3], heading float64 [T]) of yaw-dominant box poses [T, 4, 4].
+
+    The heading is the yaw of the box x axis projected on the vehicle xy plane (the convention
+    ``lidar_box`` labels use); roll and pitch, if any, are dropped.
+    """
+    vehicle_from_box = np.asarray(vehicle_from_box, dtype=np.float64)
+    return vehicle_from_box[..., :3, 3].copy(), np.arctan2(vehicle_from_box[..., 1, 0], vehicle_from_box[..., 0, 0])
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped to (-pi, pi]."""
+    return -((-np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def _body_points(center: np.ndarray, heading: np.ndarray, points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """float64 [M, 3]: ``box_from_vehicle(s_frame) x`` for points x [M, 3] of frames ``frame``."""
+    d = points - center[frame]
+    c, s = np.cos(heading[frame]), np.sin(heading[frame])
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=-1)
+
+
+def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) -> np.ndarray:
+    """bool [M]: body points q [M, 3] inside boxes of half-size half [M, 3] grown by ``margin``,
+    at least ``clearance`` above the (ungrown) bottom."""
+    inside = np.all(np.abs(q[:, :2]) <= half[:, :2] + margin, axis=-1)
+    return inside & (q[:, 2] <= half[:, 2] + margin) & (q[:, 2] >= -half[:, 2] + clearance)
+
+
+def _cap_per_frame(frame: np.ndarray, keep: np.ndarray, priority: np.ndarray, cap: int, t_count: int) -> np.ndarray:
+    """Thin ``keep`` (bool [M]) to the ``cap`` points of lowest ``priority`` (float [M], fixed per
+    point) in each frame. With a fixed priority the subset changes by a few points only when the
+    selection does, so the registration does not see a new random sample at every iteration."""
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return keep
+    counts = np.bincount(frame[idx], minlength=t_count)
+    if counts.max() <= cap:
+        return keep
+    idx = idx[np.lexsort((priority[idx], frame[idx]))]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.arange(idx.size) - start[frame[idx]]
+    out = np.zeros_like(keep)
+    out[idx[rank < cap]] = True
+    return out
+
+
+def _normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals float64 [P, 3] by PCA over neighbour lists int [P, k] into ``model`` [*, 3],
+    and the planarity float64 [P] ((l2 - l1) / l3 of the eigenvalues l1 <= l2 <= l3) of each."""
+    gathered = model[neighbours]                                           # [P, k, 3]
+    mean = gathered.mean(axis=1)
+    cov = np.einsum("pki,pkj->pij", gathered, gathered) / neighbours.shape[1] \
+        - mean[:, :, None] * mean[:, None, :]
+    values, vectors = np.linalg.eigh(cov)                                  # ascending eigenvalues
+    planarity = (values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], 1e-12)
+    return vectors[:, :, 0], planarity
+
+
+@dataclass
+class _Data:
+    """Point-to-plane terms at the current state: sparse normal equations and diagnostics."""
+    hessian: object          # scipy.sparse [4T, 4T]
+    gradient: np.ndarray     # [4T]
+    residual: np.ndarray     # [C] point-to-plane residuals of correspondences
+    frame: np.ndarray        # [C] frame of the query point
+    scale: float             # robust scale of residual (metres)
+    num_points: np.ndarray   # [T] returns taking part
+
+
+def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """float64 [C, 4]: d (n . q) / d (c, psi) for body points q = R(-psi) (x - c), normals n."""
+    c, s = np.cos(heading), np.sin(heading)
+    return np.stack([-(c * n[:, 0] - s * n[:, 1]), -(s * n[:, 0] + c * n[:, 1]), -n[:, 2],
+                     n[:, 0] * q[:, 1] - n[:, 1] * q[:, 0]], axis=-1)
+
+
+def _data_terms(points: np.ndarray, frame: np.ndarray, priority: np.ndarray, half: np.ndarray,
+                center: np.ndarray, heading: np.ndarray, gate_m: float, config: RefineConfig,
+                t_count: int) -> _Data:
+    """Point-to-plane normal equations at state (center, heading), jointly over all frames.
+
+    Each used return ``q_a`` (frame a) is paired with its nearest body point ``m = q_b`` of another
+    frame b; the residual ``n . (q_a - q_b)`` depends on both poses, so both move (a sparse
+    Jacobian with 8 non-zeros per row); the normal ``n`` at ``m`` is held fixed.
+    """
+    import scipy.sparse as sp
+    from scipy.spatial import cKDTree
+
+    q_all = _body_points(center, heading, points, frame)
+    keep = _inside(q_all, half[frame], config.inlier_margin_m, config.ground_clearance_m)
+    keep = _cap_per_frame(frame, keep, priority, config.max_points_per_frame, t_count)
+    q, f = q_all[keep], frame[keep]
+    num_points = np.bincount(f, minlength=t_count).astype(np.int64)
+    empty = _Data(sp.csr_matrix((4 * t_count, 4 * t_count)), np.zeros(4 * t_count), np.zeros(0),
+                  np.zeros(0, np.int64), float("nan"), num_points)
+    if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
+        return empty
+    tree = cKDTree(q)
+    k = int(min(max(config.association_neighbours, config.normal_neighbours), q.shape[0]))
+    dist, nbr = tree.query(q, k=k)                                       # one query serves both uses
+    dist, nbr = dist.reshape(-1, k), nbr.reshape(-1, k)
+    ka = min(config.association_neighbours, k)
+    other = (dist[:, :ka] <= gate_m) & (f[nbr[:, :ka]] != f[:, None])    # leave-one-frame-out
+    has = other.any(axis=1)
+    first = np.argmax(other, axis=1)
+    src = np.flatnonzero(has)
+    dst = nbr[src, first[src]]
+    if src.size < 4:
+        return empty
+    targets, target_of = np.unique(dst, return_inverse=True)
+    normal_t, planarity_t = _normals(q, nbr[targets, :min(config.normal_neighbours, k)])
+    normal, planarity = normal_t[target_of], planarity_t[target_of]
+    fa, fb, n = f[src], f[dst], normal
+    r = np.einsum("ni,ni->n", n, q[src] - q[dst])
+    scale = max(1.4826 * float(np.median(np.abs(r))), config.point_sigma_floor_m)
+    w = np.minimum(1.0, config.huber_k * scale / np.maximum(np.abs(r), 1e-12)) / scale ** 2
+    w = w * np.clip(planarity / config.min_planarity, 0.0, 1.0)
+    jac_a = _point_jacobian(n, q[src], heading[fa])
+    jac_b = -_point_jacobian(n, q[dst], heading[fb])
+    c_count = src.size
+    rows = np.repeat(np.arange(c_count), 8)
+    cols = np.concatenate([4 * fa[:, None] + np.arange(4), 4 * fb[:, None] + np.arange(4)], axis=1).reshape(-1)
+    vals = np.concatenate([jac_a, jac_b], axis=1).reshape(-1)
+    jac = sp.csr_matrix((vals, (rows, cols)), shape=(c_count, 4 * t_count))
+    hessian = (jac.T @ sp.diags(w) @ jac).tocsr()
+    gradient = jac.T @ (w * r)
+    return _Data(hessian, gradient, r, fa, scale, num_points)
+
+
+def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, config: RefineConfig):
+    """Linear motion-model residuals ``e = S x + e0`` over the stacked state x [4T].
+
+    Rows: for every interior frame, the second divided difference of the world centre (3 rows,
+    over ``accel_sigma_mps2``) and of the world heading (1 row, over ``yaw_accel_sigma_radps2``).
+    World centre of frame t: ``R_t c_t + p_t``; world heading: ``psi_t + yaw(R_t)`` (unwrapped).
+    Returns (S scipy.sparse csr [4(T-2), 4T], e0 float64 [4(T-2)]), or (None, None) when T < 3.
+    """
+    import scipy.sparse as sp
+
+    t_count = timestamps_s.shape[0]
+    if t_count < 3:
+        return None, None
+    dt = np.diff(timestamps_s)
+    dt1, dt2 = dt[:-1], dt[1:]
+    coef = np.stack([2.0 / (dt1 * (dt1 + dt2)), -2.0 / (dt1 * dt2), 2.0 / (dt2 * (dt1 + dt2))], axis=-1)  # [T-2, 3]
+    rotation = world_from_vehicle[:, :3, :3]
+    offset = world_from_vehicle[:, :3, 3]
+    yaw_w = np.unwrap(np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0]))
+    interior = np.arange(1, t_count - 1)
+    frames = interior[:, None] + np.arange(-1, 2)[None, :]                  # [T-2, 3]
+    sigma = np.array([config.accel_sigma_mps2, config.accel_sigma_mps2, config.vertical_accel_sigma_mps2])
+    rows, cols, vals = [], [], []
+    base_row = 4 * (interior - 1)
+    for k in range(3):                                                      # 3 frames per stencil
+        fk = frames[:, k]
+        for a in range(3):                                                  # world axis (row)
+            for b in range(3):                                              # state centre axis
+                rows.append(base_row + a)
+                cols.append(4 * fk + b)
+                vals.append(coef[:, k] * rotation[fk, a, b] / sigma[a])
+        rows.append(base_row + 3)
+        cols.append(4 * fk + 3)
+        vals.append(coef[:, k] / config.yaw_accel_sigma_radps2)
+    S = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(4 * (t_count - 2), 4 * t_count))
+    e0 = np.zeros(4 * (t_count - 2))
+    e0_pos = np.einsum("tk,tki->ti", coef, offset[frames]) / sigma
+    e0_yaw = np.einsum("tk,tk->t", coef, yaw_w[frames]) / config.yaw_accel_sigma_radps2
+    e0.reshape(-1, 4)[:, :3] = e0_pos
+    e0.reshape(-1, 4)[:, 3] = e0_yaw
+    return S, e0
+
+
+def _check_inputs(vehicle_from_box, size, world_from_vehicle, points_vehicle, point_frame, timestamps_s, name):
+    where = f"refine_object_poses({name})" if name else "refine_object_poses"
+    vehicle_from_box = np.asarray(vehicle_from_box, dtype=np.float64)
+    if vehicle_from_box.ndim != 3 or vehicle_from_box.shape[1:] != (4, 4) or vehicle_from_box.shape[0] < 1:
+        raise ValueError(f"{where}: vehicle_from_box must be [T, 4, 4] with T >= 1, got {vehicle_from_box.shape}")
+    t_count = vehicle_from_box.shape[0]
+    size = np.asarray(size, dtype=np.float64)
+    if size.shape == (3,):
+        size = np.broadcast_to(size, (t_count, 3))
+    if size.shape != (t_count, 3):
+        raise ValueError(f"{where}: size must be [3] or [{t_count}, 3], got {size.shape}")
+    if not (np.all(np.isfinite(size)) and np.all(size > 0)):
+        raise ValueError(f"{where}: size must be finite and positive, got {size[~(np.isfinite(size) & (size > 0)).all(-1)][0].tolist()}")
+    world_from_vehicle = np.asarray(world_from_vehicle, dtype=np.float64)
+    if world_from_vehicle.shape != (t_count, 4, 4):
+        raise ValueError(f"{where}: world_from_vehicle must be [{t_count}, 4, 4], got {world_from_vehicle.shape}")
+    for label, arr in (("vehicle_from_box", vehicle_from_box), ("world_from_vehicle", world_from_vehicle)):
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=(1, 2)))
+        if bad.size:
+            raise ValueError(f"{where}: {label} is not finite at frames {bad[:10].tolist()}")
+    points_vehicle = np.asarray(points_vehicle, dtype=np.float64)
+    if points_vehicle.ndim != 2 or points_vehicle.shape[1] != 3:
+        raise ValueError(f"{where}: points_vehicle must be [M, 3], got {points_vehicle.shape}")
+    point_frame = np.asarray(point_frame)
+    if point_frame.shape != (points_vehicle.shape[0],) or not (point_frame.size == 0 or np.issubdtype(point_frame.dtype, np.integer)):
+        raise ValueError(f"{where}: point_frame must be int [{points_vehicle.shape[0]}], got "
+                         f"{point_frame.dtype} {point_frame.shape}")
+    point_frame = point_frame.astype(np.int64)
+    if point_frame.size and (point_frame.min() < 0 or point_frame.max() >= t_count):
+        raise ValueError(f"{where}: point_frame out of range [0, {t_count}): "
+                         f"{int(point_frame.min())}..{int(point_frame.max())}")
+    if not np.all(np.isfinite(points_vehicle)):
+        raise ValueError(f"{where}: points_vehicle has {int((~np.isfinite(points_vehicle).all(-1)).sum())} "
+                         f"non-finite rows")
+    timestamps_s = np.asarray(timestamps_s, dtype=np.float64)
+    if timestamps_s.shape != (t_count,):
+        raise ValueError(f"{where}: timestamps_s must be [{t_count}], got {timestamps_s.shape}")
+    if np.any(~np.isfinite(timestamps_s)) or np.any(np.diff(timestamps_s) <= 0):
+        i = int(np.flatnonzero(~(np.diff(timestamps_s) > 0))[0]) if t_count > 1 else 0
+        raise ValueError(f"{where}: timestamps_s must be finite and strictly increasing; frames {i} and {i + 1} "
+                         f"have {timestamps_s[i:i + 2].tolist()}")
+    return vehicle_from_box, np.ascontiguousarray(size), world_from_vehicle, points_vehicle, point_frame, timestamps_s
+
+
+def _result(center, heading, label_center, label_heading, world_from_vehicle, **kw) -> RefinedPoses:
+    vehicle_from_box = box_from_center_heading(center, heading)
+    return RefinedPoses(
+        vehicle_from_box=vehicle_from_box, world_from_box=world_from_vehicle @ vehicle_from_box,
+        center_vehicle=center, heading=_wrap(heading),
+        correction_translation_m=center - label_center,
+        correction_rotation_deg=np.rad2deg(_wrap(heading - label_heading)), **kw)
+
+
+def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_from_vehicle: np.ndarray,
+                        points_vehicle: np.ndarray, point_frame: np.ndarray, timestamps_s: np.ndarray,
+                        config: RefineConfig | None = None, name: str = "") -> RefinedPoses:
+    """Refine one object's per-frame box poses from its own LiDAR (see the module docstring).
+
+    Args:
+        vehicle_from_box: float64 [T, 4, 4], labelled box poses, vehicle frame of each frame
+            (yaw-only, as ``box_from_center_heading`` makes them; roll/pitch are dropped).
+        size: float64 [3] or [T, 3], box size (length, width, height), metres.
+        world_from_vehicle: float64 [T, 4, 4], vehicle pose of each frame.
+        points_vehicle: float64 [M, 3], metres, candidate returns near the object (e.g. inside
+            the label box grown by ``config.candidate_margin_m``), vehicle frame of their frame.
+            Ground, background and other objects among them are tolerated.
+        point_frame: int [M], frame index (0..T-1) of each candidate.
+        timestamps_s: float64 [T], seconds, strictly increasing.
+        config: :class:`RefineConfig` (defaults when None).
+        name: object name used in error messages (e.g. ``segment/object_id``).
+    Returns:
+        :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
+    Raises:
+        ValueError naming the argument, shape or value on malformed input.
+    """
+    config = config or RefineConfig()
+    cpu0 = time.process_time()
+    vehicle_from_box, size, world_from_vehicle, points, frame, timestamps_s = _check_inputs(
+        vehicle_from_box, size, world_from_vehicle, points_vehicle, point_frame, timestamps_s, name)
+    t_count = vehicle_from_box.shape[0]
+    label_center, label_heading = center_heading_from_poses(vehicle_from_box)
+    label_heading = np.unwrap(label_heading)
+    half = size / 2.0
+    nan_frames = np.full(t_count, np.nan)
+
+    def labels(reason: str, detail: str, residual=float("nan"), residual_label=float("nan"),
+               num_points=None, iterations=0) -> RefinedPoses:
+        out = _result(label_center.copy(), label_heading.copy(), label_center, label_heading,
+                      world_from_vehicle, residual_m=residual, residual_label_m=residual_label,
+                      residual_per_frame_m=nan_frames.copy(),
+                      num_points=np.zeros(t_count, np.int64) if num_points is None else num_points,
+                      refined=False, used_fallback=reason not in ("disabled", "labels_consistent"),
+                      reason=reason, detail=detail,
+                      iterations=iterations, cpu_seconds=time.process_time() - cpu0)
+        out.vehicle_from_box = vehicle_from_box.copy()                    # the labels, bit for bit
+        out.world_from_box = world_from_vehicle @ out.vehicle_from_box
+        return out
+
+    if not config.enabled:
+        return labels("disabled", "refinement disabled by configuration")
+    order = np.argsort(frame, kind="stable")
+    points, frame = points[order], frame[order]
+    # fixed per-point priority for the per-frame cap: a hash of the point's coordinates, so the
+    # result does not depend on the order of the input rows
+    priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
+
+    # Selection at the labels decides whether there is enough to register at all.
+    q0 = _body_points(label_center, label_heading, points, frame)
+    at_label = _inside(q0, half[frame], config.inlier_margin_m, config.ground_clearance_m)
+    per_frame = np.bincount(frame[at_label], minlength=t_count).astype(np.int64)
+    frames_ok = int((per_frame >= config.min_points_per_frame).sum())
+    if per_frame.sum() < config.min_points_total or frames_ok < config.min_frames_with_points:
+        return labels("too_few_points", f"{int(per_frame.sum())} returns in the label boxes "
+                      f"(need {config.min_points_total}); {frames_ok} frames with >= "
+                      f"{config.min_points_per_frame} (need {config.min_frames_with_points})",
+                      num_points=per_frame)
+
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config)
+    prior_w = np.array([1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2])
+    H_motion = (S.T @ S).tocsr() if S is not None else sp.csr_matrix((4 * t_count, 4 * t_count))
+    label_state = np.concatenate([label_center, label_heading[:, None]], axis=1).reshape(-1)
+
+    center, heading = label_center.copy(), label_heading.copy()
+    shrink = max(config.iterations // 2, 1)
+    gates = np.concatenate([np.geomspace(config.max_correspondence_m, config.min_correspondence_m, shrink),
+                            np.full(max(config.iterations - shrink, 0), config.min_correspondence_m)])
+    # the labels' own consistency, measured exactly as the final result is
+    residual_label = _data_terms(points, frame, priority, half, center, heading, config.max_correspondence_m,
+                                 config, t_count).scale
+    data = None
+    iterations = 0
+    for it in range(config.iterations):
+        data = _data_terms(points, frame, priority, half, center, heading, gates[it], config, t_count)
+        state = np.concatenate([center, heading[:, None]], axis=1).reshape(-1)
+        # Normal equations of 1/2 (data + prior + motion) in the increment dx.
+        H = data.hessian + sp.diags(np.tile(prior_w, t_count)) + H_motion
+        g = data.gradient + np.tile(prior_w, t_count) * (state - label_state)
+        if S is not None:
+            g = g + S.T @ (S @ state + e0)
+        dx = spla.spsolve(H.tocsc(), -g)
+        iterations = it + 1
+        if not np.all(np.isfinite(dx)):
+            return labels("not_finite", f"non-finite update at iteration {iterations}",
+                          residual_label=residual_label, num_points=data.num_points, iterations=iterations)
+        dx = dx.reshape(t_count, 4)
+        center = center + dx[:, :3]
+        heading = heading + dx[:, 3]
+        small = (np.abs(dx[:, :3]).max() < config.tolerance_m
+                 and np.rad2deg(np.abs(dx[:, 3]).max()) < config.tolerance_deg)
+        if small and gates[it] <= config.min_correspondence_m * 1.0001:
+            break
+        if small:                                   # converged at this gate: jump to the finest
+            gates[it + 1:] = config.min_correspondence_m
+
+    final = _data_terms(points, frame, priority, half, center, heading, config.max_correspondence_m, config, t_count)
+    residual = final.scale
+    inlier = np.abs(final.residual) <= config.huber_k * (residual if np.isfinite(residual) else 0.0)
+    sq = np.bincount(final.frame[inlier], weights=final.residual[inlier] ** 2, minlength=t_count)
+    cnt = np.bincount(final.frame[inlier], minlength=t_count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_frame_residual = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
+
+    translation = np.linalg.norm(center - label_center, axis=-1)
+    rotation = np.rad2deg(np.abs(_wrap(heading - label_heading)))
+    if not (np.all(np.isfinite(center)) and np.all(np.isfinite(heading)) and np.isfinite(residual)):
+        return labels("not_finite", "the refined poses or residual are not finite",
+                      residual_label=residual_label, num_points=final.num_points, iterations=iterations)
+    if residual > config.max_residual_m:
+        return labels("large_residual", f"robust residual {residual:.3f} m > {config.max_residual_m} m "
+                      f"(labels: {residual_label:.3f} m)", residual=residual, residual_label=residual_label,
+                      num_points=final.num_points, iterations=iterations)
+    if translation.max() > config.max_correction_m or rotation.max() > config.max_correction_deg:
+        t_bad = int(np.argmax(np.maximum(translation / config.max_correction_m, rotation / config.max_correction_deg)))
+        return labels("large_correction", f"frame {t_bad}: correction {translation[t_bad]:.3f} m, "
+                      f"{rotation[t_bad]:.2f} deg exceeds {config.max_correction_m} m / "
+                      f"{config.max_correction_deg} deg", residual=residual, residual_label=residual_label,
+                      num_points=final.num_points, iterations=iterations)
+    if residual_label <= (1.0 + config.min_improvement) * residual:
+        return labels("labels_consistent", f"robust residual {residual_label:.4f} m at the labels, "
+                     f"{residual:.4f} m refined: less than {config.min_improvement:.0%} better",
+                     residual=residual, residual_label=residual_label, num_points=final.num_points,
+                     iterations=iterations)
+    return _result(center, heading, label_center, label_heading, world_from_vehicle,
+                   residual_m=residual, residual_label_m=residual_label,
+                   residual_per_frame_m=per_frame_residual, num_points=final.num_points, refined=True,
+                   used_fallback=False, reason="refined",
+                   detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m",
+                   iterations=iterations, cpu_seconds=time.process_time() - cpu0)
+
+
+def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
+                       returns=None):
+    """Refine every object of ``scene`` over its labelled frames; returns boxes usable as labels.
+
+    For each object (``object_ids`` or all), the candidates are the returns (of ``lasers`` /
+    ``returns`` when given: ``LaserName`` values and return indices 1|2) inside each label box
+    grown by ``config.candidate_margin_m``; :func:`refine_object_poses` runs on them.
+
+    Returns:
+        ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
+        the ``center`` and ``heading`` of refined objects, and ``{object_id: RefinedPoses}``.
+        Passing ``boxes`` as the scene's labels makes the track stage select points with, and
+        carry them by, the refined poses.
+    """
+    from drivetrack.scene import Boxes
+
+    config = config or RefineConfig()
+    boxes, lidar = scene.boxes, scene.lidar
+    object_id = boxes.object_id.astype(str)
+    ids = sorted(set(object_id.tolist())) if object_ids is None else [str(i) for i in object_ids]
+    selected = np.ones(len(lidar), dtype=bool)
+    if lasers is not None:
+        selected &= np.isin(lidar.laser, np.asarray(lasers))
+    if returns is not None:
+        selected &= np.isin(lidar.return_index, np.asarray(returns))
+    timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
+    center, heading = boxes.center.copy(), boxes.heading.copy()
+    results = {}
+    for oid in ids:
+        rows = np.flatnonzero(object_id == oid)
+        if rows.size == 0:
+            raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
+        rows = rows[np.argsort(boxes.frame[rows], kind="stable")]
+        frames = boxes.frame[rows].astype(np.int64)
+        vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])
+        box_from_vehicle = invert_rigid(vehicle_from_box)
+        pts, owner = [], []
+        for i, t in enumerate(frames.tolist()):
+            part = lidar.of_frame(t)
+            p = lidar.points_vehicle[part][selected[part]]
+            radius = 0.5 * float(np.linalg.norm(boxes.size[rows[i]])) + config.candidate_margin_m
+            near = np.all(np.abs(p - boxes.center[rows[i]]) <= radius, axis=-1)
+            p = p[near]
+            local = p @ box_from_vehicle[i, :3, :3].T + box_from_vehicle[i, :3, 3]
+            inside = np.all(np.abs(local) <= boxes.size[rows[i]] / 2.0 + config.candidate_margin_m, axis=-1)
+            pts.append(p[inside])
+            owner.append(np.full(int(inside.sum()), i, dtype=np.int64))
+        result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
+                                     np.concatenate(pts) if pts else np.zeros((0, 3)),
+                                     np.concatenate(owner) if owner else np.zeros(0, np.int64),
+                                     timestamps_s[frames], config, name=f"{scene.segment}/{oid}")
+        results[oid] = result
+        if result.refined:
+            center[rows] = result.center_vehicle
+            heading[rows] = result.heading
+    refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
+    refined.center, refined.heading = center, heading
+    return refined, results
