@@ -416,6 +416,11 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
             progress("cameras", done[0], total_cam)
 
     jpegs, depths = g.render_cameras(tick_cam, workers=workers)
+    gt_url = gt.ground_truth_url(root, config.split, seg)
+    sizes = {}
+    for cam in list(depths):
+        name = f"depth_{CameraName(cam).name}.npz"
+        sizes[name] = gt.write_npz(f"{gt_url}/{name}", {"depth": depths.pop(cam)})
 
     # ------------------------------------------------------------- lidar
     lidar_rows, pose_rows, proj_rows = [], [], []
@@ -514,6 +519,7 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
         files[name] = url
         if progress:
             progress("write", i + 1, len(tables))
+    del tables, jpegs, lidar_rows, pose_rows, proj_rows, points_vehicle_all   # bound peak memory
 
     # ------------------------------------------------------------- exact ground truth
     hits = {k: np.concatenate([h[k] for h in hit_records]) if hit_records else None
@@ -524,8 +530,6 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
     pixels, visible = _carry_and_check(g, hits["object_index"], hits["point_box"], progress)
     hits["pixels"] = pixels
     hits["visible"] = visible
-    gt_url = gt.ground_truth_url(root, config.split, seg)
-    sizes = {}
     world_from_box = np.stack([o.world_from_box(g.times) for o in world.objects])
     sizes["objects.npz"] = gt.write_npz(f"{gt_url}/objects.npz", dict(
         object_id=np.array([o.object_id for o in world.objects]),
@@ -534,9 +538,6 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
         timestamps_micros=g.timestamps, world_from_vehicle=g.world_from_vehicle,
         camera_names=np.array([c for c, _ in cams], np.int8)))
     sizes["lidar_hits.npz"] = gt.write_npz(f"{gt_url}/lidar_hits.npz", hits)
-    for cam, depth in depths.items():
-        sizes[f"depth_{CameraName(cam).name}.npz"] = gt.write_npz(
-            f"{gt_url}/depth_{CameraName(cam).name}.npz", {"depth": depth})
     return {"segment": seg, "files": files, "ground_truth": gt_url, "ground_truth_bytes": sizes,
             "num_frames": T, "num_objects": K, "num_object_returns": int(hits["frame"].size),
             "num_visible": int(visible.sum())}
