@@ -108,7 +108,7 @@ def _gate_result(spec: GateSpec, gx_result, frame: pd.DataFrame) -> GateResult:
             num_failing, failing = len(missing), [{"split": s} for s in missing]
     elif "unexpected_count" in res:
         n = int(res["unexpected_count"])
-        observed = (f"{n} of {element_count} rows outside"
+        observed = (f"{n} of {element_count} rows fail"
                     + (f" ({res.get('unexpected_percent', 0):.3g}%)" if n else ""))
         rows = res.get("unexpected_index_list") or []
         num_failing = n
