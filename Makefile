@@ -36,5 +36,17 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m bench.run $(BENCH)
 
+release:
+	@if [ -z "$(VERSION)" ]; then \
+	  echo "usage: make release VERSION=x.y.z [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training]" >&2; \
+	  echo "  with only VERSION: synthesises a small source into ./data/synthetic, publishes to ./store" >&2; \
+	  exit 2; fi
+	@$(MAKE) --no-print-directory venv
+	$(PY) -m flows.release --version "$(VERSION)" --store "$(or $(STORE),./store)" --splits "$(or $(SPLITS),training)" \
+	  $(if $(SOURCE),--source "$(SOURCE)") $(if $(SEGMENTS),--segments "$(SEGMENTS)")
+
+serve: $(STAMP)
+	$(PY) -m flows.serve --store "$(or $(STORE),./store)" $(if $(SOURCE),--source "$(SOURCE)") $(if $(CRON),--cron "$(CRON)")
+
 clean:
 	rm -rf $(VENV) .pytest_cache
