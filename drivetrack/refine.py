@@ -91,7 +91,7 @@ class RefineConfig:
         tolerance_m, tolerance_deg: stop when no frame moves by more than these in an iteration.
     """
     enabled: bool = True
-    iterations: int = 12
+    iterations: int = 10
     candidate_margin_m: float = 0.4
     inlier_margin_m: float = 0.15
     ground_clearance_m: float = 0.2
@@ -99,10 +99,10 @@ class RefineConfig:
     min_correspondence_m: float = 0.06
     huber_k: float = 2.0
     point_sigma_floor_m: float = 0.005
-    normal_neighbours: int = 20
+    normal_neighbours: int = 12
     min_planarity: float = 0.3
     association_neighbours: int = 12
-    max_points_per_frame: int = 400
+    max_points_per_frame: int = 120
     label_sigma_m: float = 0.05
     label_sigma_deg: float = 1.0
     accel_sigma_mps2: float = 2.0
