@@ -39,7 +39,7 @@ def good_tables(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame
                 err = PAPER * scale
                 rows.append(dict(
                     split=split, segment=segment, camera="FRONT", object_id=f"obj_{o}",
-                    object_type="VEHICLE", file=f"{split}/waymo_{segment}_FRONT_obj_{o}.npz",
+                    object_type="VEHICLE", file=f"tracks/{split}/waymo_{segment}_FRONT_obj_{o}.npz",
                     num_tracks=int(rng.integers(200, 2000)), num_frames=int(rng.integers(24, 199)),
                     visible_fraction=float(rng.uniform(0.3, 0.95)),
                     min_camera_distance_m=float(rng.uniform(4, 19)),

@@ -82,7 +82,7 @@ def _read_table(fs, root: str, name: str, required: tuple[str, ...],
 def _relative(file_value: str, fs, root: str) -> str:
     """The path of ``file_value`` relative to the output folder ``root`` (a path of ``fs``).
 
-    ``file`` may be relative to OUT (``training/waymo_....npz``), an absolute path or a URL.
+    ``file`` may be relative to OUT (``tracks/training/waymo_....npz``), an absolute path or a URL.
     """
     value = str(file_value)
     if "://" in value or value.startswith("/"):
@@ -105,7 +105,7 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
         ``num_object_rows`` (rows of objects.parquet for the segment), ``rejections_mismatch``
         (sum over reasons of |rejected_<reason> - rows of rejections.parquet|).
       splits (built here): ``split``, ``num_segments``, ``num_object_clips``, ``num_tracks``,
-        ``num_files_on_disk`` (``{split}/waymo_*.npz`` files).
+        ``num_files_on_disk`` (``tracks/{split}/waymo_*.npz`` files).
     """
     fs, root = fsspec.core.url_to_fs(out_dir)
     root = root.rstrip("/") or "/"
@@ -163,9 +163,10 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     splits["num_object_clips"] = splits["split"].map(by_split.size()).fillna(0).astype(int)
     tracks = pd.to_numeric(objects["num_tracks"], errors="coerce").groupby(objects["split"]).sum()
     splits["num_tracks"] = splits["split"].map(tracks).fillna(0).astype(int)
-    on_disk = pd.Series([f.split("/", 1)[0] for f in all_files
-                         if f.count("/") == 1 and f.split("/", 1)[1].startswith("waymo_")
-                         and f.endswith(".npz")], dtype=object)
+    # DriveTrack clip files live at tracks/{split}/waymo_*.npz (docs/architecture.md).
+    on_disk = pd.Series([f.split("/")[1] for f in all_files
+                         if f.count("/") == 2 and f.startswith("tracks/")
+                         and f.rsplit("/", 1)[1].startswith("waymo_") and f.endswith(".npz")], dtype=object)
     splits["num_files_on_disk"] = (splits["split"].map(on_disk.value_counts())
                                    .fillna(0).astype(int))
     paths = {"objects": objects_path, "segments": segments_path}
