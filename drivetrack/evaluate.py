@@ -628,7 +628,8 @@ def _video_size(url: str, storage_options: dict | None) -> tuple[int, int]:
             raise ValueError(f"{url}: has no 'video' array to take the image size from; pass image_size")
         with archive.open("video.npy") as member:
             version = np.lib.format.read_magic(member)
-            shape, _, _ = np.lib.format._read_array_header(member, version)  # noqa: SLF001 (header only)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, _ = read(member)
     return int(shape[2]), int(shape[1])
 
 
