@@ -53,10 +53,23 @@ def assemble_release_folder(out: str, records: list[dict], failed: list[dict], r
                     while block := fi.read(1 << 23):
                         fo.write(block)
             n_files += 1
-    if failed:
-        rows = pa.table({"split": [f["split"] for f in failed], "segment": [f["segment"] for f in failed],
-                         "status": ["failed"] * len(failed), "error": [f["error"] for f in failed]})
-        tables.setdefault("stats/segments.parquet", []).append(rows)
+    # every table exists, with its schema, even when no segment is done; failed segments are rows
+    from drivetrack.annotate import SegmentResult, write_tables
+    from drivetrack.tracks import segment_stats
+
+    failed_results = []
+    for f in failed:
+        r = SegmentResult(split=f["split"], segment=f["segment"], status="failed", error=f["error"],
+                          stage=f.get("stage") or "")
+        r.segment_row = segment_stats(f["split"], f["segment"], None, (), status="failed",
+                                      error=f"[{f.get('stage') or 'segment'}] {f['error']}")
+        failed_results.append(r)
+    base_url = out if "://" in str(out) else oroot
+    for name, url in write_tables(base_url, failed_results).items():
+        rel = f"stats/{name}.parquet"
+        with ofs.open(f"{oroot}/{rel}", "rb") as f:
+            base = pq.read_table(f)
+        tables[rel] = tables.get(rel, []) + ([base] if base.num_rows or rel not in tables else [])
     for rel, parts in sorted(tables.items()):
         merged = pa.concat_tables(parts, promote_options="permissive")
         buf = io.BytesIO()

@@ -153,50 +153,81 @@ def _dask_client():
     return worker_client()
 
 
+def _apply(fn, item):
+    return fn(item)
+
+
+def dask_map_fn(client, min_jobs: int = 2):
+    """``map_fn(function, jobs)`` for :func:`drivetrack.annotate.track_segment` that fans object
+    jobs out on the cluster: the function (it holds the segment context: scene and depth maps)
+    is scattered once, each job ships only its small description."""
+    def map_fn(fn, items):
+        items = list(items)
+        if len(items) < min_jobs:
+            return [fn(i) for i in items]
+        [fn_future] = client.scatter([fn], hash=False)
+        futures = client.map(_apply, [fn_future] * len(items), items, pure=False)
+        return client.gather(futures)
+    return map_fn
+
+
 def run_segment(source: str, split: str, segment: str, key: str, work: str, config: dict,
                 storage_options: dict | None = None, gpu_wait_s: float = 0.0) -> dict:
     """Compute one segment into ``segment_dir(work, split, segment, key)`` and write its
     completion record last. Returns the record (small, JSON-safe). Raises on failure after
     recording the failed stage and its error in the progress file."""
     from drivetrack import annotate as core
+    from drivetrack.tracks import object_stats, plan_segment, rejection_stats, segment_stats
     from flows.runtime import GPU, submit_resource_jobs
 
     cfg = core.AnnotateConfig.from_dict(config)
     out = segment_dir(work, split, segment, key)
-    fs, root = _fs(out, storage_options)
+    fs, root = _fs(out, storage_options=None)
     if fs.exists(root):
         fs.rm(root, recursive=True)  # leftovers of an interrupted attempt with this key
-    rec = _Recorder(work, split, segment, key, storage_options)
+    rec = _Recorder(work, split, segment, key, None)
     with rec.stage("ingest") as st:
         scene = core.load_scene_for(source, split, segment, cfg, storage_options=storage_options)
-        st.update(count=_len(getattr(scene, "timestamps_micros", None)), unit="frames")
+        plan = plan_segment(scene, cfg.track)
+        st.update(count=int(scene.num_frames), unit="frames")
     with rec.stage("depth") as st:
-        batches = core.sparse_depth_batches(scene, cfg)
-        with _dask_client() as client:
-            futures = submit_resource_jobs(client, core.complete_depth_batch, batches, cfg.depth_method,
-                                           resource=GPU, key_prefix=f"depth-{segment[:24]}", wait_s=gpu_wait_s)
-            done = client.gather(futures)
-        dense = [d[0] for d in done]
-        st.update(count=len(batches), unit="depth batches",
-                  worker=",".join(sorted({d[1] for d in done})), job_seconds=sum(d[2] for d in done))
-    with rec.stage("tracks") as st:
-        kwargs = {}
-        if "executor" in inspect.signature(core.track_segment).parameters:
+        batches = core.sparse_depth_batches(scene, cfg, plan)
+        if batches:
             with _dask_client() as client:
-                kwargs["executor"] = client.get_executor(pure=False)
-                result = core.track_segment(scene, dense, cfg, **kwargs)
+                futures = submit_resource_jobs(client, core.complete_depth_batch, batches, cfg, resource=GPU,
+                                               key_prefix=f"depth-{segment[:24]}", wait_s=gpu_wait_s)
+                done = client.gather(futures)
         else:
-            result = core.track_segment(scene, dense, cfg)
-        st.update(count=_count_objects(result), unit="objects")
+            done = []
+        dense = [d[0] for d in done]
+        st.update(count=len(batches), unit="depth batches", worker=",".join(sorted({d[1] for d in done})) or None)
+        del batches
+    with rec.stage("tracks") as st:
+        with _dask_client() as client:
+            tracks = core.track_segment(scene, dense, cfg, plan, map_fn=dask_map_fn(client))
+        del dense
+        st.update(count=sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), unit="object clips")
     with rec.stage("write") as st:
-        files = core.write_segment_outputs(out, result)
+        written = core.write_segment_outputs(out, split, tracks, cfg.track.writers)
+        files = {k: urls[0] for k, urls in written.items()}
+        result = core.SegmentResult(split=split, segment=segment, status="done",
+                                    objects=object_stats(tracks, {k: _relative(out, v) for k, v in files.items()}),
+                                    rejections=rejection_stats(plan, tracks),
+                                    segment_row=segment_stats(split, segment, plan, tracks))
         core.write_tables(out, [result])
-        st.update(count=_len(files), unit="files")
+        st.update(count=sum(len(v) for v in written.values()), unit="files")
     sizes = {p[len(root) + 1:]: int(i.get("size") or 0) for p, i in fs.find(root, detail=True).items()}
     record = {"status": "done", "key": key, "split": split, "segment": segment, "files": sizes,
               "stages": rec.doc["stages"], "finished": time.time()}
-    write_json(f"{out}/{DONE}", record, storage_options)
+    write_json(f"{out}/{DONE}", record)
     return record
+
+
+def _relative(root: str, url: str) -> str:
+    """``url`` relative to the folder ``root`` (both as the pipeline writes them)."""
+    root_path = fsspec.core.url_to_fs(root)[1].rstrip("/") + "/"
+    path = fsspec.core.url_to_fs(url)[1]
+    return path[len(root_path):] if path.startswith(root_path) else url
 
 
 def _count_objects(result) -> int | None:

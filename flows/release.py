@@ -77,7 +77,8 @@ def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: s
 
 
 def _segment_cache_key(context, parameters) -> str:
-    return f"drivetrack-segment-{parameters['key']}"
+    """The content key, per work folder (a cached result is only good where its files are)."""
+    return "drivetrack-segment-" + keys.sha256_json([parameters["work"], parameters["key"]])
 
 
 @task(name="segment", task_run_name="segment {split}/{segment}", retries=2, retry_delay_seconds=[2, 10],
@@ -87,7 +88,7 @@ def segment_task(source: str, split: str, segment: str, key: str, work: str, con
                  storage_options: dict | None = None) -> dict:
     """One segment: a thin wrapper around :func:`flows.jobs.run_segment` (reuses a completion
     record with the same content key)."""
-    rec = jobs.completion_record(work, split, segment, key, storage_options)
+    rec = jobs.completion_record(work, split, segment, key)
     if rec is not None:
         return rec
     return jobs.run_segment(source, split, segment, key, work, config, storage_options)
@@ -184,7 +185,7 @@ def _mark_from_record(status: ReleaseStatus, split: str, segment: str, rec: dict
         status.update(split, segment, name, "done", cached=cached, **fields)
 
 
-def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict | None, error: str) -> None:
+def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict | None, error: str) -> str:
     stages = (progress or {}).get("stages") or {}
     failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") == "failed"), None)
     if failed_at is None:  # failed before or between recorded stages
@@ -198,6 +199,7 @@ def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict
             after = True
         elif after:
             status.update(split, segment, name, "skipped")
+    return failed_at
 
 
 def _latest_published(store: str, dataset: str, storage_options: dict | None) -> tuple[str | None, dict | None]:
@@ -286,20 +288,26 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
             p = futures[f]
             split, seg = p["split"], p["segment"]
             progress = jobs.read_json(jobs.progress_path(work, split, seg))
+            res = f.result(raise_on_failure=False)  # the record, or the exception of a failed run
             state = f.state
-            rec = f.result(raise_on_failure=False) if state.is_completed() else None
-            if isinstance(rec, dict) and rec.get("status") == "done" and \
-                    jobs.completion_record(work, split, seg, p["key"], storage_options) is not None:
-                records[(split, seg)] = rec
-                _mark_from_record(status, split, seg, rec, cached=bool(state.name == "Cached"))
+            if isinstance(res, dict) and res.get("status") == "done" and \
+                    jobs.completion_record(work, split, seg, p["key"]) is not None:
+                records[(split, seg)] = res
+                _mark_from_record(status, split, seg, res, cached=state.name == "Cached")
+            elif isinstance(res, dict) and not p.get("refreshed"):
+                # Prefect's cache knew the key but the work folder lost the files: recompute
+                p["refreshed"] = True
+                logger.warning(f"segment {split}/{seg}: cached result without files; recomputing")
+                again = segment_task.with_options(refresh_cache=True).submit(
+                    source, split, seg, p["key"], work, config, storage_options)
+                futures[again] = p
+                pending.add(again)
             else:
-                exc = f.result(raise_on_failure=False) if not state.is_completed() else None
-                error = jobs.failure_summary(exc) if isinstance(exc, BaseException) else (
-                    f"{state.name}: {state.message}" if rec is None else
+                error = jobs.failure_summary(res) if isinstance(res, BaseException) else (
                     "the task reported done but its completion record is missing (work folder cleaned?): "
-                    "run again")
-                _mark_failed(status, split, seg, progress, error)
-                failed.append({"split": split, "segment": seg, "key": p["key"], "error": error})
+                    "run again" if isinstance(res, dict) else f"{state.name}: {state.message}")
+                stage = _mark_failed(status, split, seg, progress, error)
+                failed.append({"split": split, "segment": seg, "key": p["key"], "stage": stage, "error": error})
                 logger.error(f"segment {split}/{seg} failed: {error}")
         board.flush(table=bool(done))
     c = status.counts()
@@ -400,15 +408,17 @@ def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"
             dataset: str = DEFAULT_DATASET, work: str = DEFAULT_WORK, gates_config: dict | str | None = None,
             accept_failed_gates: str | None = None, skip_unchanged: bool = True,
             dask_address: str | None = None, n_workers: int | None = None, threads_per_worker: int | None = None,
-            storage_options: dict | None = None, store_options: dict | None = None) -> dict:
+            dask_processes: bool | None = None, storage_options: dict | None = None, store_options: dict | None = None) -> dict:
     """Build and publish one release. ``version="auto"``: the next patch version, and nothing at
     all when inputs, configuration and code are unchanged since the latest release (scheduled
     regeneration). The Dask cluster: ``dask_address`` (an existing scheduler) or a local one of
-    ``n_workers`` x ``threads_per_worker`` (environment ``DRIVETRACK_DASK_*`` otherwise)."""
+    ``n_workers`` x ``threads_per_worker`` (environment ``DRIVETRACK_DASK_*`` otherwise);
+    ``dask_processes=False`` keeps the local workers in this process (tests)."""
     from prefect_dask import DaskTaskRunner
 
     splits = list(splits or ["training"])
-    cfg = ClusterConfig.from_env(address=dask_address, n_workers=n_workers, threads_per_worker=threads_per_worker)
+    cfg = ClusterConfig.from_env(address=dask_address, n_workers=n_workers, threads_per_worker=threads_per_worker,
+                                 processes=dask_processes)
     with dask_cluster(cfg) as (client, address):
         get_run_logger().info(f"Dask scheduler {address}, dashboard {client.dashboard_link}, "
                               f"{len(client.scheduler_info()['workers'])} workers")

@@ -60,6 +60,12 @@ def prefect_api(timeout_s: float = 120.0) -> Iterator[str]:
             yield url
     finally:
         if server is not None:
+            try:  # send buffered flow/task logs while the server still listens
+                from prefect.logging.handlers import APILogHandler
+
+                APILogHandler.flush()
+            except Exception:
+                pass
             server.stop()
             if old is None:
                 os.environ.pop("PREFECT_API_URL", None)

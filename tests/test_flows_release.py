@@ -1,0 +1,123 @@
+"""The release flow end to end on a small synthetic source, on one Prefect server and a local
+Dask cluster: an induced failure in one segment leaves the other done and blocks publishing
+(gates); the re-run after the fix recomputes only that segment and publishes; a scheduled run
+of unchanged inputs publishes nothing; the release verifies and its status page lists every
+segment."""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+pytestmark = pytest.mark.slow
+
+SEGMENTS = 2
+FRAMES = 26          # >= the 24-frame field-of-view filter
+# The split-layout gate counts {split}/waymo_*.npz while the track writers write
+# tracks/{split}/ (a disagreement between those two modules, reported to the lead); this test is
+# about orchestration, so it turns that one gate off and keeps every other default gate.
+GATES = {"release": {"check_split_files": False}}
+CONFIG = {"track": {"cameras": ["FRONT"]}}
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    from drivetrack.synth import SynthConfig, generate_segment
+
+    root = tmp_path_factory.mktemp("source")
+    cfg = SynthConfig(seed=7, frames=FRAMES, preset="small", cameras=("FRONT",))
+    for i in range(SEGMENTS):
+        generate_segment(str(root), cfg, i)
+    return root
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from flows.runtime import prefect_api
+
+    with prefect_api() as url:
+        yield url
+
+
+def _status(out: str) -> dict:
+    return json.loads((Path(out) / "status.json").read_text())
+
+
+def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, prefect_server, tmp_path):
+    from drivetrack.release import list_versions, verify_release
+    from drivetrack.waymo.reader import list_segments
+    from flows.release import release
+
+    store, work = tmp_path / "store", tmp_path / "work"
+    segs = list_segments(str(source), "training")
+    assert len(segs) == SEGMENTS
+    bad, good = segs[0], segs[1]
+    bad_file = source / "training" / "camera_image" / f"{bad}.parquet"
+    original = bad_file.read_bytes()
+    bad_file.write_bytes(original[: len(original) // 3])  # a truncated upload
+    common = dict(source=str(source), store=str(store), work=str(work), gates_config=GATES, config=CONFIG, n_workers=2,
+                  threads_per_worker=1, dask_processes=False)
+
+    # 1. one segment fails: the other is done, the failure is reported, the gates block publishing
+    r1 = release(version="0.1.0", **common)
+    assert r1["published"] is False and "quality gates failed" in r1["error"]
+    st1 = _status(r1["out"])
+    by_seg = {s["segment"]: s for s in st1["segments"]}
+    assert by_seg[good]["state"] == "done" and not by_seg[good]["cached"]
+    assert by_seg[bad]["state"] == "failed"
+    assert by_seg[bad]["stages"]["ingest"]["state"] == "failed"
+    assert bad in by_seg[bad]["error"] or "camera_image" in by_seg[bad]["error"], by_seg[bad]["error"]
+    assert by_seg[bad]["stages"]["write"]["state"] == "skipped"
+    assert st1["stages"]["gates"]["state"] == "failed" and st1["stages"]["publish"]["state"] == "failed"
+    assert list_versions(str(store)) == []
+    # the good segment's depth jobs ran on a worker holding the GPU resource (CPU drain here)
+    assert by_seg[good]["stages"]["depth"]["count"] > 0 and by_seg[good]["stages"]["depth"]["worker"]
+    good_record = next((work / "segments" / "training" / good).glob("*/_done.json"))
+    stamp = good_record.stat().st_mtime_ns
+
+    # 2. fix the file and re-run: only the failed segment is computed, the release publishes
+    bad_file.write_bytes(original)
+    r2 = release(version="0.1.0", **common)
+    assert r2["published"] is True, r2
+    st2 = _status(r2["out"])
+    by_seg = {s["segment"]: s for s in st2["segments"]}
+    assert by_seg[good]["state"] == "done" and by_seg[good]["cached"] is True
+    assert by_seg[bad]["state"] == "done" and by_seg[bad]["cached"] is False
+    assert good_record.stat().st_mtime_ns == stamp, "the unchanged segment was recomputed"
+    report = verify_release(str(store), "0.1.0")
+    assert report.ok and report.files_checked > 5
+    published = store / "drivetrack-waymo" / "0.1.0"
+    page = (published / "status.html").read_text()
+    for s in segs:
+        assert f'data-segment="{s}" data-state="done"' in page
+    pub_status = json.loads((published / "status.json").read_text())
+    assert pub_status["published"] is True and pub_status["counts"]["done"] == SEGMENTS
+    run = json.loads((published / "run.json").read_text())
+    assert run["release_fingerprint"] == r2["fingerprint"]
+    assert {s["segment"] for s in run["segments"]} == set(segs)
+    assert all(s["source_checksums"]["camera_image"].startswith("sha256:") for s in run["segments"])
+
+    # 3. a scheduled run (version auto) of unchanged inputs, config and code publishes nothing
+    r3 = release(version="auto", skip_unchanged=True, **common)
+    assert r3["published"] is False and r3["unchanged_since"] == "0.1.0"
+    assert [v["version"] for v in list_versions(str(store))] == ["0.1.0"]
+    assert _status(r3["out"])["counts"]["done"] == SEGMENTS
+    assert all(s["cached"] for s in _status(r3["out"])["segments"])
+
+
+def test_unknown_segment_fails_before_any_work(source, prefect_server, tmp_path):
+    from flows.release import release
+
+    with pytest.raises(ValueError, match="segment 'no_such_segment' is not in"):
+        release(version="0.2.0", source=str(source), store=str(tmp_path / "store"), work=str(tmp_path / "work"),
+                segments=["no_such_segment"], n_workers=1, dask_processes=False)
+    st = _status(str(tmp_path / "work" / "releases" / "0.2.0"))
+    assert st["stages"]["list"]["state"] == "failed" and "no_such_segment" in st["stages"]["list"]["error"]
+    shutil.rmtree(tmp_path / "work")
