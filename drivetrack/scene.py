@@ -36,6 +36,10 @@ class LidarReturns:
         camera_projection: optional int16 [M, 6], ``lidar_camera_projection`` at the return's
             pixel: [cam1, x1, y1, cam2, x2, y2] (camera 0 = none, -1 = no projection row);
             None unless requested from the reader.
+        capture_offset_s: optional float32 [M], seconds: when the return was captured, relative
+            to the time of its frame's vehicle pose (the boxes' reference); estimated by the
+            reader from the TOP per-pixel poses (``drivetrack.waymo.sweep``), 0 for lasers without
+            one; None when unknown (then no compensation of object motion during the sweep).
     """
     points_vehicle: np.ndarray
     frame: np.ndarray
@@ -46,6 +50,7 @@ class LidarReturns:
     intensity: np.ndarray
     frame_offsets: np.ndarray
     camera_projection: np.ndarray | None = None
+    capture_offset_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.points_vehicle.shape[0])

@@ -32,6 +32,7 @@ from drivetrack.geometry import (CameraModel, invert_rigid, matrix_from_flat, ro
                                  transform_points)
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
+from drivetrack.waymo import sweep
 from drivetrack.waymo.schema import (COMPONENTS, KEY_SEGMENT, KEY_TIMESTAMP, LaserName,
                                      component as get_component, types_compatible)
 
@@ -668,9 +669,15 @@ def _empty_returns(n_frames: int) -> LidarReturns:
 
 
 def _apply_lidar_pose(f: _ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
-                      world_from_vehicle: np.ndarray, returns_read: Sequence[int]) -> None:
-    """Phase 2: move TOP returns into their frame's vehicle frame with the per-pixel pose."""
+                      world_from_vehicle: np.ndarray, returns_read: Sequence[int]) -> np.ndarray:
+    """Phase 2: move TOP returns into their frame's vehicle frame with the per-pixel pose.
+
+    Returns float32 [M] capture-time samples (s, :func:`drivetrack.waymo.sweep.pixel_time_offsets`
+    of each TOP return's pixel pose; NaN for other lasers and where the ego stands still).
+    """
     c = f.comp
+    ego_velocity = sweep.ego_velocity_world(world_from_vehicle, timestamps)
+    time_samples = np.full(len(returns), np.nan, np.float32)
     values, shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
     cols = f.columns([values, shape])
     keys = f.read_keys()
@@ -706,8 +713,12 @@ def _apply_lidar_pose(f: _ComponentFile, returns: LidarReturns, timestamps: np.n
                     raise f.error("per-pixel pose does not match the range image", column=shape,
                                   expected="[H, W, 6] like the TOP range image",
                                   found=f"{list(pose.shape)} at {f.row_keys(table, i)}")
+                pixel_pose = pose[rows, cols_]
                 returns.points_vehicle[block] = _apply_pixel_pose(
-                    returns.points_vehicle[block], pose[rows, cols_], world_from_vehicle[t])
+                    returns.points_vehicle[block], pixel_pose, world_from_vehicle[t])
+                time_samples[block] = sweep.pixel_time_offsets(
+                    pixel_pose[:, 3:6], world_from_vehicle[t, :3, 3], ego_velocity[t])
+    return time_samples
 
 
 def _read_camera_projection(f: _ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
@@ -756,6 +767,8 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
         with_images: keep the JPEG bytes (decoded lazily by ``CameraFrames.image``).
         with_camera_projection: also fill ``LidarReturns.camera_projection`` from
             ``lidar_camera_projection``.
+    ``LidarReturns.capture_offset_s`` is filled from the TOP per-pixel poses
+    (:mod:`drivetrack.waymo.sweep`: one ``a + b * col`` model per segment, 0 for other lasers).
     Frames are ``vehicle_pose``'s timestamps in increasing order; rows of other components whose
     timestamp is not among them raise :class:`WaymoFormatError`.
     """
@@ -815,9 +828,13 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
                                      expected=sorted(missing), found=sorted(calibrations))
             lidar_returns = _read_lidar(open_component("lidar"), calibrations, wanted, returns,
                                         timestamps, cal_file)
+            timing = sweep.SweepTiming()
             if np.any(lidar_returns.laser == LaserName.TOP):
-                _apply_lidar_pose(open_component("lidar_pose"), lidar_returns, timestamps,
-                                  world_from_vehicle, returns)
+                samples = _apply_lidar_pose(open_component("lidar_pose"), lidar_returns,
+                                            timestamps, world_from_vehicle, returns)
+                timing = sweep.fit_sweep_timing(lidar_returns.col, samples)
+            lidar_returns.capture_offset_s = sweep.capture_offsets(lidar_returns.laser,
+                                                                   lidar_returns.col, timing)
             if with_camera_projection:
                 lidar_returns.camera_projection = _read_camera_projection(
                     open_component("lidar_camera_projection"), lidar_returns, timestamps, returns)
