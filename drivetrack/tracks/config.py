@@ -39,6 +39,9 @@ class TrackConfig:
         depth_batch: frames per completion batch (the GPU-queue unit).
         depth_from_all_returns: the occlusion depth maps use all lasers and both returns
             (True) or only the returns selected by ``lasers``/``returns``.
+        compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
+            boxes and compute box-frame points with each box moved to the return's capture time
+            (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
         rolling_shutter: project with ``drivetrack.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the
@@ -64,6 +67,7 @@ class TrackConfig:
     depth_batch: int = 16
     depth_from_all_returns: bool = True
     rolling_shutter: bool = True
+    compensate_sweep_motion: bool = True
     max_speed_deviation_mps: float | None = None
     max_tracks_per_object: int | None = None
     seed: int = 0

@@ -5,6 +5,10 @@ return of the clip is moved ONCE into its box's frame (``p_box = box_from_vehicl
 carried to every target frame tau by one transform per frame (``vehicle_from_box_tau``,
 ``camera_from_box_tau``, ``world_from_box_tau``), vectorised as [T, n, 3] over a chunk of n points.
 
+When the scene carries per-return capture times (``LidarReturns.capture_offset_s``) and
+``TrackConfig.compensate_sweep_motion`` holds, ``p_box`` uses the box moved to each return's
+capture time (constant velocity and yaw rate from the clip's boxes, :mod:`drivetrack.tracks.sweep`).
+
 Visibility of a point at tau: in front of the camera with trusted distortion, inside the image,
 and not behind the scene surface: with ``D = lookup_max4(depth_tau, pixel)`` (z-depth, metres),
 occluded iff ``D > 0 and D < occlusion_ratio * z`` where z is the point's z-depth from the
@@ -21,6 +25,7 @@ import numpy as np
 from drivetrack.geometry import CameraModel, box_from_center_heading, invert_rigid, transform_points
 from drivetrack.tracks.depth_stage import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
+from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "run_object_job", "track_speeds", "rolling_shutter_projector",
@@ -183,8 +188,16 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     n = lidar_rows.size
     # Points in their box's frame, computed once: p_box = box_from_vehicle_t X_t.
     box_from_vehicle = invert_rigid(vehicle_from_box)
-    p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
-        + box_from_vehicle[source_clip, :3, 3]
+    if config.compensate_sweep_motion and lidar.capture_offset_s is not None:
+        # ... with the box at each return's capture time (object motion during the sweep).
+        yaw_rate = box_motion_world(world_from_box, timestamps * 1e-6)[1]
+        velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], velocity_world)
+        p_box = points_box_at_capture(lidar.points_vehicle[lidar_rows], lidar.capture_offset_s[lidar_rows],
+                                      boxes.center[rows][source_clip], boxes.heading[rows][source_clip],
+                                      velocity_vehicle[source_clip], yaw_rate[source_clip])
+    else:
+        p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
+            + box_from_vehicle[source_clip, :3, 3]
 
     projector = rolling_shutter_projector() if config.rolling_shutter else None
     depth = ctx.depth.get(job.camera)
