@@ -586,14 +586,22 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
             best = np.where(ground_first, tg, best)
             pxc = px[cand]
             own = object_index[cand]
+            by_x = np.argsort(pxc[:, 0], kind="stable")
+            xs_sorted = pxc[by_x, 0]
+            by_own = np.argsort(own, kind="stable")
+            own_bounds = np.searchsorted(own[by_own], np.arange(g.K + 1))
             origins = np.broadcast_to(origin, dirs.shape)
             for k in range(g.K):
                 rect = g.rects[(ci, tau, k)]
+                own_k = by_own[own_bounds[k]:own_bounds[k + 1]]
                 if rect is None:
-                    continue
-                x0, x1, y0, y1 = rect
-                sel = np.flatnonzero(((pxc[:, 0] >= x0) & (pxc[:, 0] < x1)
-                                      & (pxc[:, 1] >= y0) & (pxc[:, 1] < y1)) | (own == k))
+                    sel = own_k
+                else:
+                    x0, x1, y0, y1 = rect
+                    lo, hi = np.searchsorted(xs_sorted, [x0, x1], side="left")
+                    in_x = by_x[lo:hi]
+                    in_rect = in_x[(pxc[in_x, 1] >= y0) & (pxc[in_x, 1] < y1)]
+                    sel = np.union1d(in_rect, own_k)
                 if sel.size == 0:
                     continue
                 t_in, _, _ = intersect_box(origins[sel], dirs[sel], g.centers[k, tau],
