@@ -94,10 +94,13 @@ def original_depth_map(model, points_vehicle: np.ndarray) -> np.ndarray:
     return interpolate(grid_rows, grid_cols).astype(np.float32)
 
 
-def original_clips(scene: Scene, base: TrackConfig | None = None, timings: dict | None = None) -> list[Clip]:
+def original_clips(scene: Scene, base: TrackConfig | None = None, timings: dict | None = None,
+                   depth_maps: dict | None = None) -> list[Clip]:
     """Clips of every (camera, object) the original would annotate in ``scene``.
 
-    ``timings`` (optional dict) receives ``depth_cpu_s``, ``tracks_cpu_s`` and ``num_depth_maps``.
+    ``timings`` (optional dict) receives ``depth_cpu_s``, ``tracks_cpu_s`` and ``num_depth_maps``
+    (maps computed in this call). ``depth_maps`` (optional dict ``(camera, frame) -> map``) is
+    reused and filled across calls on scenes that differ only in their box labels.
     """
     config = original_config(base)
     plan = plan_segment(scene, config)
@@ -107,13 +110,15 @@ def original_clips(scene: Scene, base: TrackConfig | None = None, timings: dict 
         if np.min(np.linalg.norm(boxes.center[job.box_rows], axis=-1)) <= ORIGINAL_MAX_DISTANCE_M:
             jobs.append(job)
     depth_cpu = tracks_cpu = 0.0
-    maps: dict[tuple[int, int], np.ndarray] = {}
+    maps: dict[tuple[int, int], np.ndarray] = depth_maps if depth_maps is not None else {}
+    computed = 0
     start = time.process_time()
     for job in jobs:
         model = scene.cameras[job.camera].model
         for t in job.frames.tolist():
             if (job.camera, t) not in maps:
                 maps[(job.camera, t)] = original_depth_map(model, _top_first(scene, t)[1])
+                computed += 1
     depth_cpu += time.process_time() - start
 
     start = time.process_time()
@@ -149,5 +154,5 @@ def original_clips(scene: Scene, base: TrackConfig | None = None, timings: dict 
                               file="original-emulation"))
     tracks_cpu += time.process_time() - start
     if timings is not None:
-        timings.update(depth_cpu_s=depth_cpu, tracks_cpu_s=tracks_cpu, num_depth_maps=len(maps))
+        timings.update(depth_cpu_s=depth_cpu, tracks_cpu_s=tracks_cpu, num_depth_maps=computed)
     return clips

@@ -111,21 +111,40 @@ def track_stage(ctx) -> tuple[list, float, float, int]:
     return results, cpu, wall, int(sum(r.num_tracks * r.num_frames for r in results))
 
 
-def job_memory(ctx) -> dict:
-    """tracemalloc peak of the largest job (by candidate points x frames) beyond what exists before it."""
-    job = max(ctx.plan.jobs, key=lambda j: j.num_points * j.frames.size)
+def _job_peak(ctx, job, max_tracks: int | None) -> tuple[int, int]:
+    """(tracemalloc peak bytes beyond what exists before the job, tracks kept) of one job."""
+    from drivetrack.tracks.depth_stage import SegmentContext
+
+    plan = replace(ctx.plan, config=replace(ctx.plan.config, max_tracks_per_object=max_tracks))
+    sub = SegmentContext(plan, ctx.depth)
     tracemalloc.start()
     base = tracemalloc.get_traced_memory()[0]
     tracemalloc.reset_peak()
-    result = run_object_job(ctx, job)
+    result = run_object_job(sub, job)
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
+    return int(peak), result.num_tracks
+
+
+def job_memory(ctx) -> dict:
+    """Peak memory of the largest job (by candidate points x frames), beyond the shared context.
+
+    Measured with tracemalloc (numpy reports its buffers to it) at all N candidate points and at
+    N/2 (a seeded subset): peak = fixed(T) + per_point_frame * N * T, solved from the two runs.
+    Extrapolated to a 200-frame clip of the same object with N growing in proportion to T.
+    """
+    job = max(ctx.plan.jobs, key=lambda j: j.num_points * j.frames.size)
     n, t = job.num_points, int(job.frames.size)
+    peak_full, kept = _job_peak(ctx, job, None)
+    peak_half, _ = _job_peak(ctx, job, max(n // 2, 1))
+    per_point_frame = (peak_full - peak_half) / max((n - max(n // 2, 1)) * t, 1)
+    fixed = max(peak_full - per_point_frame * n * t, 0.0)
     points_per_frame = n / t
     n200 = points_per_frame * 200
     return {"camera": job.camera_name, "object_id": job.object_id, "frames": t, "candidates": n,
-            "tracks": result.num_tracks, "peak_bytes": int(peak), "bytes_per_point_frame": peak / max(n * t, 1),
-            "extrapolated_200_frames_bytes": int(peak / max(n * t, 1) * n200 * 200),
+            "tracks": kept, "peak_bytes": peak_full, "peak_bytes_half": peak_half,
+            "bytes_per_point_frame": per_point_frame, "fixed_bytes": fixed,
+            "extrapolated_200_frames_bytes": int(fixed * 200 / t + per_point_frame * n200 * 200),
             "points_per_frame": points_per_frame}
 
 
@@ -165,6 +184,7 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
     results = {"machine": machine_description(), "preset": preset, "frames": frames, "seed": seed,
                "segment": segment, "image": f"{model.width}x{model.height}", "box_noise_m": box_noise,
                "lidar_returns": len(scene.lidar), "speed": [], "accuracy": []}
+    truths: dict = {}      # the exact truth, loaded once (about 1 GiB for a full-size 30-frame segment)
     scenes = {0.0: scene, box_noise: noisy_scene(scene, box_noise, seed)} if box_noise > 0 else {0.0: scene}
     for method in methods:
         options = {"device": "cpu"} if method == "nearest-torch" else {}
@@ -182,7 +202,7 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
                                      "depth_cpu_s_per_map": depth_cpu / max(maps, 1)})
             print(f"  noise {noise}: {len(tracks)} clips, {annotations:,} annotations in {cpu:.1f} CPU s "
                   f"({rate / 1e6:.2f} M/CPU-s)", flush=True)
-            evaluation = evaluate_tracks(tracks, root)
+            evaluation = evaluate_tracks(tracks, root, truths=truths)
             results["accuracy"].append(accuracy_row(f"ours, {method}", evaluation, {"box_noise_m": noise}))
             print("   ", {k: (round(v, 4) if isinstance(v, float) else v)
                           for k, v in results["accuracy"][-1].items()}, flush=True)
@@ -201,14 +221,15 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
                 ctx = prepare_segment(s, variant, depth=depth, plan=plan)
                 tracks, *_ = track_stage(ctx)
                 results["accuracy"].append(accuracy_row(f"ours, {method}, TOP first return only",
-                                                        evaluate_tracks(tracks, root), {"box_noise_m": noise}))
+                                                        evaluate_tracks(tracks, root, truths=truths), {"box_noise_m": noise}))
                 del ctx, tracks
         del depth
     if baseline:
+        maps: dict = {}
         for noise, s in scenes.items():
             timings: dict = {}
-            clips = original_clips(s, timings=timings)
-            evaluation = evaluate_clips(clips, root)
+            clips = original_clips(s, timings=timings, depth_maps=maps)
+            evaluation = evaluate_clips(clips, root, truths=truths)
             results["accuracy"].append(accuracy_row("original (emulated)", evaluation,
                                                     {"box_noise_m": noise, **timings}))
             print("   ", results["accuracy"][-1], flush=True)
@@ -234,8 +255,9 @@ def markdown(r: dict) -> str:
     if m:
         lines += ["", f"Largest object job ({m['camera']}, {m['candidates']:,} candidate points x {m['frames']} frames, "
                       f"{m['tracks']:,} tracks kept): tracemalloc peak **{m['peak_bytes'] / 2**20:.0f} MiB** beyond the "
-                      f"shared segment context (measured), {m['bytes_per_point_frame']:.0f} bytes per candidate point "
-                      f"and frame. Extrapolated to a 200-frame clip of the same object ({m['points_per_frame']:.0f} "
+                      f"shared segment context (measured; {m['peak_bytes_half'] / 2**20:.0f} MiB with half the points), "
+                      f"i.e. {m['fixed_bytes'] / 2**20:.0f} MiB of chunk temporaries + {m['bytes_per_point_frame']:.0f} "
+                      f"bytes per candidate point and frame. Extrapolated to a 200-frame clip of the same object ({m['points_per_frame']:.0f} "
                       f"points per frame, so N x T grows with T^2): **{m['extrapolated_200_frames_bytes'] / 2**30:.1f} GiB** "
                       f"(extrapolation, not a measurement)."]
     if r.get("profile"):
@@ -280,7 +302,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small preset (smoke run)")
     parser.add_argument("--no-docs", action="store_true", help="do not rewrite docs/benchmarks.md")
     parser.add_argument("--json", default=None, help="also write the raw results to this file")
+    parser.add_argument("--render", nargs="+", default=None, metavar="JSON",
+                        help="no run: merge the --json results of runs (e.g. one per depth method, run in "
+                             "parallel) and print / write the section")
     args = parser.parse_args(argv if argv is not None else [])
+    if args.render:
+        parts = [json.loads(Path(p).read_text()) for p in args.render]
+        results = parts[0]
+        for part in parts[1:]:
+            results["speed"] += part["speed"]
+            results["accuracy"] += part["accuracy"]
+            results.setdefault("memory", part.get("memory"))
+            results.setdefault("profile", part.get("profile"))
+        text = markdown(results)
+        print(text)
+        if not args.no_docs:
+            update_docs(text)
+        return 0
     preset = "small" if args.quick else args.preset
     load = os.getloadavg()[0]
     results = run(preset, args.frames, args.seed, Path(args.cache), [m for m in args.methods.split(",") if m],

@@ -535,11 +535,13 @@ def _summary(kind: str, clips: pd.DataFrame, errors: list[np.ndarray], extra: di
 
 def evaluate_clips(clips: Iterable[Clip], truth_root: str, query_modes: tuple[str, ...] = QUERY_MODES,
                    stride: int = 5, max_queries: int | None = DEFAULT_MAX_QUERIES,
-                   default_split: str = "training") -> Evaluation:
+                   default_split: str = "training", truths: dict | None = None) -> Evaluation:
     """Score clips against the synthetic truth under ``truth_root`` (see the module docstring).
 
     The truth of a segment is loaded when its first clip arrives and released when a clip of
-    another segment comes (feed clips grouped by segment to load each truth once).
+    another segment comes (feed clips grouped by segment to load each truth once). A caller that
+    scores the same segments repeatedly may pass ``truths``, a dict kept across calls:
+    ``(split, segment) -> TruthIndex`` (filled here; never released).
     """
     rows: list[dict] = []
     errors: list[np.ndarray] = []
@@ -549,7 +551,12 @@ def evaluate_clips(clips: Iterable[Clip], truth_root: str, query_modes: tuple[st
         key = (clip.split or default_split, clip.segment)
         if key != current:
             index = None                      # release the previous truth first
-            index = TruthIndex.load(truth_root, *key)
+            if truths is not None and key in truths:
+                index = truths[key]
+            else:
+                index = TruthIndex.load(truth_root, *key)
+                if truths is not None:
+                    truths[key] = index
             current = key
         clip_rows, clip_errors = score_clip(clip, index, query_modes, stride, max_queries)
         rows.extend(clip_rows)

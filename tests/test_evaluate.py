@@ -216,7 +216,7 @@ def test_perfect_predictions_score_one(annotated_output, tmp_path):
 
 def test_shifted_predictions_lose_the_fine_thresholds(annotated_output, tmp_path):
     def shift(arrays):
-        arrays["tracks"] = arrays["tracks"] + np.float32(3.0)      # 3 px in x: within 4, not within 2
+        arrays["tracks"][..., 0] += np.float32(3.0)                # 3 px in x: within 4, not within 2
         return arrays
 
     preds = _write_predictions(annotated_output, tmp_path / "pred", shift)

@@ -111,7 +111,6 @@ def run(args: argparse.Namespace) -> int:
 
     from drivetrack.evaluate import evaluate_annotations, score_predictions
 
-    console = Console(stderr=True)
     try:
         if args.stride < 1:
             raise ValueError(f"--stride must be >= 1, got {args.stride}")
@@ -125,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         if args.out:
             write_result(result, args.out)
     except (ValueError, OSError, KeyError) as error:
-        console.print(f"[red]error:[/red] {error}", markup=True, highlight=False)
+        print(f"drivetrack evaluate: error: {error}", file=sys.stderr)   # unwrapped: paths stay whole
         return 2
     if args.json:
         json.dump(result.to_json(), sys.stdout, indent=2)
