@@ -218,7 +218,7 @@ def test_tapvid3d_files_read_like_tapnet_evaluation(tapvid3d_files, split_dir):
         # the pinhole intrinsics leave out (a few pixels at most on these lenses)
         proj = pinhole(xyz, d["fx_fy_cx_cy"]).transpose(1, 0, 2)            # [N, T, 2]
         gap = np.linalg.norm(proj - tracks, axis=-1)[visibles]
-        assert np.median(gap) < 1.0 and gap.max() < 6.0, (path, np.median(gap), gap.max())
+        assert np.median(gap) < 1.0 and gap.max() < 8.0, (path, np.median(gap), gap.max())
 
 
 def test_tapvid3d_perfect_prediction_scores_one(tapvid3d_files):
