@@ -216,6 +216,17 @@ def _latest_published(store: str, dataset: str, storage_options: dict | None) ->
         return None, None
 
 
+def _refuse_published(store: str, dataset: str, version: str, storage_options: dict | None) -> None:
+    """Fail before any work when the version exists (published versions are immutable)."""
+    from drivetrack.release import VersionExistsError, check_version, open_store
+
+    check_version(version)
+    st = open_store(store, storage_options)
+    if st.exists(f"{dataset}/{version}/manifest.json"):
+        raise VersionExistsError(f"{st.url_of(f'{dataset}/{version}')} is already published; published versions "
+                                 f"are immutable: choose a new version (or version='auto')")
+
+
 def next_version(latest: str | None) -> str:
     """``auto`` versions: the next patch after the latest release, ``0.1.0`` for the first."""
     if latest is None:
@@ -245,6 +256,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     latest, latest_run = _latest_published(store, dataset, store_options)
     if version == "auto":
         version = next_version(latest)
+    _refuse_published(store, dataset, version, store_options)
     out = f"{work.rstrip('/')}/releases/{version}"
     status = ReleaseStatus(dataset=dataset, version=version, source=source, store=store)
     board = _Board(status, out, work)
@@ -368,9 +380,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     status.update_release("publish", "done")
     status.published = True
     status.message = f"published {dataset} {version} to {store}"
-    write_status(out, status)
-    status.update_release("publish", "running")
-    board.flush(table=True)
+    board.flush(table=True)  # the release folder's status files are final from here on
     try:
         res = publish_task(out, store, version, dataset, report, accept_failed_gates,
                            {"release_fingerprint": fingerprint, "source": source, "splits": splits,

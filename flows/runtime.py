@@ -60,13 +60,16 @@ def prefect_api(timeout_s: float = 120.0) -> Iterator[str]:
             yield url
     finally:
         if server is not None:
+            from prefect.settings import PREFECT_LOGGING_TO_API_ENABLED
+
             try:  # send buffered flow/task logs while the server still listens
                 from prefect.logging.handlers import APILogHandler
 
                 APILogHandler.flush()
             except Exception:
                 pass
-            server.stop()
+            with temporary_settings({PREFECT_LOGGING_TO_API_ENABLED: False}):
+                server.stop()
             if old is None:
                 os.environ.pop("PREFECT_API_URL", None)
             else:

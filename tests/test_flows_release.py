@@ -20,10 +20,7 @@ pytestmark = pytest.mark.slow
 
 SEGMENTS = 2
 FRAMES = 26          # >= the 24-frame field-of-view filter
-# The split-layout gate counts {split}/waymo_*.npz while the track writers write
-# tracks/{split}/ (a disagreement between those two modules, reported to the lead); this test is
-# about orchestration, so it turns that one gate off and keeps every other default gate.
-GATES = {"release": {"check_split_files": False}}
+GATES = None        # the default gates of infra/gates.yaml
 CONFIG = {"track": {"cameras": ["FRONT"]}}
 
 
@@ -99,13 +96,42 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
         assert f'data-segment="{s}" data-state="done"' in page
     pub_status = json.loads((published / "status.json").read_text())
     assert pub_status["published"] is True and pub_status["counts"]["done"] == SEGMENTS
+    assert pub_status["state"] == "done" and pub_status["stages"]["publish"]["state"] == "done"
     run = json.loads((published / "run.json").read_text())
     assert run["release_fingerprint"] == r2["fingerprint"]
     assert {s["segment"] for s in run["segments"]} == set(segs)
     assert all(s["source_checksums"]["camera_image"].startswith("sha256:") for s in run["segments"])
 
+    # the Prefect UI's view: the segment table and the progress artifacts of the run
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(
+            any_=["release-0-1-0-segments", "release-0-1-0-progress"])))
+    kinds = {a.key: a for a in arts}
+    assert set(kinds) == {"release-0-1-0-segments", "release-0-1-0-progress"}
+    latest_table = max((a for a in arts if a.key.endswith("segments")), key=lambda a: a.created)
+    rows = json.loads(latest_table.data) if isinstance(latest_table.data, str) else latest_table.data
+    assert {r["segment"] for r in rows} == set(segs) and {r["state"] for r in rows} == {"done"}
+    assert max(float(a.data) for a in arts if a.key.endswith("progress")) == 100.0
+
+    # an explicit version that exists is refused before any work
+    from drivetrack.release import VersionExistsError
+
+    with pytest.raises(VersionExistsError, match="0.1.0 is already published"):
+        release(version="0.1.0", **common)
+
     # 3. a scheduled run (version auto) of unchanged inputs, config and code publishes nothing
+    from flows.keys import code_fingerprint
+
+    code_before = code_fingerprint()
     r3 = release(version="auto", skip_unchanged=True, **common)
+    if code_fingerprint() != code_before or code_before != json.loads(
+            (published / "run.json").read_text())["code_fingerprint"]:
+        # someone edited the package while this test ran (shared checkout): a new version is right
+        assert r3["published"] is True and r3["version"] == "0.1.1"
+        return
     assert r3["published"] is False and r3["unchanged_since"] == "0.1.0"
     assert [v["version"] for v in list_versions(str(store))] == ["0.1.0"]
     assert _status(r3["out"])["counts"]["done"] == SEGMENTS
