@@ -37,10 +37,14 @@ from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_
 from drivetrack.waymo.schema import CameraName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
-           "complete_depth_batch", "track_segment", "write_segment_outputs", "write_tables",
+           "complete_depth_batch", "refine_scene", "track_segment", "write_segment_outputs", "write_tables",
            "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version"]
 
 _HASH_CHUNK = 8 << 20
+
+#: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
+#: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
+REFINE_BY_DEFAULT = True
 
 
 def code_version() -> str:
@@ -71,23 +75,42 @@ class AnnotateConfig:
             (``drivetrack.refine``); falls back to the labels per object when untrustworthy.
     """
     track: TrackConfig = field(default_factory=TrackConfig)
-    refine_poses: bool = False
+    refine_poses: bool = REFINE_BY_DEFAULT
+    refine_options: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        from drivetrack.refine import RefineConfig
+
+        object.__setattr__(self, "refine_options", dict(self.refine_options))
+        try:
+            RefineConfig(**self.refine_options)
+        except TypeError as error:
+            raise ValueError(f"annotation config: refine_options: {error}") from None
 
     @property
     def depth_method(self) -> str:
         return self.track.depth_completer
 
+    def refine_config(self):
+        """The :class:`drivetrack.refine.RefineConfig` of ``refine_options``."""
+        from drivetrack.refine import RefineConfig
+
+        return RefineConfig(**self.refine_options)
+
     def to_dict(self) -> dict:
-        return {"track": self.track.to_dict(), "refine_poses": self.refine_poses}
+        return {"track": self.track.to_dict(), "refine_poses": self.refine_poses,
+                "refine_options": dict(self.refine_options)}
 
     @classmethod
     def from_dict(cls, values: dict | None) -> "AnnotateConfig":
         values = dict(values or {})
-        unknown = sorted(set(values) - {"track", "refine_poses"})
+        keys = {"track", "refine_poses", "refine_options"}
+        unknown = sorted(set(values) - keys)
         if unknown:
-            raise ValueError(f"annotation config: unknown keys {unknown}; expected 'track', 'refine_poses'")
+            raise ValueError(f"annotation config: unknown keys {unknown}; expected {sorted(keys)}")
         return cls(track=TrackConfig.from_dict(values.get("track") or {}),
-                   refine_poses=bool(values.get("refine_poses", False)))
+                   refine_poses=bool(values.get("refine_poses", REFINE_BY_DEFAULT)),
+                   refine_options=dict(values.get("refine_options") or {}))
 
     def fingerprint(self) -> str:
         """sha256 of the canonical JSON of the configuration (not of the code version)."""
@@ -119,7 +142,7 @@ class SegmentResult:
     """The outcome of one segment; tables are small pandas frames, files are URLs.
 
     ``status`` is ``done`` or ``failed``; ``error`` holds the message of a failure and
-    ``stage`` the stage it happened in (ingest, plan, depth, tracks, write).
+    ``stage`` the stage it happened in (ingest, refine, plan, depth, tracks, write).
     """
     split: str
     segment: str
@@ -166,18 +189,45 @@ def source_checksums(source_files: dict[str, str], storage_options: dict | None 
 
 
 def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig,
-                   storage_options: dict | None = None) -> Scene:
+                   storage_options: dict | None = None, refine: bool = True) -> Scene:
     """Ingest one segment with what the configuration needs (its cameras, every laser, both returns).
 
     Every laser and both returns are loaded because the occlusion depth maps use all of them
     (``TrackConfig.depth_from_all_returns``); the object point clouds select their own subset.
+    With ``config.refine_poses`` (and ``refine``) the box labels of the objects that pass the
+    planning filters are then refined from the LiDAR (:func:`refine_scene`), so every later stage
+    sees the refined boxes.
     """
     from drivetrack.waymo.reader import load_scene
 
     lasers = None if config.track.depth_from_all_returns else config.track.laser_values
     returns = (1, 2) if config.track.depth_from_all_returns else config.track.returns
-    return load_scene(source, split, segment, cameras=config.track.camera_values, lasers=lasers,
-                      returns=returns, with_images=True, storage_options=storage_options)
+    scene = load_scene(source, split, segment, cameras=config.track.camera_values, lasers=lasers,
+                       returns=returns, with_images=True, storage_options=storage_options)
+    return refine_scene(scene, config) if (refine and config.refine_poses) else scene
+
+
+def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
+    """The scene with the boxes of the annotated object types refined from their own LiDAR.
+
+    Objects whose registration is not trustworthy keep their labels (the reason is recorded);
+    ``scene.box_refinement`` holds one summary per refined-or-kept object for the tables.
+    """
+    import dataclasses
+
+    from drivetrack.refine import refine_scene_boxes
+
+    # Only objects that pass the planning filters with their labels (type, camera, frames in view,
+    # distance) are worth refining: the rest are never annotated. Label noise of centimetres does
+    # not move an object across these coarse filters.
+    object_ids = sorted({job.object_id for job in plan_segment(scene, config.track).jobs})
+    if not object_ids:
+        return scene
+    boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,
+                                        lasers=config.track.laser_values, returns=config.track.returns,
+                                        compensate_sweep_motion=config.track.compensate_sweep_motion)
+    return dataclasses.replace(scene, boxes=boxes,
+                               box_refinement={oid: r.summary() for oid, r in results.items()})
 
 
 def sparse_depth_batches(scene: Scene, config: AnnotateConfig, plan: SegmentPlan | None = None) -> list[DepthBatch]:
@@ -229,10 +279,6 @@ def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: Ann
     """
     plan = plan if plan is not None else plan_segment(scene, config.track)
     ctx = prepare_segment(scene, config.track, depth=_depth_by_camera(dense_batches), plan=plan)
-    if config.refine_poses:
-        from drivetrack.tracks.refined import refine_context  # noqa: WPS433 (optional stage)
-
-        ctx = refine_context(ctx)
     job = _ObjectJobRunner(ctx)
     return list((map_fn or map)(job, list(plan.jobs)))
 
@@ -278,10 +324,15 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
     stage = "ingest"
     try:
         start = time.perf_counter()
-        scene = load_scene_for(source, split, segment, config, storage_options)
+        scene = load_scene_for(source, split, segment, config, storage_options, refine=False)
         result.source_files = dict(scene.source_files)
         result.source_sha256 = source_checksums(scene.source_files, storage_options)
         result.timings_s["ingest"] = time.perf_counter() - start
+
+        if config.refine_poses:
+            stage, start = "refine", time.perf_counter()
+            scene = refine_scene(scene, config)
+            result.timings_s["refine"] = time.perf_counter() - start
 
         stage, start = "plan", time.perf_counter()
         plan = plan_segment(scene, config.track)
@@ -301,7 +352,8 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
         result.files = [u for urls in written.values() for u in urls]
         result.timings_s["write"] = time.perf_counter() - start
         files = {key: urls[0] for key, urls in written.items()}
-        result.objects = object_stats(tracks, {k: _relative(out_url, v) for k, v in files.items()})
+        result.objects = _with_refinement(object_stats(tracks, {k: _relative(out_url, v) for k, v in files.items()}),
+                                          scene.box_refinement)
         result.rejections = rejection_stats(plan, tracks)
         result.segment_row = segment_stats(split, segment, plan, tracks)
         result.status, result.stage = "done", ""
@@ -309,11 +361,20 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
         result.status, result.stage = "failed", stage
         result.error = f"{type(error).__name__}: {error}"
         result.traceback = traceback.format_exc()  # type: ignore[attr-defined]
-        result.segment_row = segment_stats(split, segment, plan if stage not in ("ingest", "plan") else None,
+        result.segment_row = segment_stats(split, segment, plan if stage not in ("ingest", "refine", "plan") else None,
                                            (), status="failed", error=f"[{stage}] {result.error}")
     if keep_tracks:
         result.tracks = tracks
     return result
+
+
+def _with_refinement(objects: pd.DataFrame, refinement: dict[str, dict]) -> pd.DataFrame:
+    """Objects table plus the ``refine_*`` columns of each object's pose refinement (if any)."""
+    if not refinement or objects.empty:
+        return objects
+    table = pd.DataFrame.from_dict(refinement, orient="index")
+    table.index.name = "object_id"
+    return objects.merge(table.reset_index(), on="object_id", how="left")
 
 
 def _relative(root: str, url: str) -> str:

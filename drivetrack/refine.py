@@ -596,12 +596,15 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
 
 
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
-                       returns=None):
+                       returns=None, compensate_sweep_motion: bool = True):
     """Refine every object of ``scene`` over its labelled frames; returns boxes usable as labels.
 
     For each object (``object_ids`` or all), the candidates are the returns (of ``lasers`` /
     ``returns`` when given: ``LaserName`` values and return indices 1|2) inside each label box
-    grown by ``config.candidate_margin_m``; :func:`refine_object_poses` runs on them.
+    grown by ``config.candidate_margin_m``; :func:`refine_object_poses` runs on them. When the
+    scene carries per-return capture times (``LidarReturns.capture_offset_s``) and
+    ``compensate_sweep_motion`` holds, candidates are first moved to the frame time with the
+    labels' motion, as the track stage does.
 
     Returns:
         ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
@@ -622,6 +625,14 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         selected &= np.isin(lidar.return_index, np.asarray(returns))
     timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
     center, heading = boxes.center.copy(), boxes.heading.copy()
+    # Returns of moving objects are captured during the sweep, boxes describe the frame time:
+    # move each candidate to where its surface was at the frame time (with the labels' motion)
+    # before registering, as the track stage does (drivetrack.tracks.sweep).
+    offsets = getattr(lidar, "capture_offset_s", None) if compensate_sweep_motion else None
+    if offsets is not None:
+        from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
+
+        box_velocity, box_yaw_rate = scene_box_motion(scene)
     results = {}
     for oid in ids:
         rows = np.flatnonzero(object_id == oid)
@@ -638,6 +649,11 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             radius = 0.5 * float(np.linalg.norm(boxes.size[rows[i]])) + config.candidate_margin_m
             near = np.all(np.abs(p - boxes.center[rows[i]]) <= radius, axis=-1)
             p = p[near]
+            if offsets is not None:
+                r = rows[i]
+                local = points_box_at_capture(p, offsets[part][selected[part]][near], boxes.center[r],
+                                              boxes.heading[r], box_velocity[r], box_yaw_rate[r])
+                p = local @ vehicle_from_box[i, :3, :3].T + vehicle_from_box[i, :3, 3]
             local = p @ box_from_vehicle[i, :3, :3].T + box_from_vehicle[i, :3, 3]
             inside = np.all(np.abs(local) <= boxes.size[rows[i]] / 2.0 + config.candidate_margin_m, axis=-1)
             pts.append(p[inside])

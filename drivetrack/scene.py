@@ -146,6 +146,8 @@ class Scene:
         lidar: every valid return, see :class:`LidarReturns`.
         boxes: ``lidar_box`` labels, see :class:`Boxes`.
         source_files: component -> URL of the parquet file it came from (for provenance).
+        box_refinement: object id -> flat summary of the pose refinement applied to its boxes
+            (``drivetrack.refine.RefinedPoses.summary()``); empty when the labels are used as read.
     """
     segment: str
     split: str
@@ -155,6 +157,7 @@ class Scene:
     lidar: LidarReturns
     boxes: Boxes
     source_files: dict[str, str] = field(default_factory=dict)
+    box_refinement: dict[str, dict] = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:

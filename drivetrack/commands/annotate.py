@@ -21,11 +21,11 @@ def add_parser(sub) -> None:
                    help="depth completer (default: nearest; see the drivetrack.depth registry)")
     p.add_argument("--workers", type=int, default=1, help="segments annotated in parallel processes")
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="YAML/JSON annotation config ({track: {...}, refine_poses: bool})")
+                   help="YAML/JSON annotation config ({track: {...}, refine_poses: bool, refine_options: {...}})")
     p.add_argument("--refine-poses", dest="refine_poses", action="store_true", default=None,
-                   help="refine each object's per-frame pose from its own LiDAR before tracking")
+                   help="refine each object's per-frame pose from its own LiDAR before tracking (default: on)")
     p.add_argument("--no-refine-poses", dest="refine_poses", action="store_false",
-                   help="use the labelled boxes as they are")
+                   help="turn pose refinement off: use the labelled boxes as they are")
     p.set_defaults(func=run)
 
 
