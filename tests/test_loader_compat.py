@@ -80,10 +80,12 @@ def test_alltracker_style_loader_reads_every_clip(split_dir):
         assert rgbs.dtype == np.uint8 and c == 3 and tracks.shape[1] == s
         assert trajs.shape[0] == s and trajs.shape[2] == 2 and visibs.shape == trajs.shape[:2]
         assert np.all(np.isfinite(trajs))
-        # a track is dropped only for a non-finite value, and only where we say it is not visible
-        finite = np.isfinite(tracks).all(axis=(1, 2))
-        assert not np.any(visibles & ~np.isfinite(tracks).all(axis=-1))
-        assert set(kept.tolist()) <= set(np.flatnonzero(finite).tolist())
+        # our tracks are finite at every frame (hidden frames hold the nearest valid position),
+        # so their NaN rule drops none: only the visible-twice rule can remove a track
+        assert np.all(np.isfinite(tracks))
+        twice = np.flatnonzero(visibles.sum(axis=1) >= 2)
+        assert set(kept.tolist()) <= set(twice.tolist())
+        assert len(kept) >= 0.99 * len(twice)  # only their stricter last-pixel-column rule differs
         # their out-of-image rule (x > W-1) only removes points of the last pixel column/row
         ours = visibles[kept].T
         theirs = visibs.astype(bool)

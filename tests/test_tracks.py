@@ -525,3 +525,18 @@ def test_writers_go_through_fsspec_for_remote_urls():
     url = write_table("memory://tracks-test/stats/t.parquet", table)
     with fsspec.open(url, "rb") as handle:
         assert pd.read_parquet(handle).x.tolist() == [1]
+
+
+def test_fill_invalid_positions_holds_nearest_valid_frame():
+    from drivetrack.tracks.core import fill_invalid_positions
+
+    nan = np.nan
+    tracks = np.array([[[nan, nan], [1, 1], [nan, nan], [nan, nan], [nan, nan], [5, 5]],
+                       [[0, 0], [1, 1], [2, 2], [3, 3], [4, 4], [5, 5]],
+                       [[nan, nan]] * 6], dtype=np.float32)
+    out = fill_invalid_positions(tracks)
+    # frame 0 takes frame 1; frame 2 the nearer frame 1; frame 3 ties -> earlier (1); frame 4 -> 5
+    np.testing.assert_array_equal(out[0, :, 0], [1, 1, 1, 1, 5, 5])
+    np.testing.assert_array_equal(out[1], tracks[1])                 # all finite: unchanged
+    assert np.isnan(out[2]).all()                                      # no finite frame: left alone
+    assert fill_invalid_positions(np.zeros((0, 4, 2), np.float32)).shape == (0, 4, 2)

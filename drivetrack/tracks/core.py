@@ -29,7 +29,7 @@ from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "run_object_job", "track_speeds", "rolling_shutter_projector",
-           "image_time_offsets"]
+           "image_time_offsets", "fill_invalid_positions"]
 
 
 @dataclass
@@ -40,8 +40,9 @@ class ObjectTracks:
         split, segment, camera (``CameraName`` value), object_id, object_type (``BoxType`` value).
         frames: int64 [T], the clip's frame indices in the segment.
         timestamps_micros: int64 [T].
-        tracks: float32 [N, T, 2], pixels (NaN where the point is behind the camera or its
-            distortion is untrusted; finite but meaningless where not visible).
+        tracks: float32 [N, T, 2], pixels, finite everywhere; meaningful where visible. Where
+            the point is behind the camera or its distortion is untrusted, the position of the
+            nearest frame with a valid projection is held (:func:`fill_invalid_positions`).
         visibles: bool [N, T].
         points3d: float32 [N, T, 3], metres, vehicle frame of each frame tau.
         query_frames: int32 [N], clip frame of the LiDAR return that produced the track.
@@ -155,6 +156,28 @@ def image_time_offsets(scene, camera: int, frames: np.ndarray) -> np.ndarray:
     return offsets
 
 
+def fill_invalid_positions(tracks: np.ndarray) -> np.ndarray:
+    """float32 [N, T, 2] with every non-finite position replaced by the nearest finite one in time.
+
+    A point behind the camera or outside the trusted distortion has no meaningful projection.
+    The field's loaders cannot take NaN there (alltracker drops any track with a NaN frame, and a
+    loss masked by multiplying with ``visibles`` turns NaN), so those frames hold the position of
+    the nearest frame (ties: the earlier) where the projection is valid; ``visibles`` stays False
+    for them. Tracks with no finite frame are left as they are (they are never visible).
+    """
+    finite = np.isfinite(tracks).all(axis=-1)                                   # [N, T]
+    if finite.all() or tracks.shape[1] == 0:
+        return tracks
+    t_count = tracks.shape[1]
+    frames = np.arange(t_count)
+    before = np.maximum.accumulate(np.where(finite, frames, -1), axis=1)       # last finite <= t
+    after = np.minimum.accumulate(np.where(finite, frames, t_count)[:, ::-1], axis=1)[:, ::-1]
+    use_after = (before < 0) | ((after < t_count) & (after - frames < frames - before))
+    source = np.where(use_after, after, before)
+    source = np.where((source < 0) | (source >= t_count), frames, source)      # no finite frame at all
+    return np.take_along_axis(tracks, source[..., None], axis=1)
+
+
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     """Point tracks of one accepted clip (see the module docstring). Pure: writes nothing."""
     from drivetrack.depth import lookup_max4
@@ -244,6 +267,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             speeds[start:stop] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
         else:
             speeds[start:stop] = np.nan
+
+    tracks = fill_invalid_positions(tracks)
 
     box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
     box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
