@@ -34,11 +34,61 @@ class NoWorkerForResourceError(RuntimeError):
 
 # ---- Prefect -----------------------------------------------------------------------------------
 
+class _FullServer:
+    """``prefect server start`` in a subprocess: API, UI and the background services (the
+    scheduler that turns cron schedules into runs does not run in the embedded server)."""
+
+    def __init__(self, port: int | None = None):
+        import socket
+
+        if port is None:
+            with socket.socket() as sock:
+                sock.bind(("127.0.0.1", 0))
+                port = sock.getsockname()[1]
+        self.port = port
+        self.address = f"http://127.0.0.1:{port}"
+        self.api_url = f"{self.address}/api"
+        self.proc = None
+
+    def start(self, timeout: float) -> None:
+        import sys
+        import urllib.request
+
+        log = open(os.path.join(os.environ.get("PREFECT_HOME", "."), f"server-{self.port}.log"), "ab")
+        self.proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1",
+                                      "--port", str(self.port)], stdout=log, stderr=subprocess.STDOUT,
+                                     env={**os.environ, "PREFECT_API_URL": ""})
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"prefect server start exited with {self.proc.returncode}; see {log.name}")
+            try:
+                with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as r:
+                    if r.status == 200:
+                        return
+            except OSError:
+                time.sleep(0.5)
+        self.stop()
+        raise RuntimeError(f"the Prefect server at {self.address} did not answer within {timeout:.0f} s; "
+                           f"see {log.name}")
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.proc = None
+
+
 @contextlib.contextmanager
-def prefect_api(timeout_s: float = 120.0) -> Iterator[str]:
+def prefect_api(timeout_s: float = 120.0, *, full: bool = False) -> Iterator[str]:
     """Yield the Prefect API URL to use: ``PREFECT_API_URL`` if set (a server or Prefect Cloud),
     else a server started here once (SQLite under ``PREFECT_HOME``, kept between runs so that task
-    caches and run history survive), stopped on exit. The URL is exported in ``os.environ``
+    caches and run history survive), stopped on exit; ``full=True`` starts ``prefect server
+    start`` instead (UI and scheduler, needed to serve cron schedules). The URL is exported in ``os.environ``
     before any Dask worker starts and set in this process's Prefect settings."""
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
@@ -47,7 +97,7 @@ def prefect_api(timeout_s: float = 120.0) -> Iterator[str]:
     if not url:
         from prefect.server.api.server import SubprocessASGIServer
 
-        server = SubprocessASGIServer()
+        server = _FullServer() if full else SubprocessASGIServer()
         t0 = time.perf_counter()
         server.start(timeout=int(timeout_s))
         url = server.api_url

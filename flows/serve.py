@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     store = args.store if not args.store or "://" in args.store else os.path.abspath(args.store)
     params = deployment_parameters(source, store)
     cron = args.cron or os.environ.get("DRIVETRACK_CRON") or DEFAULT_CRON
-    with prefect_api() as url:
+    with prefect_api(full=True) as url:
         print(f"serving release/{DEPLOYMENT_NAME} on cron {cron!r} against {url} with {params} (Ctrl-C stops; "
               f"the deployment is not paused on shutdown)", flush=True)
         release.serve(name=DEPLOYMENT_NAME, cron=cron, parameters=params, pause_on_shutdown=False,
