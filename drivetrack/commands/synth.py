@@ -28,6 +28,11 @@ def add_parser(sub) -> None:
     p.add_argument("--heading-noise-deg", type=float, default=None,
                    help="sigma (degrees) of heading noise on written boxes (default: 1 degree per "
                         "5 cm of --box-noise)")
+    p.add_argument("--rolling-shutter", action="store_true",
+                   help="rolling-shutter cameras: real readout direction per camera (FRONT "
+                        "top-to-bottom, FRONT_LEFT right-to-left, FRONT_RIGHT left-to-right), "
+                        "33 ms readout, every pixel rendered at its own capture time, truth "
+                        "solved with the same timing (default: global shutter)")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -56,7 +61,7 @@ def run(args) -> int:
         return 2
     config = SynthConfig(
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
-        box_noise_m=args.box_noise,
+        box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter,
         heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
@@ -75,6 +80,7 @@ def run(args) -> int:
                 f"under {args.out}/{args.split}/, {summary['num_frames']} frames, "
                 f"{summary['num_objects']} objects, {summary['num_object_returns']} object returns; "
                 f"ground truth {gt_mb:.1f} MB in {summary['ground_truth']}")
+    shutter = "rolling" if args.rolling_shutter else "global"
     print(f"{args.segments} segment(s) written to {args.out} (split {args.split}, seed {args.seed}, "
-          f"preset {args.preset})", file=sys.stdout)
+          f"preset {args.preset}, {shutter} shutter)", file=sys.stdout)
     return 0

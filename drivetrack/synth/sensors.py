@@ -9,11 +9,24 @@ from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, ro
 from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["Preset", "PRESETS", "LidarSpec", "camera_models", "lidar_specs", "DEFAULT_CAMERAS",
-           "GLOBAL_SHUTTER", "LEFT_TO_RIGHT"]
+           "GLOBAL_SHUTTER", "LEFT_TO_RIGHT", "TOP_TO_BOTTOM", "RIGHT_TO_LEFT",
+           "ROLLING_SHUTTER_DIRECTIONS", "READOUT_S", "SHUTTER_S"]
 
 #: ``rolling_shutter_direction`` values (``dataset.proto`` CameraCalibration.RollingShutterReadOutDirection).
+TOP_TO_BOTTOM = 1
 LEFT_TO_RIGHT = 2
+RIGHT_TO_LEFT = 4
 GLOBAL_SHUTTER = 5
+
+#: Readout direction per camera when ``SynthConfig.rolling_shutter`` is on: the front camera
+#: reads rows top to bottom, the angled and side cameras read columns, sweeping from the side
+#: nearer the vehicle's front towards the back (three different directions are exercised).
+ROLLING_SHUTTER_DIRECTIONS = {"FRONT": TOP_TO_BOTTOM, "FRONT_LEFT": RIGHT_TO_LEFT,
+                              "FRONT_RIGHT": LEFT_TO_RIGHT, "SIDE_LEFT": RIGHT_TO_LEFT,
+                              "SIDE_RIGHT": LEFT_TO_RIGHT}
+#: Exposure (``rolling_shutter_params.shutter``) and readout durations written per image, seconds.
+SHUTTER_S = 0.004
+READOUT_S = 0.033
 
 DEFAULT_CAMERAS = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
 
@@ -44,8 +57,11 @@ _CAMERAS = {
 
 
 def camera_models(preset: Preset, names: tuple[str, ...] = DEFAULT_CAMERAS,
-                  rolling_shutter_direction: int = GLOBAL_SHUTTER) -> dict[int, CameraModel]:
+                  rolling_shutter_direction: int | None = GLOBAL_SHUTTER) -> dict[int, CameraModel]:
     """``CameraName`` value -> :class:`CameraModel` for the requested cameras.
+
+    ``rolling_shutter_direction`` None gives each camera its direction from
+    :data:`ROLLING_SHUTTER_DIRECTIONS`; an int gives every camera that value.
 
     Extrinsics (``vehicle_from_camera``) mount the cameras about 2.1 m high, looking forward or
     +-45 / +-90 degrees, pitched down 1 degree; principal points sit a few pixels off centre.
@@ -61,7 +77,8 @@ def camera_models(preset: Preset, names: tuple[str, ...] = DEFAULT_CAMERAS,
             f_u=f * s, f_v=f * s * 1.0003, c_u=(w / 2 + 3.7) * s, c_v=(h / 2 - 2.9) * s,
             k1=k1, k2=k2, p1=p1, p2=p2, k3=k3, width=int(round(w * s)), height=int(round(h * s)),
             vehicle_from_camera=rigid_from_rotation_translation(rotation, np.array([x, y, z])),
-            rolling_shutter_direction=rolling_shutter_direction)
+            rolling_shutter_direction=(ROLLING_SHUTTER_DIRECTIONS[name] if rolling_shutter_direction
+                                       is None else rolling_shutter_direction))
     return out
 
 
