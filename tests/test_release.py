@@ -30,16 +30,17 @@ def make_output(root: Path, *, seed: int = 0, n_clips: int = 2, splits=("trainin
     rng = np.random.default_rng(seed)
     rows = []
     for split in splits:
-        (root / split / "tapvid3d").mkdir(parents=True, exist_ok=True)
+        (root / "tracks" / split).mkdir(parents=True, exist_ok=True)
+        (root / "tapvid3d" / split).mkdir(parents=True, exist_ok=True)
         for i in range(n_clips):
             name = f"waymo_seg{i}_FRONT_{split[:3]}{i}.npz"
             n = 4 + i
-            np.savez(root / split / name, video=rng.integers(0, 255, (3, 6, 8, 3), dtype=np.uint8),
+            np.savez(root / "tracks" / split / name, video=rng.integers(0, 255, (3, 6, 8, 3), dtype=np.uint8),
                      tracks=rng.random((n, 3, 2)).astype(np.float32), visibles=rng.random((n, 3)) > 0.3)
-            np.savez(root / split / "tapvid3d" / name, tracks_XYZ=rng.random((3, n, 3)),
+            np.savez(root / "tapvid3d" / split / name, tracks_XYZ=rng.random((3, n, 3)),
                      visibility=rng.random((3, n)) > 0.3, fx_fy_cx_cy=np.array([100.0, 100.0, 4.0, 3.0]))
             rows.append({"split": split, "segment": f"seg{i}", "camera": "FRONT", "object_id": f"{split[:3]}{i}",
-                         "object_type": "VEHICLE", "file": f"{split}/{name}", "num_tracks": n,
+                         "object_type": "VEHICLE", "file": f"tracks/{split}/{name}", "num_tracks": n,
                          "num_frames": 3, "visible_fraction": 0.5 + 0.1 * i, "speed_err_p50": 0.1 * (i + 1)})
     (root / "stats").mkdir(exist_ok=True)
     pd.DataFrame(rows).to_parquet(root / "stats" / "objects.parquet")
@@ -81,10 +82,10 @@ def test_manifest_records_inputs_and_hash(output, tmp_path):
     m = read_manifest(tmp_path / "store", "1.0.0")
     assert m["manifest_sha256"] == manifest_hash(m)
     files = {f["path"]: f for f in m["files"]}
-    src = output / "training" / "waymo_seg0_FRONT_tra0.npz"
+    src = output / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"
     import hashlib
-    assert files["training/waymo_seg0_FRONT_tra0.npz"] == {
-        "path": "training/waymo_seg0_FRONT_tra0.npz", "size": src.stat().st_size,
+    assert files["tracks/training/waymo_seg0_FRONT_tra0.npz"] == {
+        "path": "tracks/training/waymo_seg0_FRONT_tra0.npz", "size": src.stat().st_size,
         "sha256": hashlib.sha256(src.read_bytes()).hexdigest()}
     assert {"README.md", "croissant.json", "SHA256SUMS", "run.json", "stats/objects.parquet"} <= set(files)
     assert m["segments"][0]["sources"]["camera_image"] == "a" * 64
@@ -113,9 +114,9 @@ def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     assert front["license"] and front["pretty_name"] and front["size_categories"] == ["n<1K"]
     assert front["task_categories"]
     configs = {c["config_name"]: c for c in front["configs"]}
-    assert configs["drivetrack"]["data_files"] == [{"split": "training", "path": "training/*.npz"},
-                                                   {"split": "validation", "path": "validation/*.npz"}]
-    assert configs["tapvid3d"]["data_files"][0] == {"split": "training", "path": "training/tapvid3d/*.npz"}
+    assert configs["drivetrack"]["data_files"] == [{"split": "training", "path": "tracks/training/waymo_*.npz"},
+                                                   {"split": "validation", "path": "tracks/validation/waymo_*.npz"}]
+    assert configs["tapvid3d"]["data_files"][0] == {"split": "training", "path": "tapvid3d/training/waymo_*.npz"}
     assert "speed_err_p50 | pass" in text and "Citation" in text and "sha256sum -c SHA256SUMS" in text
 
     doc = json.loads((vdir / "croissant.json").read_text())
@@ -193,8 +194,8 @@ def test_bad_sources_raise_clear_errors(tmp_path):
     with pytest.raises(InvalidSourceError, match=r"badrun/run.json: run.json is not valid JSON"):
         publish_release(badrun, tmp_path / "store", "1.0.0")
     badnpz = make_output(tmp_path / "badnpz")
-    (badnpz / "validation" / "waymo_seg0_FRONT_val0.npz").write_bytes(b"not a zip")
-    with pytest.raises(InvalidSourceError, match=r"validation/waymo_seg0_FRONT_val0.npz: not a readable .npz"):
+    (badnpz / "tracks" / "validation" / "waymo_seg0_FRONT_val0.npz").write_bytes(b"not a zip")
+    with pytest.raises(InvalidSourceError, match=r"tracks/validation/waymo_seg0_FRONT_val0.npz: not a readable .npz"):
         publish_release(badnpz, tmp_path / "store", "1.0.0")
     assert not (tmp_path / "store").exists()
 
@@ -216,22 +217,22 @@ def test_verify_reports_missing_extra_and_corrupt(output, tmp_path):
     store = tmp_path / "store"
     publish_release(output, store, "1.0.0")
     vdir = store / DS / "1.0.0"
-    victim = vdir / "training" / "waymo_seg0_FRONT_tra0.npz"
+    victim = vdir / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"
     os.chmod(victim, 0o644)
     data = bytearray(victim.read_bytes())
     data[100] ^= 0xFF  # same size, different content
     victim.write_bytes(bytes(data))
-    short = vdir / "validation" / "waymo_seg1_FRONT_val1.npz"
+    short = vdir / "tracks" / "validation" / "waymo_seg1_FRONT_val1.npz"
     os.chmod(short, 0o644)
     short.write_bytes(short.read_bytes()[:-1])
     (vdir / "stats" / "segments.parquet").unlink()
-    (vdir / "training" / "intruder.npz").write_bytes(b"x")
+    (vdir / "tracks" / "training" / "intruder.npz").write_bytes(b"x")
     report = verify_release(store, "1.0.0")
     assert not report.ok
     assert report.missing == ["stats/segments.parquet"]
-    assert report.extra == ["training/intruder.npz"]
+    assert report.extra == ["tracks/training/intruder.npz"]
     assert [(c["path"], c["problem"]) for c in report.corrupt] == [
-        ("training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("validation/waymo_seg1_FRONT_val1.npz", "size")]
+        ("tracks/training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("tracks/validation/waymo_seg1_FRONT_val1.npz", "size")]
     assert sha256sum_check(vdir).returncode != 0
     assert cli(["verify", str(store), "--version", "1.0.0"]) == 1
 
@@ -306,13 +307,13 @@ def test_write_error_interrupts_cleanly_then_gc_and_republish(output, tmp_path):
     blocker.parent.mkdir(parents=True)
 
     def block(event, info):
-        if event == "uploaded" and not (blocker / "validation").exists():
-            (blocker / "validation").write_text("in the way")
+        if event == "uploaded" and not (blocker / "tracks").exists():
+            (blocker / "tracks").write_text("in the way")
 
     with pytest.raises(PublishInterruptedError) as err:
         publish_release(output, store, "1.0.0", workers=1, progress=block)
     msg = str(err.value)
-    assert "uploading" in msg and "validation/" in msg and "No version is visible" in msg
+    assert "uploading" in msg and "tracks/" in msg and "No version is visible" in msg
     assert "drivetrack gc" in msg
     assert list_versions(store) == []
     with pytest.raises(VersionNotFoundError, match="interrupted"):
@@ -380,14 +381,14 @@ def test_diff_versions(tmp_path):
     store = tmp_path / "store"
     a = make_output(tmp_path / "a", seed=0, n_clips=2)
     publish_release(a, store, "1.0.0")
-    np.savez(a / "training" / "waymo_seg0_FRONT_tra0.npz", tracks=np.zeros((2, 3, 2), np.float32))
-    (a / "validation" / "waymo_seg1_FRONT_val1.npz").unlink()
-    np.savez(a / "validation" / "waymo_seg9_FRONT_val9.npz", tracks=np.zeros((1, 3, 2), np.float32))
+    np.savez(a / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz", tracks=np.zeros((2, 3, 2), np.float32))
+    (a / "tracks" / "validation" / "waymo_seg1_FRONT_val1.npz").unlink()
+    np.savez(a / "tracks" / "validation" / "waymo_seg9_FRONT_val9.npz", tracks=np.zeros((1, 3, 2), np.float32))
     publish_release(a, store, "1.1.0")
     d = diff_versions(store, "1.0.0", "1.1.0")
-    assert d.added == ["validation/waymo_seg9_FRONT_val9.npz"]
-    assert d.removed == ["validation/waymo_seg1_FRONT_val1.npz"]
-    assert d.changed == ["training/waymo_seg0_FRONT_tra0.npz"]
+    assert d.added == ["tracks/validation/waymo_seg9_FRONT_val9.npz"]
+    assert d.removed == ["tracks/validation/waymo_seg1_FRONT_val1.npz"]
+    assert d.changed == ["tracks/training/waymo_seg0_FRONT_tra0.npz"]
     assert "counts.files" not in d.deltas  # one removed, one added: unchanged values are not listed
     bytes_old = read_manifest(store, "1.0.0")["counts"]["bytes"]
     bytes_new = read_manifest(store, "1.1.0")["counts"]["bytes"]

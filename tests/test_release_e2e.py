@@ -32,8 +32,10 @@ def test_good_release_passes_gates_and_verifies(annotated_output, tmp_path, caps
     assert card.startswith("---\n") and "gate" in card.lower()
     assert main(["verify", str(store), "--version", "0.1.0"]) == 0
     subprocess.run(["sha256sum", "--quiet", "-c", "SHA256SUMS"], cwd=release, check=True)
-    # tracks of both splits' folders made it into the release under tracks/{split}/
+    # the clips are in the release under tracks/{split}/ and the card's configs point at them
     assert list((release / "tracks" / "training").glob("waymo_*.npz"))
+    assert "tracks/training/waymo_*.npz" in card and "tapvid3d/training/waymo_*.npz" in card
+    assert manifest["counts"]["splits"]["training"]["clips"] == len(list((release / "tracks" / "training").glob("*.npz")))
     capsys.readouterr()
 
 

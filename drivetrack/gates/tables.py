@@ -16,6 +16,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from drivetrack.gates.config import PERCENTILES
+from drivetrack.layout import DRIVETRACK, parse_clip_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
 
@@ -163,10 +164,8 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     splits["num_object_clips"] = splits["split"].map(by_split.size()).fillna(0).astype(int)
     tracks = pd.to_numeric(objects["num_tracks"], errors="coerce").groupby(objects["split"]).sum()
     splits["num_tracks"] = splits["split"].map(tracks).fillna(0).astype(int)
-    # DriveTrack clip files live at tracks/{split}/waymo_*.npz (docs/architecture.md).
-    on_disk = pd.Series([f.split("/")[1] for f in all_files
-                         if f.count("/") == 2 and f.startswith("tracks/")
-                         and f.rsplit("/", 1)[1].startswith("waymo_") and f.endswith(".npz")], dtype=object)
+    on_disk = pd.Series([parsed[1] for parsed in map(parse_clip_path, all_files)
+                         if parsed and parsed[0] == DRIVETRACK], dtype=object)
     splits["num_files_on_disk"] = (splits["split"].map(on_disk.value_counts())
                                    .fillna(0).astype(int))
     paths = {"objects": objects_path, "segments": segments_path}

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
+from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clip_path, clips_of
 from drivetrack.release.manifest import FileEntry
 
 CROISSANT_CONFORMS_TO = "http://mlcommons.org/croissant/1.1"
@@ -264,14 +265,11 @@ def size_category(n: int) -> str:
 def hf_configs(splits: list[str], paths: list[str]) -> list[dict]:
     """``configs`` of the card: one per clip layout, ``data_files`` per split."""
     configs = []
-    if any(p.count("/") == 1 and p.endswith(".npz") for p in paths if p.split("/", 1)[0] in splits):
-        configs.append({"config_name": "drivetrack", "default": True, "data_files": [
-            {"split": s, "path": f"{s}/*.npz"} for s in splits
-            if any(p.startswith(f"{s}/") and p.count("/") == 1 and p.endswith(".npz") for p in paths)]})
-    tap = [s for s in splits if any(p.startswith(f"{s}/tapvid3d/") and p.endswith(".npz") for p in paths)]
-    if tap:
-        configs.append({"config_name": "tapvid3d", "data_files": [
-            {"split": s, "path": f"{s}/tapvid3d/*.npz"} for s in tap]})
+    for layout, extra in ((DRIVETRACK, {"default": True}), (TAPVID3D, {})):
+        have = [s for s in splits if clips_of(paths, layout, s)]
+        if have:
+            configs.append({"config_name": layout, **extra,
+                            "data_files": [{"split": s, "path": clip_glob(layout, s)} for s in have]})
     if any(p.startswith("stats/") and p.endswith(".parquet") for p in paths):
         configs.append({"config_name": "stats", "data_files": [
             {"split": "train", "path": "stats/objects.parquet"}]} if "stats/objects.parquet" in paths else
@@ -353,6 +351,12 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
             for k, v in entry.items():
                 if k != "columns":
                     lines.append(f"| {table} | {k} | {_fmt(v)} |")
+    previews = sorted(p for p in paths if p.startswith("previews/") and p.endswith((".png", ".mp4", ".gif")))
+    if previews:
+        lines += ["", "## Previews", "",
+                  "Made by `drivetrack show`: visible points are filled dots, occluded ones crosses, "
+                  "with trails of the last frames.", ""]
+        lines += [f"![{p}]({p})" if p.endswith(".png") else f"- clip: [{p}]({p})" for p in previews]
     lines += ["", "## Quality gates", ""]
     if gates is None:
         lines.append("No gate report was supplied for this release.")
@@ -369,7 +373,7 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
                 lines.append(f"| {r['name']} | {mark} |")
     lines += ["", "## How to load", "", "```python",
               "import numpy as np",
-              f"clip = np.load('{(splits[0] + '/') if splits else ''}<file>.npz')",
+              f"clip = np.load('{clip_path(DRIVETRACK, splits[0] if splits else '<split>', '<clip>')}')",
               "video, tracks, visibles = clip['video'], clip['tracks'], clip['visibles']  # [T,H,W,3], [N,T,2] (x, y), [N,T]",
               "```", "",
               "Check the download: `sha256sum -c SHA256SUMS` in this folder, or "

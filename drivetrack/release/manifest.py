@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from functools import total_ordering
 from pathlib import Path
 
+from drivetrack.layout import DRIVETRACK, TAPVID3D, parse_clip_path, splits_of
 from drivetrack.release.errors import InvalidSourceError, InvalidVersionError, ManifestError
 from drivetrack.release.store import CHUNK_BYTES, iter_chunks
 
@@ -289,32 +290,22 @@ def statistics_from_parquet(tables: dict[str, bytes]) -> dict:
 
 
 def counts_from_files(entries: list[FileEntry], splits: list[str]) -> dict:
-    """File and byte counts, in total and per split (clips = ``.npz`` files per split)."""
+    """File and byte counts, in total and per split (clips = clip files of each layout)."""
     out: dict = {"files": len(entries), "bytes": int(sum(e.size for e in entries)), "splits": {}}
+    parsed = [(e, parse_clip_path(e.path)) for e in entries]
     for split in splits:
-        drivetrack = [e for e in entries if e.path.startswith(f"{split}/") and e.path.count("/") == 1
-                      and e.path.endswith(".npz")]
-        tapvid = [e for e in entries if e.path.startswith(f"{split}/tapvid3d/") and e.path.endswith(".npz")]
+        mine = [(e, p) for e, p in parsed if p and p[1] == split]
         out["splits"][split] = {
-            "clips": len(drivetrack), "tapvid3d_clips": len(tapvid),
-            "bytes": int(sum(e.size for e in entries if e.path.startswith(f"{split}/")))}
+            "clips": sum(1 for _, p in mine if p[0] == DRIVETRACK),
+            "tapvid3d_clips": sum(1 for _, p in mine if p[0] == TAPVID3D),
+            "bytes": int(sum(e.size for e, _ in mine))}
     return out
 
 
-NON_SPLIT_DIRS = ("stats", "previews")
-
-
 def splits_from_paths(paths: list[str]) -> list[str]:
-    """Top-level folders holding clip files (``{split}/*.npz`` or ``{split}/tapvid3d/*.npz``).
+    """Splits holding clip files (``tracks/{split}/*.npz`` or ``tapvid3d/{split}/*.npz``).
 
-    A gate-report folder (``validation/`` with JSON/HTML) is not a split, but the Waymo split
-    ``validation/`` holding clips is: splits are recognised by their ``.npz`` files, not by name.
+    Splits are recognised by where their clips are (:mod:`drivetrack.layout`), never by a folder
+    name, so the Waymo split ``validation`` and the gate reports in ``validation/`` cannot mix.
     """
-    out = set()
-    for p in paths:
-        parts = p.split("/")
-        if not p.endswith(".npz") or parts[0] in NON_SPLIT_DIRS:
-            continue
-        if len(parts) == 2 or (len(parts) == 3 and parts[1] == "tapvid3d"):
-            out.add(parts[0])
-    return sorted(out)
+    return splits_of(paths)

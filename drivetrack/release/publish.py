@@ -43,6 +43,7 @@ from typing import Callable
 
 import fsspec
 
+from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clips_of
 from drivetrack.release import cards as _cards
 from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GatesFailedError,
                                        InvalidSourceError, PublishConflictError, PublishInterruptedError,
@@ -528,13 +529,9 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
 
 
 def _describe_npz_configs(source: _Source, paths: list[str], splits: list[str]):
-    layouts = {
-        "drivetrack": ([f"{s}/*.npz" for s in splits],
-                       [p for p in paths if p.count("/") == 1 and p.split("/")[0] in splits and p.endswith(".npz")]),
-        "tapvid3d": ([f"{s}/tapvid3d/*.npz" for s in splits],
-                     [p for p in paths if p.count("/") == 2 and p.split("/")[0] in splits
-                      and p.split("/")[1] == "tapvid3d" and p.endswith(".npz")]),
-    }
+    layouts = {layout: ([clip_glob(layout, s) for s in splits],
+                        [c for s in splits for c in clips_of(paths, layout, s)])
+               for layout in (DRIVETRACK, TAPVID3D)}
     out = {}
     for name, (patterns, files) in layouts.items():
         if not files:

@@ -16,6 +16,7 @@ import fsspec
 import numpy as np
 
 from drivetrack.geometry import invert_rigid
+from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_path
 from drivetrack.tracks.core import ObjectTracks
 
 __all__ = ["WRITERS", "clip_stem", "drivetrack_arrays", "tapvid3d_arrays", "write_npz",
@@ -167,11 +168,12 @@ def write_npz(url: str, arrays: dict[str, np.ndarray], compresslevel: int = NPZ_
 
 
 def _drivetrack_writer(out_root_url: str, split: str, tracks: ObjectTracks) -> str:
-    return write_npz(f"{out_root_url.rstrip('/')}/tracks/{split}/{clip_stem(tracks)}.npz", drivetrack_arrays(tracks))
+    return write_npz(f"{out_root_url.rstrip('/')}/{clip_path(DRIVETRACK, split, clip_stem(tracks))}",
+                     drivetrack_arrays(tracks))
 
 
 def _tapvid3d_writer(out_root_url: str, split: str, tracks: ObjectTracks) -> str:
-    return write_npz(f"{out_root_url.rstrip('/')}/tapvid3d/{split}/{clip_stem(tracks)}.npz",
+    return write_npz(f"{out_root_url.rstrip('/')}/{clip_path(TAPVID3D, split, clip_stem(tracks))}",
                      tapvid3d_arrays(tracks))
 
 
