@@ -12,7 +12,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser("publish", help="publish an annotation output folder as an immutable, versioned release",
                        description="Stage, check and commit DIR as {STORE}/{dataset}/{version}/ "
                                    "(manifest.json written last; latest/versions updated by compare-and-swap).")
-    p.add_argument("dir", help="annotation output folder (run.json, {split}/*.npz, stats/*.parquet, ...)")
+    p.add_argument("dir", help="annotation output folder (run.json, tracks/{split}/*.npz, stats/*.parquet, ...)")
     p.add_argument("--store", default="./store", help="store URL: folder, s3://bucket/prefix or gs://bucket/prefix")
     p.add_argument("--version", required=True, dest="release_version", help="semantic version, e.g. 1.0.0")
     p.add_argument("--config", default=None, help="YAML/JSON file recorded in the manifest (key 'card' overrides card fields)")
