@@ -183,6 +183,24 @@ def _yaw_transform(points_box: np.ndarray, center: np.ndarray, heading) -> np.nd
     return np.stack([x, y, points_box[..., 2] + center[..., 2]], axis=-1)
 
 
+def _rotate_rpy(vectors: np.ndarray, rpy: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """float64 [n, 3]: ``Rz(yaw) Ry(pitch) Rx(roll)`` (``geometry.rotation_from_rpy``) applied to
+    vectors [n, 3] with angles ``rpy[:, :3]`` (radians), or its transpose when ``inverse``."""
+    cr, sr = np.cos(rpy[:, 0]), np.sin(rpy[:, 0])
+    cp, sp = np.cos(rpy[:, 1]), np.sin(rpy[:, 1])
+    cy, sy = np.cos(rpy[:, 2]), np.sin(rpy[:, 2])
+    x, y, z = vectors[:, 0], vectors[:, 1], vectors[:, 2]
+    if not inverse:
+        y, z = cr * y - sr * z, sr * y + cr * z
+        x, z = cp * x + sp * z, -sp * x + cp * z
+        x, y = cy * x - sy * y, sy * x + cy * y
+    else:
+        x, y = cy * x + sy * y, -sy * x + cy * y
+        x, z = cp * x - sp * z, sp * x + cp * z
+        y, z = cr * y + sr * z, -sr * y + cr * z
+    return np.stack([x, y, z], axis=-1)
+
+
 def _rect_indices(rect, width: int) -> np.ndarray:
     x0, x1, y0, y1 = rect
     return (np.arange(y0, y1)[:, None] * width + np.arange(x0, x1)[None, :]).ravel()
@@ -281,6 +299,23 @@ class _Generator:
         centre = world_from_vehicle[:, :3, :3] @ model.vehicle_from_camera[:3, 3] + world_from_vehicle[:, :3, 3]
         return rot, centre
 
+    def camera_centres_rays_at(self, model: CameraModel, times: np.ndarray, rays_camera: np.ndarray):
+        """``(camera_centre_world float64 [n, 3], rays_world float64 [n, 3])``: camera-frame
+        vectors [n, 3] turned into the world frame by the camera pose at times [n] (s).
+
+        Elementwise (no [n, 4, 4] matrices): the per-pixel poses of a readout cost little."""
+        rpy_xyz = self.world.ego_rpy_xyz(times)
+        rays_vehicle = rays_camera @ model.vehicle_from_camera[:3, :3].T
+        rays = _rotate_rpy(rays_vehicle, rpy_xyz)
+        lever = _rotate_rpy(np.broadcast_to(model.vehicle_from_camera[:3, 3], rays.shape), rpy_xyz)
+        return lever + rpy_xyz[:, 3:], rays
+
+    def camera_from_world_at(self, model: CameraModel, times: np.ndarray, points_world: np.ndarray):
+        """float64 [n, 3]: world points [n, 3] in the camera frame of the pose at times [n] (s)."""
+        rpy_xyz = self.world.ego_rpy_xyz(times)
+        points_vehicle = _rotate_rpy(points_world - rpy_xyz[:, 3:], rpy_xyz, inverse=True)
+        return (points_vehicle - model.vehicle_from_camera[:3, 3]) @ model.vehicle_from_camera[:3, :3]
+
     def object_poses_at(self, object_index: np.ndarray, times: np.ndarray):
         """``(center float64 [n, 3], heading float64 [n])`` of objects [n] at times [n] (s)."""
         center = np.empty((object_index.size, 3))
@@ -350,9 +385,7 @@ class _Generator:
                     origins, dirs = np.empty_like(rays_cam), np.empty_like(rays_cam)
                     for p0 in range(0, pixel_time.size, 1 << 18):               # bounded memory
                         sl = slice(p0, p0 + (1 << 18))
-                        rot, centre = self.camera_poses_at(model, pixel_time[sl])
-                        dirs[sl] = np.einsum("nij,nj->ni", rot, rays_cam[sl])
-                        origins[sl] = centre
+                        origins[sl], dirs[sl] = self.camera_centres_rays_at(model, pixel_time[sl], rays_cam[sl])
                     samples = np.linspace(pixel_time.min(), pixel_time.max(), 9)
                     candidates = []
                     for k in range(self.K):
@@ -701,7 +734,7 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
             if point_time is None:
                 origin = np.broadcast_to(world_from_camera[:3, 3], (cand.size, 3))
             else:
-                origin = g.camera_poses_at(model, point_time[cand])[1]
+                origin = g.camera_centres_rays_at(model, point_time[cand], np.zeros((cand.size, 3)))[0]
             vec = pw[cand] - origin
             dist = np.linalg.norm(vec, axis=-1)
             dirs = vec / dist[:, None]
@@ -781,8 +814,7 @@ def _solve_capture_times(g: _Generator, model: CameraModel, law, tau: int, objec
         tt = base + dt[active]
         center, heading = g.object_poses_at(object_index[active], tt)
         pw = _yaw_transform(point_box[active], center, heading)
-        rot, centre = g.camera_poses_at(model, tt)
-        pc = np.einsum("nji,nj->ni", rot, pw - centre)
+        pc = g.camera_from_world_at(model, tt, pw)
         x = pc[:, 0]
         ok = x > 1e-6
         new = np.clip(offset + rate * (-pc[:, 1 + axis] / np.where(ok, x, 1.0)), -1.0, 1.0)
@@ -794,8 +826,7 @@ def _solve_capture_times(g: _Generator, model: CameraModel, law, tau: int, objec
     time = base + dt
     center, heading = g.object_poses_at(object_index, time)
     pw = _yaw_transform(point_box, center, heading)
-    rot, centre = g.camera_poses_at(model, time)
-    pc = np.einsum("nji,nj->ni", rot, pw - centre)
+    pc = g.camera_from_world_at(model, time, pw)
     solved = front & (change <= 1e-9) & (pc[:, 0] > 0)
     return time, pw, pc, solved
 

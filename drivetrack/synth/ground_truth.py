@@ -18,10 +18,12 @@ Layout (``OUT/{split}/drivetrack_ground_truth/{segment}/``), every file an ``.np
     pixels of that body point carried by the exact object pose to frame tau and projected by
     camera c (NaN where behind the camera or outside trusted distortion), ``visible`` bool
     [N, C, T] (in front, trusted, inside the image, and the first surface along the camera ray is
-    that point within ``VISIBILITY_TOLERANCE_M``).
+    that point within ``VISIBILITY_TOLERANCE_M``). With rolling-shutter cameras
+    (``SynthConfig.rolling_shutter``) pixels and visibility are at the point's own capture time
+    in image tau (solved with the camera's readout law, see ``drivetrack.synth.generate``).
 ``depth_{CAMERA}.npz``
     ``depth`` float32 [T, H, W]: exact z-depth (camera-frame x, metres) of the first surface
-    through each pixel centre; 0 = sky.
+    through each pixel centre; 0 = sky (rolling shutter: at that pixel's capture time).
 """
 from __future__ import annotations
 
