@@ -371,12 +371,6 @@ def tapvid_scores(gt_tracks: np.ndarray, gt_visibles: np.ndarray, pred_tracks: n
     return {**{k: float(metrics[k][0]) for k in METRIC_KEYS}, **out}
 
 
-@dataclass
-class _ClipScore:
-    rows: list[dict]
-    errors: np.ndarray           # float64 [E] pixel errors at truth-visible frames
-
-
 def score_clip(clip: Clip, index: TruthIndex, query_modes: tuple[str, ...] = QUERY_MODES, stride: int = 5,
                max_queries: int | None = DEFAULT_MAX_QUERIES) -> tuple[list[dict], np.ndarray]:
     """Score one annotated clip against the exact truth of its segment.
