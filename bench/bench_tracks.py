@@ -219,7 +219,7 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
             # surface behind them into the completed map)
             variants = ((f"ours, {method}, TOP first return only", replace(track, lasers=("TOP",), returns=(1,)), True),
                         (f"ours, {method}, first returns only (points and depth maps)",
-                         replace(track, returns=(1,), depth_from_all_returns=False), False))
+                         replace(track, returns=(1,), depth_returns=(1,)), False))
             for label, variant, shared_depth in variants:
                 for noise, s in scenes.items():
                     plan = plan_segment(s, variant)

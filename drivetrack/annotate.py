@@ -34,7 +34,7 @@ from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_
                                object_stats, plan_segment, prepare_segment, rejection_stats,
                                run_object_job, segment_stats, sparse_depth, write_object_outputs,
                                write_table)
-from drivetrack.waymo.schema import CameraName
+from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
            "complete_depth_batch", "refine_scene", "track_segment", "write_segment_outputs", "write_tables",
@@ -192,16 +192,18 @@ def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig
                    storage_options: dict | None = None, refine: bool = True) -> Scene:
     """Ingest one segment with what the configuration needs (its cameras, every laser, both returns).
 
-    Every laser and both returns are loaded because the occlusion depth maps use all of them
-    (``TrackConfig.depth_from_all_returns``); the object point clouds select their own subset.
+    The lasers and returns loaded are those the object point clouds (``lasers``, ``returns``)
+    and the occlusion depth maps (``depth_lasers``, ``depth_returns``) use.
     With ``config.refine_poses`` (and ``refine``) the box labels of the objects that pass the
     planning filters are then refined from the LiDAR (:func:`refine_scene`), so every later stage
     sees the refined boxes.
     """
     from drivetrack.waymo.reader import load_scene
 
-    lasers = None if config.track.depth_from_all_returns else config.track.laser_values
-    returns = (1, 2) if config.track.depth_from_all_returns else config.track.returns
+    lasers = sorted(set(config.track.laser_values) | set(config.track.depth_laser_values))
+    if len(lasers) == len(LaserName) - 1:   # every lidar (all but UNKNOWN): whatever is calibrated
+        lasers = None
+    returns = tuple(sorted(set(config.track.returns) | set(config.track.depth_returns)))
     scene = load_scene(source, split, segment, cameras=config.track.camera_values, lasers=lasers,
                        returns=returns, with_images=True, storage_options=storage_options)
     return refine_scene(scene, config) if (refine and config.refine_poses) else scene

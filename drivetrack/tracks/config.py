@@ -5,12 +5,15 @@ from dataclasses import asdict, dataclass, field, fields
 
 from drivetrack.waymo.schema import BoxType, CameraName, LaserName
 
-__all__ = ["TrackConfig", "FOV_RUN_POLICIES"]
+__all__ = ["TrackConfig", "FOV_RUN_POLICIES", "TRACK_KERNELS"]
 
 #: What to do when an object's in-view frames form more than one continuous run.
 #: ``reject``: the paper's rule (the object may not leave the image and come back), counted under
 #: ``label_gap`` / ``image_gap`` / ``left_and_returned``; ``longest``: keep the longest run.
 FOV_RUN_POLICIES = ("reject", "longest")
+
+#: Implementations of the track stage's global-shutter inner loop (``TrackConfig.kernel``).
+TRACK_KERNELS = ("numba", "numpy")
 
 
 @dataclass(frozen=True)
@@ -37,8 +40,11 @@ class TrackConfig:
         depth_completer: name in the ``drivetrack.depth`` completer registry.
         depth_completer_options: keyword arguments of that completer (e.g. ``max_reach_px``).
         depth_batch: frames per completion batch (the GPU-queue unit).
-        depth_from_all_returns: the occlusion depth maps use all lasers and both returns
-            (True) or only the returns selected by ``lasers``/``returns``.
+        depth_lasers: ``LaserName`` names whose returns build the occlusion depth maps (default
+            all five lidars).
+        depth_returns: return indices that build the depth maps. Default first returns only:
+            second returns at object edges put the surface *behind* an occluder into the map
+            and make occluded points look visible (measured: docs/benchmarks.md).
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
             (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
@@ -49,6 +55,9 @@ class TrackConfig:
         max_tracks_per_object: if set, keep a seeded random subset of this many candidate points.
         seed: seed of that subset.
         chunk_points: points processed at once (bounds the [T, chunk, 3] float64 temporaries).
+        kernel: inner loop of the global-shutter projection, ``numba`` (fused kernel,
+            :mod:`drivetrack.tracks.kernel`) or ``numpy`` (the reference; rolling-shutter cameras
+            always use it).
         writers: output writers (registry names in :mod:`drivetrack.tracks.writers`).
     """
     object_types: tuple[str, ...] = ("VEHICLE",)
@@ -65,18 +74,20 @@ class TrackConfig:
     depth_completer: str = "nearest"
     depth_completer_options: dict = field(default_factory=dict, hash=False)
     depth_batch: int = 16
-    depth_from_all_returns: bool = True
+    depth_lasers: tuple[str, ...] = ("TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR")
+    depth_returns: tuple[int, ...] = (1,)
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
     max_speed_deviation_mps: float | None = None
     max_tracks_per_object: int | None = None
     seed: int = 0
     chunk_points: int = 8192
+    kernel: str = "numba"
     writers: tuple[str, ...] = ("drivetrack", "tapvid3d")
 
     def __post_init__(self):
         for name, enum_type in (("object_types", BoxType), ("cameras", CameraName),
-                                ("lasers", LaserName)):
+                                ("lasers", LaserName), ("depth_lasers", LaserName)):
             values = getattr(self, name)
             if isinstance(values, str):
                 raise ValueError(f"TrackConfig.{name} must be a sequence of names, got the string {values!r}")
@@ -86,6 +97,10 @@ class TrackConfig:
                     raise ValueError(f"TrackConfig.{name}: unknown {enum_type.__name__} {value!r}; "
                                      f"expected one of {sorted(enum_type.__members__)}")
         object.__setattr__(self, "returns", tuple(int(r) for r in self.returns))
+        object.__setattr__(self, "depth_returns", tuple(int(r) for r in self.depth_returns))
+        if not set(self.depth_returns) <= {1, 2} or not self.depth_returns:
+            raise ValueError(f"TrackConfig.depth_returns must be a non-empty subset of (1, 2), "
+                             f"got {self.depth_returns}")
         object.__setattr__(self, "writers", tuple(self.writers))
         object.__setattr__(self, "depth_completer_options", dict(self.depth_completer_options))
         if not set(self.returns) <= {1, 2}:
@@ -98,6 +113,8 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.fov_samples_per_axis must be >= 2, got {self.fov_samples_per_axis}")
         if not self.occlusion_ratio > 0:
             raise ValueError(f"TrackConfig.occlusion_ratio must be > 0, got {self.occlusion_ratio}")
+        if self.kernel not in TRACK_KERNELS:
+            raise ValueError(f"TrackConfig.kernel must be one of {TRACK_KERNELS}, got {self.kernel!r}")
         if self.chunk_points < 1 or self.depth_batch < 1:
             raise ValueError("TrackConfig.chunk_points and depth_batch must be >= 1")
         if self.max_tracks_per_object is not None and self.max_tracks_per_object < 1:
@@ -115,6 +132,10 @@ class TrackConfig:
     @property
     def laser_values(self) -> tuple[int, ...]:
         return tuple(int(LaserName[name]) for name in self.lasers)
+
+    @property
+    def depth_laser_values(self) -> tuple[int, ...]:
+        return tuple(int(LaserName[name]) for name in self.depth_lasers)
 
     def to_dict(self) -> dict:
         """JSON-ready dict (tuples become lists) for run.json / manifests."""

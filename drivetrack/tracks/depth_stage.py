@@ -96,8 +96,8 @@ def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = Non
 def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray:
     """float32 [B, H, W] sparse z-depth maps of ``job`` (0 = no return), from the LiDAR.
 
-    Uses every return of the frame (all lasers, both returns) unless
-    ``config.depth_from_all_returns`` is False. Returns are moved from the frame's vehicle frame
+    Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
+    returns of every lidar). Returns are moved from the frame's vehicle frame
     to the vehicle frame at the image's pose before projection, so that the maps agree with the
     track projection (the ego vehicle moves between the LiDAR and the camera timestamps).
     """
@@ -110,9 +110,9 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     for i, t in enumerate(job.frames.tolist()):
         part = lidar.of_frame(t)
         points = lidar.points_vehicle[part]
-        if not config.depth_from_all_returns:
-            keep = (np.isin(lidar.laser[part], config.laser_values)
-                    & np.isin(lidar.return_index[part], config.returns))
+        keep = (np.isin(lidar.laser[part], config.depth_laser_values)
+                & np.isin(lidar.return_index[part], config.depth_returns))
+        if not keep.all():
             points = points[keep]
         image_world_from_vehicle = frames.world_from_vehicle[t]
         if np.all(np.isfinite(image_world_from_vehicle)):
