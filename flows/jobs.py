@@ -210,8 +210,12 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     with rec.stage("write") as st:
         written = core.write_segment_outputs(out, split, tracks, cfg.track.writers)
         files = {k: urls[0] for k, urls in written.items()}
-        result = core.SegmentResult(split=split, segment=segment, status="done",
-                                    objects=object_stats(tracks, {k: _relative(out, v) for k, v in files.items()}),
+        objects = object_stats(tracks, {k: _relative(out, v) for k, v in files.items()})
+        # the refinement columns annotate_segment adds (same table whichever path built it)
+        with_refinement = getattr(core, "_with_refinement", None)
+        if with_refinement is not None:
+            objects = with_refinement(objects, getattr(scene, "box_refinement", None))
+        result = core.SegmentResult(split=split, segment=segment, status="done", objects=objects,
                                     rejections=rejection_stats(plan, tracks),
                                     segment_row=segment_stats(split, segment, plan, tracks))
         core.write_tables(out, [result])
