@@ -88,6 +88,11 @@ class RefineConfig:
         max_correction_m, max_correction_deg: fallback ``large_correction`` beyond these.
         min_improvement: keep the labels (reason ``labels_consistent``) unless the refined robust
             residual is lower than the labels' by more than this fraction.
+        early_stop_iteration: after this many iterations keep the labels (``labels_consistent``)
+            unless the robust residual has already dropped by ``min_improvement`` below the
+            labels' (0: never stop early). It is measured at that iteration's tighter gate, which
+            only flatters it, so the stop is conservative: consistent labels cost this many
+            iterations instead of all; noisy labels drop their residual within 1-2 iterations.
         tolerance_m, tolerance_deg: stop (at the finest gate) when the RMS over frames of an
             iteration's centre / heading step is below these.
     """
@@ -116,6 +121,7 @@ class RefineConfig:
     max_correction_m: float = 0.5
     max_correction_deg: float = 10.0
     min_improvement: float = 0.15
+    early_stop_iteration: int = 2
     tolerance_m: float = 1e-3
     tolerance_deg: float = 0.02
 
@@ -129,7 +135,7 @@ class RefineConfig:
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
         for name in ("candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
-                     "min_improvement"):
+                     "min_improvement", "early_stop_iteration"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"RefineConfig.{name} must be >= 0, got {value!r}")
@@ -598,6 +604,16 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     for it in range(config.iterations):
         if it > 0:
             data = _data_terms(selection, center, heading, gates[it], config, t_count)
+        if it > 0 and it == config.early_stop_iteration and \
+                residual_label <= (1.0 + config.min_improvement) * data.scale:
+            if not data.scale <= config.max_residual_m:          # no rigid surface to register on
+                return labels("large_residual", f"robust residual {data.scale:.3f} m after {it} iterations > "
+                              f"{config.max_residual_m} m (labels: {residual_label:.3f} m)", residual=data.scale,
+                              residual_label=residual_label, num_points=data.num_points, iterations=it)
+            return labels("labels_consistent", f"robust residual {residual_label:.4f} m at the labels, "
+                          f"{data.scale:.4f} m after {it} iterations: less than {config.min_improvement:.0%} "
+                          f"better", residual=data.scale, residual_label=residual_label,
+                          num_points=data.num_points, iterations=it)
         state = np.concatenate([center, heading[:, None]], axis=1).reshape(-1)
         # Normal equations of 1/2 (data + prior + motion) in the increment dx.
         g = data.gradient + prior_w * (state - label_state)

@@ -144,9 +144,12 @@ def test_exact_labels_lose_nothing():
     assert kept.reason == "labels_consistent" and not kept.refined and not kept.used_fallback
     np.testing.assert_array_equal(kept.vehicle_from_box, labels)
     assert kept.residual_label_m <= 1.15 * kept.residual_m
-    # forced, refinement stays within millimetres of the exact poses (measured 8.4 mm with the
-    # default 120 returns per frame, 4.1 mm with 400)
-    forced = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(min_improvement=0.0))
+    # cost: consistent labels are recognised after early_stop_iteration (2) iterations, not all 10
+    assert kept.iterations == RefineConfig().early_stop_iteration
+    # forced (no early stop, no improvement required), refinement stays within millimetres of the
+    # exact poses (measured 8.4 mm with the default 120 returns per frame)
+    forced = refine_object_poses(labels, SIZE, wfv, pts, frame, ts,
+                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0))
     assert forced.refined
     assert relative_error(forced.world_from_box, wfv @ exact, CORNERS) < 0.011
     centre, heading = absolute_error(forced.vehicle_from_box, exact)
@@ -269,6 +272,8 @@ def test_bad_input_raises_naming_the_argument(change, message):
 def test_bad_config_raises():
     with pytest.raises(ValueError, match="label_sigma_m"):
         RefineConfig(label_sigma_m=0.0)
+    with pytest.raises(ValueError, match="early_stop_iteration"):
+        RefineConfig(early_stop_iteration=-1)
     with pytest.raises(ValueError, match="unknown keys"):
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
