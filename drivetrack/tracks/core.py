@@ -17,6 +17,7 @@ camera. Unknown depth (0) means no known surface in front, hence visible.
 from __future__ import annotations
 
 import importlib
+import warnings
 import zlib
 from dataclasses import dataclass, field
 
@@ -178,6 +179,38 @@ def fill_invalid_positions(tracks: np.ndarray) -> np.ndarray:
     return np.take_along_axis(tracks, source[..., None], axis=1)
 
 
+def _any_rolling_frame(frames_meta, frames: np.ndarray) -> bool:
+    """True when some clip frame has usable rolling-shutter data (``shutter_state(...).rolling``).
+
+    The decision is ``drivetrack.rolling_shutter.shutter_state``'s own (direction 0 or 5,
+    readout <= 0 or a missing value mean global shutter), asked frame by frame; it also raises
+    the same errors the projector would (a frame without a pose).
+    """
+    from drivetrack.rolling_shutter import shutter_state
+
+    return any(shutter_state(frames_meta, t).rolling for t in frames.tolist())
+
+
+_KERNEL_WARNED = False
+
+
+def _use_kernel(config) -> bool:
+    """Whether the global-shutter path runs the numba kernel (``config.kernel == "numba"``).
+
+    Falls back to the numpy path, warning once per process, when numba cannot be imported.
+    """
+    global _KERNEL_WARNED
+    if config.kernel != "numba":
+        return False
+    from drivetrack.tracks.kernel import NUMBA_AVAILABLE
+
+    if not NUMBA_AVAILABLE and not _KERNEL_WARNED:
+        warnings.warn("TrackConfig.kernel='numba' but numba cannot be imported; the track stage uses "
+                      "its numpy path (same results, slower)", RuntimeWarning, stacklevel=3)
+        _KERNEL_WARNED = True
+    return NUMBA_AVAILABLE
+
+
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     """Point tracks of one accepted clip (see the module docstring). Pure: writes nothing."""
     from drivetrack.depth import lookup_max4
@@ -223,6 +256,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             + box_from_vehicle[source_clip, :3, 3]
 
     projector = rolling_shutter_projector() if config.rolling_shutter else None
+    # A camera whose shutter data say global shutter at every clip frame projects exactly like
+    # the global path (rolling_shutter.shutter_state's fallback): skip the per-frame loop.
+    rolling = projector is not None and _any_rolling_frame(frames_meta, frames)
     depth = ctx.depth.get(job.camera)
     if depth is None or np.any(depth.slot[frames] < 0):
         raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
@@ -235,65 +271,100 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     world_step = world_from_box[1:] - world_from_box[:-1]                    # affine differences [T-1]
     duration_s = (timestamps[-1] - timestamps[0]) * 1e-6
 
-    tracks = np.full((n, t_count, 2), np.nan, dtype=np.float32)
-    visibles = np.zeros((n, t_count), dtype=bool)
-    points3d = np.zeros((n, t_count, 3), dtype=np.float32)
-    speeds = np.zeros(n, dtype=np.float64)
-    for start in range(0, n, config.chunk_points):
-        chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
-        points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
-        if projector is None:
-            pixels, valid = model.pixels_from_camera(points_camera)
-        else:
-            pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
-            valid = np.zeros(points_camera.shape[:2], dtype=bool)
-            for tau, t in enumerate(frames.tolist()):
-                velocity = np.broadcast_to(velocity_world[tau], chunk.shape)
-                px, ok, _ = projector(frames_meta, t, _carry(world_from_box[tau:tau + 1], chunk)[0]
-                                      + shift_world[tau], velocity)
-                pixels[tau], valid[tau] = px, ok
-            valid &= points_camera[..., 0] > 0
-        ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
-        surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
-        occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
-        visible = ok & ~occluded
-        stop = start + chunk.shape[0]
-        tracks[start:stop] = np.swapaxes(pixels, 0, 1)
-        visibles[start:stop] = visible.T
-        points3d[start:stop] = np.swapaxes(_carry(vehicle_from_box, chunk), 0, 1)
-        # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
-        if t_count > 1 and duration_s > 0:
-            steps = _carry(world_step, chunk)                                      # [T-1, n, 3]
-            speeds[start:stop] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
-        else:
-            speeds[start:stop] = np.nan
-
-    tracks = fill_invalid_positions(tracks)
-
     box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
     box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
+    speed_filter = (config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean))
+    max_deviation = float(config.max_speed_deviation_mps) if speed_filter else float("nan")
+
+    if not rolling and _use_kernel(config):
+        from drivetrack.tracks import kernel
+
+        status = np.empty(n, dtype=np.int8)
+        speeds = np.empty(n, dtype=np.float64)
+        p_box = np.ascontiguousarray(p_box, dtype=np.float64)
+        camera_from_box = np.ascontiguousarray(camera_from_box, dtype=np.float64)
+        shift_camera = np.ascontiguousarray(shift_camera, dtype=np.float64)
+        clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
+        params = kernel.camera_parameters(model)
+        kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
+                             params, clip_maps, float(config.occlusion_ratio), float(duration_s),
+                             box_speed_mean, max_deviation, status, speeds)
+        keep = status == kernel.KEPT
+        kept = int(keep.sum())
+        tracks = np.empty((kept, t_count, 2), dtype=np.float32)
+        visibles = np.empty((kept, t_count), dtype=bool)
+        points3d = np.empty((kept, t_count, 3), dtype=np.float32)
+        kernel.fill_tracks(np.ascontiguousarray(p_box[keep]), camera_from_box, shift_camera,
+                           np.ascontiguousarray(vehicle_from_box, dtype=np.float64), params, clip_maps,
+                           float(config.occlusion_ratio), tracks, visibles, points3d)
+        dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
+        dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
+    else:
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        keep = np.zeros(n, dtype=bool)
+        speeds = np.zeros(n, dtype=np.float64)
+        dropped_invisible = dropped_speed = 0
+        for start in range(0, n, config.chunk_points):
+            chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
+            points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
+            if not rolling:
+                pixels, valid = model.pixels_from_camera(points_camera)
+            else:
+                pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
+                valid = np.zeros(points_camera.shape[:2], dtype=bool)
+                for tau, t in enumerate(frames.tolist()):
+                    velocity = np.broadcast_to(velocity_world[tau], chunk.shape)
+                    px, ok, _ = projector(frames_meta, t, _carry(world_from_box[tau:tau + 1], chunk)[0]
+                                          + shift_world[tau], velocity)
+                    pixels[tau], valid[tau] = px, ok
+                valid &= points_camera[..., 0] > 0
+            ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
+            surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
+            occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
+            visible = ok & ~occluded
+            stop = start + chunk.shape[0]
+            # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
+            if t_count > 1 and duration_s > 0:
+                steps = _carry(world_step, chunk)                                      # [T-1, n, 3]
+                speeds[start:stop] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
+            else:
+                speeds[start:stop] = np.nan
+            # only the kept points of the chunk are materialised in [n, T] order
+            seen = visible.any(axis=0)
+            chunk_keep = seen.copy()
+            if speed_filter:
+                chunk_keep &= np.abs(speeds[start:stop] - box_speed_mean) <= max_deviation
+            dropped_invisible += int((~seen).sum())
+            dropped_speed += int((seen & ~chunk_keep).sum())
+            keep[start:stop] = chunk_keep
+            idx = np.flatnonzero(chunk_keep)
+            parts.append((fill_invalid_positions(np.swapaxes(pixels[:, idx], 0, 1).astype(np.float32)),
+                          np.ascontiguousarray(visible[:, idx].T),
+                          np.swapaxes(_carry(vehicle_from_box, chunk[idx]), 0, 1).astype(np.float32)))
+        if len(parts) == 1:
+            tracks, visibles, points3d = parts[0]
+        elif parts:
+            tracks, visibles, points3d = (np.concatenate(a, axis=0) for a in zip(*parts))
+        else:
+            tracks = np.empty((0, t_count, 2), dtype=np.float32)
+            visibles = np.empty((0, t_count), dtype=bool)
+            points3d = np.empty((0, t_count, 3), dtype=np.float32)
+        del parts
+
     errors = np.abs(speeds - box_speed_mean)
-
-    keep = visibles.any(axis=1)
-    dropped_invisible = int((~keep).sum())
-    dropped_speed = 0
-    if config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean):
-        fast = keep & ~(errors <= config.max_speed_deviation_mps)
-        dropped_speed = int(fast.sum())
-        keep &= ~fast
-
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
     result = ObjectTracks(
         split=scene.split, segment=scene.segment, camera=job.camera, object_id=job.object_id,
         object_type=job.object_type, frames=frames.copy(), timestamps_micros=timestamps,
-        tracks=tracks[keep], visibles=visibles[keep], points3d=points3d[keep],
+        tracks=tracks, visibles=visibles, points3d=points3d,
         query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources[keep],
         track_speed_mps=speeds[keep], box_speed_mps=box_speed_mean, speed_error_mps=errors[keep],
         camera_model=model, camera_from_vehicle=geometry.camera_from_vehicle[frames].copy(),
         world_from_vehicle=scene.world_from_vehicle[frames].copy(),
         jpeg=[frames_meta.jpeg[t] for t in frames.tolist()],
         min_camera_distance_m=job.min_camera_distance_m,
+        # the projection model in use; a global-shutter camera under it projects as global
         projection="rolling_shutter" if projector is not None else "global_shutter",
         num_candidates=int(n_candidates), num_dropped_invisible=dropped_invisible,
         num_dropped_speed=dropped_speed,

@@ -1,0 +1,214 @@
+"""The fused numba kernel of the track stage equals the numpy reference path."""
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+
+from drivetrack.depth import lookup_max4
+from drivetrack.geometry import box_from_center_heading, rotation_z
+from drivetrack.tracks import TrackConfig, object_jobs, prepare_segment, run_object_job
+from drivetrack.tracks import kernel
+from drivetrack.tracks.depth_stage import SegmentContext
+from drivetrack.tracks.core import _any_rolling_frame, fill_invalid_positions, track_speeds
+from test_tracks import (DT, FRONT, H, W, SceneBuilder, camera_model, world_center)
+
+pytestmark = pytest.mark.skipif(not kernel.NUMBA_AVAILABLE, reason="numba is not importable")
+
+
+def _hand_built_clip(seed=3, n=3000, t_count=7):
+    """Box-frame points, per-frame transforms and depth maps covering every visibility case."""
+    rng = np.random.default_rng(seed)
+    model = camera_model(k1=-0.1)                       # d < 0.8 (untrusted) beyond r2 = 2
+    # points spread widely around a box 6 m ahead: some behind the camera at some frames
+    points_box = rng.uniform([-8.0, -6.0, -3.0], [8.0, 6.0, 3.0], size=(n, 3))
+    # the box drives towards and past the camera, turning back and forth: validity flickers
+    # along tracks (held positions, including ties between equally near valid frames)
+    centres = np.stack([np.linspace(9.0, -1.0, t_count), np.linspace(-1.0, 1.0, t_count),
+                        np.full(t_count, 0.2)], -1)
+    camera_from_box = box_from_center_heading(centres, np.where(np.arange(t_count) % 2 == 1, 0.9, 0.0))
+    camera_from_box[:, :3, :3] = camera_from_box[:, :3, :3] @ rotation_z(0.1)[None]
+    shift_camera = rng.normal(0.0, 0.05, size=(t_count, 3))
+    vehicle_from_box = box_from_center_heading(centres + [1.5, 0.0, 1.0], np.linspace(0.2, -0.3, t_count))
+    world_from_box = box_from_center_heading(centres * 2.0 + [100.0, -50.0, 0.0], np.linspace(0, 1, t_count))
+    # depth: unknown (0) in the left third, elsewhere surfaces spread over the points' depths so
+    # that both sides of the occlusion test are dense
+    maps = rng.uniform(0.3, 12.0, size=(t_count, H, W)).astype(np.float32)
+    maps[:, :, : W // 3] = 0.0
+    return model, points_box, camera_from_box, shift_camera, vehicle_from_box, world_from_box, maps
+
+
+def _reference(model, points_box, camera_from_box, shift_camera, vehicle_from_box, world_from_box,
+               maps, ratio, duration_s):
+    """Tracks, visibles, points3d [n, T, ...], speeds [n] with the documented numpy functions."""
+    points_camera = (np.einsum("tij,nj->tni", camera_from_box[:, :3, :3], points_box)
+                     + camera_from_box[:, None, :3, 3] + shift_camera[:, None])
+    pixels, valid = model.pixels_from_camera(points_camera)
+    ok = valid & model.inside_image(pixels)
+    surface = lookup_max4(maps, pixels)
+    visible = ok & ~((surface > 0) & (surface < ratio * points_camera[..., 0]))
+    points3d = np.einsum("tij,nj->tni", vehicle_from_box[:, :3, :3], points_box) + vehicle_from_box[:, None, :3, 3]
+    world = np.einsum("tij,nj->tni", world_from_box[:, :3, :3], points_box) + world_from_box[:, None, :3, 3]
+    speeds = track_speeds(world, np.round(np.linspace(0, duration_s, len(maps)) * 1e6).astype(np.int64))
+    tracks = fill_invalid_positions(np.swapaxes(pixels, 0, 1).astype(np.float32))
+    return tracks, visible.T, np.swapaxes(points3d, 0, 1).astype(np.float32), speeds, valid, ok, surface
+
+
+def test_kernel_equals_numpy_reference_in_every_visibility_case():
+    model, p, cam, shift, veh, world, maps = _hand_built_clip()
+    ratio, duration = 0.95, 0.6
+    tracks_ref, vis_ref, p3_ref, speeds_ref, valid, ok, surface = _reference(
+        model, p, cam, shift, veh, world, maps, ratio, duration)
+    points_camera_x = np.einsum("tj,nj->tn", cam[:, 0, :3], p) + cam[:, None, 0, 3] + shift[:, None, 0]
+    # every case is present in this clip
+    assert (points_camera_x <= 0).any()                                        # behind the camera
+    assert ((points_camera_x > 0) & ~valid).any()                              # untrusted distortion
+    assert (valid & ~ok).any()                                                 # outside the image
+    assert (ok & (surface > 0) & (surface < ratio * points_camera_x)).any()    # occluded
+    assert (ok & (surface == 0)).any()                                         # unknown depth: visible
+    assert vis_ref.any(axis=1).sum() not in (0, len(p))                        # some kept, some dropped
+    assert (~valid.all(axis=0) & valid.any(axis=0)).any()                      # held positions used
+    v = valid.T
+    assert (~v[:, 1:-1] & v[:, :-2] & v[:, 2:]).any()                          # ... with a tie
+    near = ok & (np.abs(surface - ratio * points_camera_x) < 0.01 * points_camera_x)
+    assert near.sum() > 10                                                     # occlusion near the limit
+
+    status = np.empty(len(p), np.int8)
+    speeds = np.empty(len(p))
+    world_step = np.ascontiguousarray(world[1:] - world[:-1])
+    kept = kernel.screen_points(p, cam, shift, world_step, kernel.camera_parameters(model), maps, ratio,
+                                duration, np.nan, np.nan, status, speeds)
+    keep = vis_ref.any(axis=1)
+    np.testing.assert_array_equal(status == kernel.KEPT, keep)
+    np.testing.assert_array_equal(status[~keep], kernel.DROPPED_INVISIBLE)
+    assert kept == keep.sum()
+    np.testing.assert_allclose(speeds, speeds_ref, rtol=1e-9)
+
+    # fill_tracks on every point (kept or not) equals the reference row by row
+    tracks = np.empty((len(p), len(maps), 2), np.float32)
+    visibles = np.empty((len(p), len(maps)), bool)
+    points3d = np.empty((len(p), len(maps), 3), np.float32)
+    kernel.fill_tracks(p, cam, shift, veh, kernel.camera_parameters(model), maps, ratio, tracks, visibles,
+                       points3d)
+    np.testing.assert_array_equal(visibles, vis_ref)
+    np.testing.assert_array_equal(np.isnan(tracks), np.isnan(tracks_ref))     # never-valid tracks stay NaN
+    np.testing.assert_allclose(tracks, tracks_ref, rtol=1e-6, atol=1e-3, equal_nan=True)
+    np.testing.assert_allclose(points3d, p3_ref, rtol=1e-6, atol=1e-5)
+
+
+def test_speed_filter_status():
+    model, p, cam, shift, veh, world, maps = _hand_built_clip(seed=5, n=500)
+    world_step = np.ascontiguousarray(world[1:] - world[:-1])
+    args = (p, cam, shift, world_step, kernel.camera_parameters(model), maps, 0.95, 0.6)
+    status0, speeds = np.empty(len(p), np.int8), np.empty(len(p))
+    kernel.screen_points(*args, np.nan, np.nan, status0, speeds)
+    box_speed = float(np.median(speeds))
+    status = np.empty(len(p), np.int8)
+    kept = kernel.screen_points(*args, box_speed, 2.0, status, np.empty(len(p)))
+    fast = (status0 == kernel.KEPT) & ~(np.abs(speeds - box_speed) <= 2.0)
+    assert fast.any() and (status0 == kernel.KEPT).sum() > fast.sum()
+    np.testing.assert_array_equal(status == kernel.DROPPED_SPEED, fast)
+    np.testing.assert_array_equal(status == kernel.DROPPED_INVISIBLE, status0 == kernel.DROPPED_INVISIBLE)
+    assert kept == (status == kernel.KEPT).sum()
+
+
+def test_empty_and_single_frame_inputs():
+    model, p, cam, shift, veh, world, maps = _hand_built_clip(n=10)
+    params = kernel.camera_parameters(model)
+    empty = np.zeros((0, 3))
+    status, speeds = np.empty(0, np.int8), np.empty(0)
+    assert kernel.screen_points(empty, cam, shift, np.ascontiguousarray(world[1:] - world[:-1]), params, maps,
+                                0.95, 0.6, np.nan, np.nan, status, speeds) == 0
+    kernel.fill_tracks(empty, cam, shift, veh, params, maps, 0.95, np.empty((0, 7, 2), np.float32),
+                       np.empty((0, 7), bool), np.empty((0, 7, 3), np.float32))
+    # one frame: speed NaN, so the speed filter drops every visible point (as the numpy path does)
+    status, speeds = np.empty(10, np.int8), np.empty(10)
+    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, 0.0,
+                         np.nan, np.nan, status, speeds)
+    assert np.isnan(speeds).all()
+    status2 = np.empty(10, np.int8)
+    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, 0.0,
+                         1.0, 5.0, status2, speeds)
+    np.testing.assert_array_equal(status2 == kernel.DROPPED_SPEED, status == kernel.KEPT)
+
+
+def _assert_same_tracks(a, b):
+    assert a.rejection == b.rejection and a.projection == b.projection
+    for name in ("num_candidates", "num_dropped_invisible", "num_dropped_speed"):
+        assert getattr(a, name) == getattr(b, name), name
+    for name in ("visibles", "query_frames", "lidar_sources", "frames"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for name in ("tracks", "points3d"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype == np.float32 and x.shape == y.shape, name
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-4, err_msg=name)
+    np.testing.assert_allclose(a.track_speed_mps, b.track_speed_mps, rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(a.speed_error_mps, b.speed_error_mps, rtol=1e-9, atol=1e-12, equal_nan=True)
+
+
+def _both(scene, config):
+    ctx = prepare_segment(scene, replace(config, kernel="numpy"))
+    numpy_results = {job.object_id: run_object_job(ctx, job) for job in object_jobs(ctx)}
+    ctx = SegmentContext(replace(ctx.plan, config=replace(config, kernel="numba")), ctx.depth)
+    numba_results = {job.object_id: run_object_job(ctx, job) for job in object_jobs(ctx)}
+    assert numpy_results.keys() == numba_results.keys()
+    return numpy_results, numba_results
+
+
+@pytest.mark.parametrize("rolling_shutter", [False, True])
+def test_run_object_job_same_with_either_kernel(rolling_shutter):
+    # distortion, a moving ego, an occluder crossing in front, a partly hidden car, a speed filter
+    b = SceneBuilder(ego_speed=3.0, k1=-0.05)
+    b.add_object("back", world_center(b, 12.0))
+    # driving along with the ego at the left image edge: part of it never enters the image
+    b.add_object("edge", world_center(b, 8.0, y=4.0) + np.outer(3.0 * np.arange(b.t) * DT, [1, 0, 0]))
+    b.add_object("spinner", world_center(b, 18.0, y=2.0), headings=1.0 * np.arange(b.t) * DT, spacing=0.25)
+    start = world_center(b, 6.0, y=-3.0)
+    b.add_object("front", start[None] + np.outer(2.0 * np.arange(b.t) * DT, [0, 1, 0]), size=(1.0, 0.8, 0.8),
+                 spacing=0.05, extra_local=[[-0.5, 3.0, 0.0], [0.4, 0.0, 0.0]])
+    config = TrackConfig(rolling_shutter=rolling_shutter, max_camera_distance_m=30,
+                         max_speed_deviation_mps=2.1, chunk_points=700,
+                         depth_completer_options={"max_reach_px": 3.0})
+    reference, fused = _both(b.build(), config)
+    assert reference["back"].num_tracks > 1000 and reference["edge"].num_dropped_invisible > 0
+    assert not reference["back"].visibles.all()
+    assert reference["spinner"].num_dropped_speed > 0 and reference["spinner"].num_tracks > 0
+    for object_id in reference:
+        _assert_same_tracks(reference[object_id], fused[object_id])
+
+
+def test_rejected_object_is_the_same_with_either_kernel():
+    b = SceneBuilder()
+    b.lidar_origin = np.array([0.0, 0.0, 3.0])
+    b.add_object("hidden", world_center(b, 14.0), size=(2.0, 1.0, 1.0))
+    b.add_object("wall", world_center(b, 5.0), size=(0.2, 4.0, 2.0), spacing=0.03, type_=3)
+    reference, fused = _both(b.build(), TrackConfig(rolling_shutter=False,
+                                                    depth_completer_options={"max_reach_px": 3.0}))
+    assert fused["hidden"].rejection == "no_visible_points" and fused["hidden"].num_tracks == 0
+    assert fused["hidden"].tracks.shape == (0, b.t, 2)
+    _assert_same_tracks(reference["hidden"], fused["hidden"])
+
+
+def test_global_shutter_frames_are_detected_like_the_projector():
+    b = SceneBuilder(t=4)
+    b.add_object("car", world_center(b, 10.0))
+    frames_meta = b.build().cameras[FRONT]
+    frames = np.arange(4)
+    assert not _any_rolling_frame(frames_meta, frames)                      # direction 0 (unknown)
+    rolling = replace(frames_meta, model=camera_model(direction=1),
+                      readout_done_time=frames_meta.trigger_time + 0.03)
+    assert _any_rolling_frame(rolling, frames)
+    assert not _any_rolling_frame(replace(rolling, model=camera_model(direction=5)), frames)
+    assert not _any_rolling_frame(replace(rolling, readout_done_time=rolling.trigger_time), frames)
+    nan_one = rolling.readout_done_time.copy()
+    nan_one[:3] = np.nan
+    assert _any_rolling_frame(replace(rolling, readout_done_time=nan_one), frames)
+    assert not _any_rolling_frame(replace(rolling, readout_done_time=nan_one), frames[:3])
+
+
+def test_unknown_kernel_is_refused_naming_the_field():
+    with pytest.raises(ValueError, match="TrackConfig.kernel.*'cuda'"):
+        TrackConfig(kernel="cuda")
+    assert "kernel" in {f.name for f in fields(TrackConfig)}
+    assert TrackConfig.from_dict(TrackConfig(kernel="numpy").to_dict()).kernel == "numpy"
