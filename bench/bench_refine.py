@@ -102,6 +102,7 @@ def measure(levels=LEVELS, frames: int = 40, work: Path | None = None) -> list[d
                "baseline": _scores(base, root), "refined": _scores(ref, root),
                "track_cpu_s_per_object": base_cpu / max(len(objects), 1),
                "refine_cpu_s_per_object": refine_cpu / max(len(objects), 1),
+               "refine_over_track_cpu": refine_cpu / max(base_cpu, 1e-9),
                "reasons": reasons,
                "correction_p50_m": float(np.median([r.summary()["refine_translation_p50_m"] for r in refined.values()]))
                if refined else float("nan")}
@@ -123,7 +124,8 @@ def _table(rows: list[dict]) -> str:
                 tail = f"{r['track_cpu_s_per_object']:.2f} | - | -"
             else:
                 outcome = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items()))
-                tail = f"{r['track_cpu_s_per_object']:.2f} | {r['refine_cpu_s_per_object']:.2f} | {outcome}"
+                tail = (f"{r['track_cpu_s_per_object']:.2f} | {r['refine_cpu_s_per_object']:.2f} "
+                        f"({r['refine_over_track_cpu']:.1f}x track) | {outcome}")
             lines.append(f"| {label} | {'labels' if kind == 'baseline' else 'refined'} | {s['OA']:.3f} | "
                          f"{s['AJ']:.3f} | {s['delta_avg']:.3f} | {s['px_median']:.2f} | "
                          f"{100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | {tail} |")

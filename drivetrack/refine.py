@@ -27,7 +27,7 @@ Model (one object, T frames, all vectorised; see docs/refinement.md):
   by ``accel_sigma_mps2`` (``vertical_accel_sigma_mps2`` for world z) / ``yaw_accel_sigma_radps2``; frames with few points borrow from their
   neighbours.
 - All three terms are solved jointly by Gauss-Newton on the 4T unknowns (sparse normal
-  equations), re-associating correspondences at every iteration.
+  equations, early exits for consistent labels), re-associating correspondences at every iteration.
 
 Fallback to the labels when registration is not trustworthy: too few points (in total or frames
 with points), a large final robust residual, a correction beyond ``max_correction_m`` /

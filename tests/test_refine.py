@@ -278,3 +278,27 @@ def test_bad_config_raises():
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
     assert isinstance(RefinedPoses, type)
+
+
+def test_capped_selection_equals_the_cap_over_all_candidates():
+    """The per-frame cap screens candidates in priority order; it must pick exactly the ``cap``
+    lowest-priority returns inside the box of each frame, also where the screen holds too few."""
+    from drivetrack.refine import _Selection
+
+    rng = np.random.default_rng(3)
+    t_count, cap = 4, 10
+    counts = [5, 25, 400, 1000]                  # below the cap, below the screen, two above it
+    frame = np.concatenate([np.full(n, t, np.int64) for t, n in enumerate(counts)])
+    points = rng.uniform(-3.0, 3.0, (frame.size, 3))
+    points[frame == 2] /= 3.0                    # frame 2: all inside, the screen suffices
+    # frame 3: ~4 % inside, so the first 3 x cap by priority hold fewer than cap: widening
+    priority = rng.uniform(size=frame.size)
+    half = np.repeat(np.array([[1.0, 1.0, 1.0]]), t_count, axis=0)
+    center, heading = np.zeros((t_count, 3)), np.zeros(t_count)
+    q, f = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2)
+    inside = np.all(np.abs(points[:, :2]) <= 1.1, axis=1) & (points[:, 2] <= 1.1) & (points[:, 2] >= -0.8)
+    for t in range(t_count):
+        idx = np.flatnonzero(inside & (frame == t))
+        want = points[idx[np.argsort(priority[idx])][:cap]]
+        np.testing.assert_array_equal(q[f == t], want)
+    assert (f == 2).sum() == cap and (f == 3).sum() == cap and (f == 0).sum() < cap
