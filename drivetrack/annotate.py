@@ -37,7 +37,7 @@ from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_
 from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
-           "complete_depth_batch", "refine_scene", "track_segment", "write_segment_outputs", "write_tables",
+           "complete_depth_batch", "refine_scene", "track_segment", "segment_tables", "write_segment_outputs", "write_tables",
            "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version"]
 
 _HASH_CHUNK = 8 << 20
@@ -353,11 +353,7 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
         written = write_segment_outputs(out_url, split, tracks, config.track.writers)
         result.files = [u for urls in written.values() for u in urls]
         result.timings_s["write"] = time.perf_counter() - start
-        files = {key: urls[0] for key, urls in written.items()}
-        result.objects = _with_refinement(object_stats(tracks, {k: _relative(out_url, v) for k, v in files.items()}),
-                                          scene.box_refinement)
-        result.rejections = rejection_stats(plan, tracks)
-        result.segment_row = segment_stats(split, segment, plan, tracks)
+        result.objects, result.rejections, result.segment_row = segment_tables(out_url, scene, plan, tracks, written)
         result.status, result.stage = "done", ""
     except Exception as error:  # isolate the segment: report, never raise
         result.status, result.stage = "failed", stage
@@ -368,6 +364,18 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
     if keep_tracks:
         result.tracks = tracks
     return result
+
+
+def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[ObjectTracks],
+                   written: dict[tuple[int, str], list[str]]) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """``(objects, rejections, segment_row)`` tables of a tracked segment.
+
+    ``written`` is :func:`write_segment_outputs`' result; object rows name their DriveTrack file
+    relative to ``out_url`` and carry the ``refine_*`` columns of the pose refinement, if any.
+    """
+    files = {key: _relative(out_url, urls[0]) for key, urls in written.items()}
+    objects = _with_refinement(object_stats(tracks, files), scene.box_refinement)
+    return objects, rejection_stats(plan, tracks), segment_stats(scene.split, scene.segment, plan, tracks)
 
 
 def _with_refinement(objects: pd.DataFrame, refinement: dict[str, dict]) -> pd.DataFrame:

@@ -27,7 +27,7 @@ STATES = ("pending", "running", "done", "failed", "skipped")
 SEGMENT_STAGES = ("ingest", "depth", "tracks", "write")
 """Per segment: read and validate the source, depth completion (GPU queue), per-object track
 jobs, writing the clip files and the segment's tables."""
-RELEASE_STAGES = ("list", "segments", "statistics", "gates", "publish")
+RELEASE_STAGES = ("list", "segments", "statistics", "previews", "gates", "publish")
 """Once per release: list segments, all segment jobs, merged statistics, gates, publish."""
 STATUS_JSON = "status.json"
 STATUS_HTML = "status.html"
@@ -153,6 +153,7 @@ class ReleaseStatus:
     message: str | None = None
     stages: dict[str, StageStatus] = field(default_factory=lambda: {s: StageStatus() for s in RELEASE_STAGES})
     segments: list[SegmentStatus] = field(default_factory=list)
+    previews: list[str] = field(default_factory=list)   # release-relative paths (drivetrack show)
 
     # ---- mutation -----------------------------------------------------------------------
     def add_segment(self, split: str, segment: str, key: str | None = None) -> SegmentStatus:
@@ -251,7 +252,7 @@ class ReleaseStatus:
                 "published": self.published, "message": self.message, "state": self.state,
                 "counts": self.counts(), "stage_counts": self.stage_counts(),
                 "stages": {k: v.to_dict() for k, v in self.stages.items()},
-                "segments": [s.to_dict() for s in self.segments]}
+                "segments": [s.to_dict() for s in self.segments], "previews": list(self.previews)}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=1, allow_nan=False)
@@ -271,7 +272,8 @@ class ReleaseStatus:
                    message=d.get("message"),
                    stages={k: StageStatus.from_dict(v, f"{where}: release stage {k}")
                            for k, v in (d.get("stages") or {}).items()},
-                   segments=[SegmentStatus.from_dict(s, f"{where}: segment") for s in d.get("segments") or []])
+                   segments=[SegmentStatus.from_dict(s, f"{where}: segment") for s in d.get("segments") or []],
+                   previews=[str(p) for p in d.get("previews") or []])
 
 
 # ---- HTML --------------------------------------------------------------------------------------
@@ -309,6 +311,16 @@ def _cell(st: StageStatus) -> str:
     inner = " ".join(bits) + (f'<div class="small">{" · ".join(details)}</div>' if details else "")
     title = f' title="{html.escape(st.error)}"' if st.error else ""
     return f'<td class="st" data-state="{st.state}" style="background:{bg};color:{fg}"{title}>{inner}</td>'
+
+
+def _previews_html(previews: list[str]) -> str:
+    """Links to the release's previews (paths relative to the release folder the page sits in)."""
+    if not previews:
+        return ""
+    e = html.escape
+    items = "".join(f'<a href="{e(p)}"><img src="{e(p)}" alt="{e(p)}" style="max-width:420px;margin:4px"></a>'
+                    if p.endswith(".png") else f'<p><a href="{e(p)}">clip: {e(p)}</a></p>' for p in previews)
+    return f"<h2>Previews</h2>\n<div>{items}</div>"
 
 
 def render_status_html(status: ReleaseStatus, *, refresh_s: int | None = None) -> str:
@@ -359,6 +371,7 @@ def render_status_html(status: ReleaseStatus, *, refresh_s: int | None = None) -
 {"".join(rows) or '<tr><td colspan="99">no segments</td></tr>'}
 </table>
 <p class="legend">{legend}</p>
+{_previews_html(status.previews)}
 </body></html>
 """
 

@@ -177,7 +177,7 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     completion record last. Returns the record (small, JSON-safe). Raises on failure after
     recording the failed stage and its error in the progress file."""
     from drivetrack import annotate as core
-    from drivetrack.tracks import object_stats, plan_segment, rejection_stats, segment_stats
+    from drivetrack.tracks import plan_segment
     from flows.runtime import GPU, submit_resource_jobs
 
     cfg = core.AnnotateConfig.from_dict(config)
@@ -209,15 +209,9 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
         st.update(count=sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), unit="object clips")
     with rec.stage("write") as st:
         written = core.write_segment_outputs(out, split, tracks, cfg.track.writers)
-        files = {k: urls[0] for k, urls in written.items()}
-        objects = object_stats(tracks, {k: _relative(out, v) for k, v in files.items()})
-        # the refinement columns annotate_segment adds (same table whichever path built it)
-        with_refinement = getattr(core, "_with_refinement", None)
-        if with_refinement is not None:
-            objects = with_refinement(objects, getattr(scene, "box_refinement", None))
+        objects, rejections, segment_row = core.segment_tables(out, scene, plan, tracks, written)
         result = core.SegmentResult(split=split, segment=segment, status="done", objects=objects,
-                                    rejections=rejection_stats(plan, tracks),
-                                    segment_row=segment_stats(split, segment, plan, tracks))
+                                    rejections=rejections, segment_row=segment_row)
         core.write_tables(out, [result])
         st.update(count=sum(len(v) for v in written.values()), unit="files")
     sizes = {p[len(root) + 1:]: int(i.get("size") or 0) for p, i in fs.find(root, detail=True).items()}
@@ -225,13 +219,6 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
               "stages": rec.doc["stages"], "finished": time.time()}
     write_json(f"{out}/{DONE}", record)
     return record
-
-
-def _relative(root: str, url: str) -> str:
-    """``url`` relative to the folder ``root`` (both as the pipeline writes them)."""
-    root_path = fsspec.core.url_to_fs(root)[1].rstrip("/") + "/"
-    path = fsspec.core.url_to_fs(url)[1]
-    return path[len(root_path):] if path.startswith(root_path) else url
 
 
 def _count_objects(result) -> int | None:

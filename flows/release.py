@@ -103,6 +103,15 @@ def statistics_task(out: str, records: list[dict], failed: list[dict], run: dict
     return assemble_release_folder(out, records, failed, run, work)
 
 
+@task(name="previews")
+def previews_task(out: str) -> list[str]:
+    """Contact sheets and a short clip per split, written into the release folder (drivetrack show)."""
+    from drivetrack.show import write_previews
+
+    base = out.rstrip("/") + "/"
+    return [u[len(base):] if u.startswith(base) else u for u in write_previews(out, per_split=3)]
+
+
 @task(name="gates")
 def gates_task(out: str, gates_config) -> dict:
     from drivetrack.gates import run_gates
@@ -351,7 +360,9 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         raise
     status.update_release("statistics", "done", count=stats.get("files"), unit="files")
 
+
     if skip_unchanged and latest_run and latest_run.get("release_fingerprint") == fingerprint:
+        status.update_release("previews", "skipped")
         status.update_release("gates", "skipped")
         status.update_release("publish", "skipped")
         status.message = (f"inputs, configuration and code are unchanged since {latest}: no new version "
@@ -360,6 +371,15 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         logger.info(status.message)
         return {"version": None, "unchanged_since": latest, "published": False, "out": out,
                 "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+
+    status.update_release("previews", "running")
+    board.flush()
+    try:
+        status.previews = previews_task(out)
+        status.update_release("previews", "done", count=len(status.previews), unit="files")
+    except Exception as e:  # previews help a reader; they never block a release
+        status.update_release("previews", "skipped", error=jobs.failure_summary(e))
+        logger.warning(f"previews could not be made: {jobs.failure_summary(e)}")
 
     status.update_release("gates", "running")
     board.flush()

@@ -97,6 +97,13 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     pub_status = json.loads((published / "status.json").read_text())
     assert pub_status["published"] is True and pub_status["counts"]["done"] == SEGMENTS
     assert pub_status["state"] == "done" and pub_status["stages"]["publish"]["state"] == "done"
+    # previews are in the release, listed on its status page and linked from its card
+    assert pub_status["stages"]["previews"]["state"] == "done" and pub_status["previews"]
+    for rel in pub_status["previews"]:
+        assert (published / rel).exists(), rel
+        assert f'href="{rel}"' in page
+    card = (published / "README.md").read_text()
+    assert "## Previews" in card and any(p in card for p in pub_status["previews"])
     run = json.loads((published / "run.json").read_text())
     assert run["release_fingerprint"] == r2["fingerprint"]
     assert {s["segment"] for s in run["segments"]} == set(segs)
