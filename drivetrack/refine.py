@@ -351,7 +351,7 @@ def _normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.
 @dataclass
 class _Data:
     """Point-to-plane terms at the current state: dense normal equations and diagnostics."""
-    hessian: np.ndarray      # [4T, 4T]
+    hessian: np.ndarray      # [4T, 4T] (dense: cheaper to accumulate than sparse, measured)
     gradient: np.ndarray     # [4T]
     residual: np.ndarray     # [C] point-to-plane residuals of correspondences
     frame: np.ndarray        # [C] frame of the query point
@@ -409,8 +409,8 @@ def _data_terms(selection: _Selection, center: np.ndarray, heading: np.ndarray, 
     jac = np.concatenate([_point_jacobian(n, q[src], heading[fa]),
                           -_point_jacobian(n, q[dst], heading[fb])], axis=1)          # [C, 8]
     cols = np.concatenate([4 * fa[:, None] + np.arange(4), 4 * fb[:, None] + np.arange(4)], axis=1)  # [C, 8]
+    blocks = (w[:, None, None] * jac[:, :, None] * jac[:, None, :]).reshape(-1)           # [C * 64]
     flat = (cols[:, :, None] * n_state + cols[:, None, :]).reshape(-1)
-    blocks = (w[:, None, None] * jac[:, :, None] * jac[:, None, :]).reshape(-1)
     hessian = np.bincount(flat, weights=blocks, minlength=n_state * n_state).reshape(n_state, n_state)
     gradient = np.bincount(cols.reshape(-1), weights=(jac * (w * r)[:, None]).reshape(-1), minlength=n_state)
     return _Data(hessian, gradient, r, fa, scale, num_points)
@@ -422,8 +422,10 @@ def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, c
     Rows: for every interior frame, the second divided difference of the world centre (3 rows,
     over ``accel_sigma_mps2``) and of the world heading (1 row, over ``yaw_accel_sigma_radps2``).
     World centre of frame t: ``R_t c_t + p_t``; world heading: ``psi_t + yaw(R_t)`` (unwrapped).
-    Returns (S float64 [4(T-2), 4T], e0 float64 [4(T-2)]), or (None, None) when T < 3.
+    Returns (S scipy.sparse csr [4(T-2), 4T], e0 float64 [4(T-2)]), or (None, None) when T < 3.
     """
+    import scipy.sparse as sp
+
     t_count = timestamps_s.shape[0]
     if t_count < 3:
         return None, None
@@ -448,8 +450,8 @@ def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, c
         rows.append(base_row + 3)
         cols.append(4 * fk + 3)
         vals.append(coef[:, k] / config.yaw_accel_sigma_radps2)
-    S = np.zeros((4 * (t_count - 2), 4 * t_count))
-    np.add.at(S, (np.concatenate(rows), np.concatenate(cols)), np.concatenate(vals))
+    S = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(4 * (t_count - 2), 4 * t_count))
     e0 = np.zeros(4 * (t_count - 2))
     e0_pos = np.einsum("tk,tki->ti", coef, offset[frames]) / sigma
     e0_yaw = np.einsum("tk,tk->t", coef, yaw_w[frames]) / config.yaw_accel_sigma_radps2
@@ -581,7 +583,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config)
     prior_w = np.tile([1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2],
                       t_count)
-    H_fixed = np.diag(prior_w) + (S.T @ S if S is not None else 0.0)          # prior + motion, [4T, 4T]
+    H_fixed = sp.diags(prior_w) + (S.T @ S if S is not None else 0.0)         # prior + motion, [4T, 4T]
     label_state = np.concatenate([label_center, label_heading[:, None]], axis=1).reshape(-1)
     selection = _Selection(points, frame, priority, half, config.max_points_per_frame, t_count)
 
@@ -619,9 +621,9 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         g = data.gradient + prior_w * (state - label_state)
         if S is not None:
             g = g + S.T @ (S @ state + e0)
-        # SuperLU on the (mostly block-sparse) system: LAPACK's threaded dense solve of these
-        # small matrices is 10-25x slower on a loaded machine (measured).
-        dx = spla.spsolve(sp.csc_matrix(data.hessian + H_fixed), -g)
+        # SuperLU on the block-sparse system (the motion model is sparse; LAPACK's threaded dense
+        # solve of these small matrices was 10-25x slower on the loaded machine, measured)
+        dx = spla.spsolve((sp.csc_matrix(data.hessian) + H_fixed).tocsc(), -g)
         iterations = it + 1
         if not np.all(np.isfinite(dx)):
             return labels("not_finite", f"non-finite update at iteration {iterations}",
