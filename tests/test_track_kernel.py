@@ -89,7 +89,7 @@ def test_kernel_equals_numpy_reference_in_every_visibility_case():
     tracks = np.empty((len(p), len(maps), 2), np.float32)
     visibles = np.empty((len(p), len(maps)), bool)
     points3d = np.empty((len(p), len(maps), 3), np.float32)
-    kernel.fill_tracks(p, cam, shift, veh, kernel.camera_parameters(model), maps, ratio, tracks, visibles,
+    kernel.fill_tracks(p, np.arange(len(p))[::-1].copy(), cam, shift, veh, kernel.camera_parameters(model), maps, ratio, tracks, visibles,
                        points3d)
     np.testing.assert_array_equal(visibles, vis_ref)
     np.testing.assert_array_equal(np.isnan(tracks), np.isnan(tracks_ref))     # never-valid tracks stay NaN
@@ -120,7 +120,7 @@ def test_empty_and_single_frame_inputs():
     status, speeds = np.empty(0, np.int8), np.empty(0)
     assert kernel.screen_points(empty, cam, shift, np.ascontiguousarray(world[1:] - world[:-1]), params, maps,
                                 0.95, 0.6, np.nan, np.nan, status, speeds) == 0
-    kernel.fill_tracks(empty, cam, shift, veh, params, maps, 0.95, np.empty((0, 7, 2), np.float32),
+    kernel.fill_tracks(empty, np.zeros(0, np.int64), cam, shift, veh, params, maps, 0.95, np.empty((0, 7, 2), np.float32),
                        np.empty((0, 7), bool), np.empty((0, 7, 3), np.float32))
     # one frame: speed NaN, so the speed filter drops every visible point (as the numpy path does)
     status, speeds = np.empty(10, np.int8), np.empty(10)

@@ -294,7 +294,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         tracks = np.empty((kept, t_count, 2), dtype=np.float32)
         visibles = np.empty((kept, t_count), dtype=bool)
         points3d = np.empty((kept, t_count, 3), dtype=np.float32)
-        kernel.fill_tracks(np.ascontiguousarray(p_box[keep]), camera_from_box, shift_camera,
+        kept_box = np.ascontiguousarray(p_box[keep])
+        kernel.fill_tracks(kept_box, kernel.image_order(kept_box, camera_from_box, params),
+                           camera_from_box, shift_camera,
                            np.ascontiguousarray(vehicle_from_box, dtype=np.float64), params, clip_maps,
                            float(config.occlusion_ratio), tracks, visibles, points3d)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())

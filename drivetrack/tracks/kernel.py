@@ -23,7 +23,7 @@ import numpy as np
 
 from drivetrack.geometry import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
 
-__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks"]
+__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "image_order"]
 
 try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
     from numba import njit
@@ -46,49 +46,49 @@ def camera_parameters(model) -> np.ndarray:
                      model.p1, model.p2, model.width, model.height], dtype=np.float64)
 
 
-@njit(cache=True, nogil=True)
-def _project(camera_from_box, shift_camera, tau, px, py, pz, camera):
-    """(pixel x, pixel y, z-depth, valid) of box-frame point (px, py, pz) at clip frame tau."""
-    m = camera_from_box[tau]
-    x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3] + shift_camera[tau, 0]
-    y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] + shift_camera[tau, 1]
-    z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
+@njit(cache=True, nogil=True, inline="always")
+def _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2):
+    """(pixel x, pixel y, valid) of camera-frame point (x, y, z), as CameraModel.pixels_from_camera."""
     if not x > 1e-6:
-        return np.nan, np.nan, x, False
+        return np.nan, np.nan, False
     u = -y / x
     v = -z / x
-    k1, k2, k3, p1, p2 = camera[4], camera[5], camera[6], camera[7], camera[8]
     r2 = u * u + v * v
     d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     if not (d >= MIN_TRUSTED_DISTORTION and d <= MAX_TRUSTED_DISTORTION):
-        return np.nan, np.nan, x, False
+        return np.nan, np.nan, False
     u_d = u * d + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u)
     v_d = v * d + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v
-    return camera[0] * u_d + camera[2], camera[1] * v_d + camera[3], x, True
+    return f_u * u_d + c_u, f_v * v_d + c_v, True
 
 
-@njit(cache=True, nogil=True)
-def _visible(depth_map, pix_x, pix_y, x, valid, occlusion_ratio):
-    """Inside the image and not behind the max-of-4 surface of ``depth_map`` float32 [H, W]."""
+@njit(cache=True, nogil=True, inline="always")
+def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio):
+    """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W])."""
     if not valid:
         return False
-    height, width = depth_map.shape
     if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
         return False
+    # columns floor(x - 0.5) and ceil(x - 0.5), rows likewise; neighbours outside count as unknown
     cx = pix_x - 0.5
     cy = pix_y - 0.5
-    c0, c1 = np.floor(cx), np.ceil(cx)
-    r0, r1 = np.floor(cy), np.ceil(cy)
+    c0 = int(np.floor(cx))
+    r0 = int(np.floor(cy))
+    c1 = c0 + 1 if cx > c0 else c0
+    r1 = r0 + 1 if cy > r0 else r0
+    c0_ok = c0 >= 0
+    c1_ok = c1 < width
     best = np.float32(0.0)
-    for col in (c0, c1):
-        if col < 0 or col >= width:
-            continue
-        for row in (r0, r1):
-            if row < 0 or row >= height:
-                continue
-            value = depth_map[int(row), int(col)]
-            if value > best:
-                best = value
+    if r0 >= 0:
+        if c0_ok:
+            best = max(best, depth_maps[tau, r0, c0])
+        if c1_ok:
+            best = max(best, depth_maps[tau, r0, c1])
+    if r1 < height:
+        if c0_ok:
+            best = max(best, depth_maps[tau, r1, c0])
+        if c1_ok:
+            best = max(best, depth_maps[tau, r1, c1])
     return not (best > 0 and best < occlusion_ratio * x)
 
 
@@ -114,6 +114,9 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
+    f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
+                                              camera[5], camera[6], camera[7], camera[8])
+    height, width = depth_maps.shape[1], depth_maps.shape[2]
     use_speed_filter = not (np.isnan(box_speed_mps) or np.isnan(max_speed_deviation_mps))
     kept = 0
     for i in range(n):
@@ -131,8 +134,12 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
             speeds[i] = np.nan
         seen = False
         for tau in range(t_count):
-            pix_x, pix_y, x, valid = _project(camera_from_box, shift_camera, tau, px, py, pz, camera)
-            if _visible(depth_maps[tau], pix_x, pix_y, x, valid, occlusion_ratio):
+            m = camera_from_box[tau]
+            x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3] + shift_camera[tau, 0]
+            y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] + shift_camera[tau, 1]
+            z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
+            pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
+            if _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio):
                 seen = True
                 break
         if not seen:
@@ -145,62 +152,112 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
     return kept
 
 
+#: Points per block of :func:`fill_tracks`: frames are the middle loop so that one depth map is
+#: read by a block's (nearby) points at a time; the block's outputs stay in cache.
+_BLOCK = 256
+
+
 @njit(cache=True, nogil=True)
-def fill_tracks(points_box, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
+def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
                 occlusion_ratio, tracks, visibles, points3d):
     """Tracks of the points ``points_box`` float64 [K, 3] (box frame), written in [K, T] order.
 
     Outputs (filled in place): ``tracks`` float32 [K, T, 2] pixels (invalid projections hold the
     nearest frame's valid position, ties to the earlier; all NaN when no frame is valid),
     ``visibles`` bool [K, T], ``points3d`` float32 [K, T, 3] metres in the vehicle frame of each
-    clip frame. Other arguments as :func:`screen_points`.
+    clip frame. ``order`` int64 [K] is the order in which points are processed (a permutation of
+    ``range(K)``; output rows stay those of ``points_box``): points close in the image in turn
+    read the depth maps' memory in turn (:func:`image_order`). Other arguments as
+    :func:`screen_points`.
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
-    pixel_x = np.empty(t_count)
-    pixel_y = np.empty(t_count)
-    valid_at = np.zeros(t_count, dtype=np.bool_)
+    valid_at = np.zeros((_BLOCK, t_count), dtype=np.bool_)
     before = np.empty(t_count, dtype=np.int64)
-    for i in range(n):
-        px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
-        any_invalid = False
+    f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
+                                              camera[5], camera[6], camera[7], camera[8])
+    height, width = depth_maps.shape[1], depth_maps.shape[2]
+    for block in range(0, n, _BLOCK):
+        stop = min(block + _BLOCK, n)
         for tau in range(t_count):
-            pix_x, pix_y, x, valid = _project(camera_from_box, shift_camera, tau, px, py, pz, camera)
-            pixel_x[tau] = pix_x
-            pixel_y[tau] = pix_y
-            # finite as stored (float32), like the numpy path's test on the float32 tracks
-            valid_at[tau] = valid and np.isfinite(np.float32(pix_x)) and np.isfinite(np.float32(pix_y))
-            any_invalid |= not valid_at[tau]
-            visibles[i, tau] = _visible(depth_maps[tau], pix_x, pix_y, x, valid, occlusion_ratio)
+            c = camera_from_box[tau]
+            s0, s1, s2 = shift_camera[tau, 0], shift_camera[tau, 1], shift_camera[tau, 2]
+            c00, c01, c02, c03 = c[0, 0], c[0, 1], c[0, 2], c[0, 3] + s0
+            c10, c11, c12, c13 = c[1, 0], c[1, 1], c[1, 2], c[1, 3] + s1
+            c20, c21, c22, c23 = c[2, 0], c[2, 1], c[2, 2], c[2, 3] + s2
             m = vehicle_from_box[tau]
-            points3d[i, tau, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
-            points3d[i, tau, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
-            points3d[i, tau, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
-        if any_invalid:
-            # nearest valid frame in time (ties: the earlier), as core.fill_invalid_positions
-            last = -1
-            for tau in range(t_count):
-                if valid_at[tau]:
-                    last = tau
-                before[tau] = last
-            following = t_count
-            for tau in range(t_count - 1, -1, -1):
-                if valid_at[tau]:
-                    following = tau
-                    source = tau
-                else:
-                    previous = before[tau]
-                    if previous < 0 or (following < t_count and following - tau < tau - previous):
-                        source = following
-                    else:
-                        source = previous
-                if 0 <= source < t_count:
-                    tracks[i, tau, 0] = pixel_x[source]
-                    tracks[i, tau, 1] = pixel_y[source]
-                else:
-                    tracks[i, tau, 0] = np.nan
-                    tracks[i, tau, 1] = np.nan
-            continue
+            m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
+            m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
+            m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
+            for j in range(block, stop):
+                i = order[j]
+                px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+                x = c00 * px + c01 * py + c02 * pz + c03
+                y = c10 * px + c11 * py + c12 * pz + c13
+                z = c20 * px + c21 * py + c22 * pz + c23
+                pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
+                fx, fy = np.float32(pix_x), np.float32(pix_y)
+                tracks[i, tau, 0] = fx
+                tracks[i, tau, 1] = fy
+                # finite as stored (float32), like the numpy path's test on the float32 tracks
+                valid_at[j - block, tau] = valid and np.isfinite(fx) and np.isfinite(fy)
+                visibles[i, tau] = _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio)
+                points3d[i, tau, 0] = m00 * px + m01 * py + m02 * pz + m03
+                points3d[i, tau, 1] = m10 * px + m11 * py + m12 * pz + m13
+                points3d[i, tau, 2] = m20 * px + m21 * py + m22 * pz + m23
+        for j in range(block, stop):
+            _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)
+
+
+def image_order(points_box: np.ndarray, camera_from_box: np.ndarray, camera: np.ndarray,
+                tile_px: float = 16.0) -> np.ndarray:
+    """int64 [K]: points (box frame, float64 [K, 3]) ordered by strips of their pinhole pixel.
+
+    The object is rigid, so points close in the image at the clip's middle frame stay close at
+    every frame: processed in this order, the depth look-ups of consecutive points fall in the same
+    cache lines. Strips of ``tile_px`` rows, then the column. Any permutation gives the same output.
+    """
+    if points_box.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    m = camera_from_box[camera_from_box.shape[0] // 2]
+    p = points_box @ m[:3, :3].T + m[:3, 3]
+    x = np.maximum(p[:, 0], 1e-6)
+    column = np.nan_to_num(-p[:, 1] / x * camera[0])
+    strip = np.floor(np.nan_to_num(-p[:, 2] / x * camera[1]) / tile_px)
+    return np.lexsort((column, strip)).astype(np.int64)
+
+
+@njit(cache=True, nogil=True)
+def _hold_nearest_valid(track, valid_at, before):
+    """Invalid frames of ``track`` float32 [T, 2] take the nearest valid frame (ties: earlier).
+
+    As ``core.fill_invalid_positions``; all NaN when no frame is valid. ``before`` is scratch.
+    """
+    t_count = track.shape[0]
+    last = -1
+    for tau in range(t_count):
+        if valid_at[tau]:
+            last = tau
+        before[tau] = last
+    if last == t_count - 1 and before[0] == 0:
+        all_valid = True
         for tau in range(t_count):
-            tracks[i, tau, 0] = pixel_x[tau]
-            tracks[i, tau, 1] = pixel_y[tau]
+            all_valid &= valid_at[tau]
+        if all_valid:
+            return
+    following = t_count
+    for tau in range(t_count - 1, -1, -1):
+        if valid_at[tau]:
+            following = tau
+            continue
+        previous = before[tau]
+        if previous < 0 or (following < t_count and following - tau < tau - previous):
+            source = following
+        else:
+            source = previous
+        if 0 <= source < t_count:
+            track[tau, 0] = track[source, 0]
+            track[tau, 1] = track[source, 1]
+        else:
+            track[tau, 0] = np.nan
+            track[tau, 1] = np.nan
