@@ -222,9 +222,10 @@ def image_order(points_box: np.ndarray, camera_from_box: np.ndarray, camera: np.
     m = camera_from_box[camera_from_box.shape[0] // 2]
     p = points_box @ m[:3, :3].T + m[:3, 3]
     x = np.maximum(p[:, 0], 1e-6)
-    column = np.nan_to_num(-p[:, 1] / x * camera[0])
-    strip = np.floor(np.nan_to_num(-p[:, 2] / x * camera[1]) / tile_px)
-    return np.lexsort((column, strip)).astype(np.int64)
+    column = np.clip(np.nan_to_num(-p[:, 1] / x * camera[0]), -1e6, 1e6)
+    strip = np.clip(np.nan_to_num(-p[:, 2] / x * camera[1]) / tile_px, -1e6, 1e6)
+    key = np.floor(strip).astype(np.int64) * (1 << 22) + np.floor(column).astype(np.int64)
+    return np.argsort(key).astype(np.int64)
 
 
 @njit(cache=True, nogil=True)
