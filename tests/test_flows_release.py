@@ -136,9 +136,9 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     r3 = release(version="auto", skip_unchanged=True, **common)
     if code_fingerprint() != code_before or code_before != json.loads(
             (published / "run.json").read_text())["code_fingerprint"]:
-        # someone edited the package while this test ran (shared checkout): a new version is right
-        assert r3["published"] is True and r3["version"] == "0.1.1"
-        return
+        # The package was edited while this test ran (a shared working tree, never CI's clean
+        # clone): the code fingerprint moved mid-run, so "unchanged" cannot be asserted.
+        pytest.skip("drivetrack/ changed during the test run; the unchanged-inputs check needs a stable tree")
     assert r3["published"] is False and r3["unchanged_since"] == "0.1.0"
     assert [v["version"] for v in list_versions(str(store))] == ["0.1.0"]
     assert _status(r3["out"])["counts"]["done"] == SEGMENTS
