@@ -174,6 +174,7 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
     t_count = camera_from_box.shape[0]
     valid_at = np.zeros((_BLOCK, t_count), dtype=np.bool_)
     before = np.empty(t_count, dtype=np.int64)
+    scratch = np.empty((_BLOCK, 3))                  # pixel x, pixel y, z-depth (NaN: invalid)
     f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
                                               camera[5], camera[6], camera[7], camera[8])
     height, width = depth_maps.shape[1], depth_maps.shape[2]
@@ -185,10 +186,6 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
             c00, c01, c02, c03 = c[0, 0], c[0, 1], c[0, 2], c[0, 3] + s0
             c10, c11, c12, c13 = c[1, 0], c[1, 1], c[1, 2], c[1, 3] + s1
             c20, c21, c22, c23 = c[2, 0], c[2, 1], c[2, 2], c[2, 3] + s2
-            m = vehicle_from_box[tau]
-            m00, m01, m02, m03 = m[0, 0], m[0, 1], m[0, 2], m[0, 3]
-            m10, m11, m12, m13 = m[1, 0], m[1, 1], m[1, 2], m[1, 3]
-            m20, m21, m22, m23 = m[2, 0], m[2, 1], m[2, 2], m[2, 3]
             for j in range(block, stop):
                 i = order[j]
                 px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
@@ -201,12 +198,24 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
                 tracks[i, tau, 1] = fy
                 # finite as stored (float32), like the numpy path's test on the float32 tracks
                 valid_at[j - block, tau] = valid and np.isfinite(fx) and np.isfinite(fy)
-                visibles[i, tau] = _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio)
-                points3d[i, tau, 0] = m00 * px + m01 * py + m02 * pz + m03
-                points3d[i, tau, 1] = m10 * px + m11 * py + m12 * pz + m13
-                points3d[i, tau, 2] = m20 * px + m21 * py + m22 * pz + m23
+                scratch[j - block, 0] = pix_x
+                scratch[j - block, 1] = pix_y
+                scratch[j - block, 2] = x if valid else np.nan
+            # the depth look-ups in a loop of their own: little else to do, many loads in flight
+            for j in range(block, stop):
+                x = scratch[j - block, 2]
+                visibles[order[j], tau] = _visible(depth_maps, tau, height, width, scratch[j - block, 0],
+                                                   scratch[j - block, 1], x, not np.isnan(x), occlusion_ratio)
         for j in range(block, stop):
             _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)
+    # points3d in point order: streaming writes (scattered ones cost more than the arithmetic)
+    for i in range(n):
+        px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+        for tau in range(t_count):
+            m = vehicle_from_box[tau]
+            points3d[i, tau, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
+            points3d[i, tau, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
+            points3d[i, tau, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
 
 
 def image_order(points_box: np.ndarray, camera_from_box: np.ndarray, camera: np.ndarray,
