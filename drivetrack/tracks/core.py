@@ -295,7 +295,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         visibles = np.empty((kept, t_count), dtype=bool)
         points3d = np.empty((kept, t_count, 3), dtype=np.float32)
         kept_box = np.ascontiguousarray(p_box[keep])
-        kernel.fill_tracks(kept_box, kernel.image_order(kept_box, camera_from_box, params),
+        kernel.fill_tracks(kept_box, np.arange(kept, dtype=np.int64),
                            camera_from_box, shift_camera,
                            np.ascontiguousarray(vehicle_from_box, dtype=np.float64), params, clip_maps,
                            float(config.occlusion_ratio), tracks, visibles, points3d)
