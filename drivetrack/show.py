@@ -4,8 +4,8 @@ What is drawn (docs/looking-at-a-release.md shows the pictures):
 
 - K sampled tracks of one clip over its frames, one colour per track: a filled dot where the
   track is visible, a tilted cross where it is occluded (as the DriveTrack paper's figures), a
-  polyline trail of its last ``trail`` frames. Nothing is drawn where the position is not finite
-  (behind the camera, untrusted distortion; see docs/formats.md).
+  polyline trail of its last ``trail`` frames through the positions in or near the image (a
+  point that left the view holds its last valid position, which is not drawn as a trail).
 - Optionally a depth panel beside each frame: the completed depth map of that frame, recomputed
   from the source segment (releases do not store depth), inverse depth in the TURBO colour map,
   black = unknown.
@@ -287,7 +287,7 @@ def draw_tracks(image: np.ndarray, xy: np.ndarray, visible: np.ndarray, t: int,
         rings: optional bool [K] (at frame t): draw a ring around these points.
     Returns:
         uint8 [H, W, 3]: visible = filled dot with a dark outline, occluded = tilted cross, trail
-        = polyline through the finite positions of frames ``t - trail .. t``.
+        = polyline through the positions of frames ``t - trail .. t`` that lie in or near the image.
 
     One OpenCV call per drawn primitive (K of them, K ~ tens): drawing has no vectorised form.
     """
@@ -299,11 +299,16 @@ def draw_tracks(image: np.ndarray, xy: np.ndarray, visible: np.ndarray, t: int,
     colors = np.asarray(colors)
     per_frame = colors.ndim == 3
     lo = max(0, t - trail)
+    margin = 0.05 * max(w, h)
     shift = 4                                                    # sub-pixel precision of polylines
     for i in range(xy.shape[0]):
         color = tuple(int(c) for c in (colors[i, t] if per_frame else colors[i]))
         seg = xy[i, lo:t + 1]
-        ok = np.all(np.isfinite(seg), axis=1)
+        # Trails join positions near the image only: off-image positions (a point that left the
+        # view, or behind the camera holding its last valid position) would draw long streaks.
+        with np.errstate(invalid="ignore"):
+            ok = (np.all(np.isfinite(seg), axis=1) & (seg[:, 0] >= -margin) & (seg[:, 0] < w + margin)
+                  & (seg[:, 1] >= -margin) & (seg[:, 1] < h + margin))
         if trail > 0 and ok.sum() >= 2:
             # split the trail where positions are missing, draw each finite run
             runs = np.split(np.arange(seg.shape[0]), np.flatnonzero(np.diff(ok.astype(np.int8)) != 0) + 1)
