@@ -194,3 +194,25 @@ def test_gates_over_an_fsspec_url():
     saved = json.loads(fs.cat(f"{root}/validation/gates.json"))
     assert saved["success"] is False and fs.exists(f"{root}/validation/report.html")
     fs.rm("memory://gates-test", recursive=True)
+
+
+def test_refinement_fallbacks_beyond_tolerance_fail_the_refine_gate(tmp_path):
+    """Objects whose pose refinement was untrustworthy are counted; beyond 5% the gate fails
+    and names them. Without refine columns (refinement off) the gate is not built at all."""
+    objects, segments, rejections = good_tables(seed=3)
+    objects = objects.copy()
+    objects["refine_reason"] = "refined"
+    objects.loc[objects.index[:2], "refine_reason"] = "too_few_points"          # normal outcome
+    bad = objects.index[-3:]
+    objects.loc[bad, "refine_reason"] = "large_residual"
+    for column in ("refine_residual_label_m", "refine_residual_m", "refine_translation_max_m"):
+        objects[column] = 0.01
+    root = write_output(tmp_path / "out", objects, segments, rejections)
+    report = run_gates(str(root), data_docs=False)
+    failed = {f.gate: f for f in report.failures}
+    assert "object.refine_trusted" in failed, sorted(failed)
+    named = json.dumps(report.to_dict())
+    assert all(str(objects.loc[i, "object_id"]) in named for i in bad)
+
+    plain = write_output(tmp_path / "plain", *good_tables(seed=3))
+    assert "object.refine_trusted" not in {r.gate for r in run_gates(str(plain), data_docs=False).results}

@@ -17,6 +17,10 @@ from drivetrack.gates.tables import (OBJECT_KEYS, REACHED_PREFIX, REJECTED_PREFI
 LEVELS = ("object", "segment", "release")
 
 
+#: Outcomes of the pose refinement (drivetrack.refine) that are not a sign of trouble.
+TRUSTED_REFINE_OUTCOMES = ("refined", "labels_consistent", "too_few_points", "disabled")
+
+
 @dataclass(frozen=True)
 class GateSpec:
     """One gate = one expectation on one table.
@@ -96,6 +100,13 @@ def object_specs(cfg: dict, tables: GateTables) -> list[GateSpec]:
                   "max_value": float(v("max_min_camera_distance_m"))},
                  r("max_min_camera_distance_m"), keys),
     ]
+    if "refine_reason" in tables.objects.columns:
+        specs.append(GateSpec(
+            "object.refine_trusted", "object", "objects", "ExpectColumnValuesToBeInSet",
+            {"column": "refine_reason", "value_set": list(TRUSTED_REFINE_OUTCOMES),
+             "mostly": float(v("refine_trusted_mostly"))},
+            r("refine_trusted_mostly"), keys, ("refine_residual_label_m", "refine_residual_m",
+                                               "refine_translation_max_m")))
     if v("require_files"):
         specs.append(GateSpec("object.file_exists", "object", "objects", "ExpectColumnValuesToBeInSet",
                               {"column": "file_exists", "value_set": [True]}, r("require_files"), keys))
