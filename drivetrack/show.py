@@ -363,7 +363,8 @@ def clip_depth(clip: Clip, source: str, frames: np.ndarray, completer: str = "ne
     """float32 [F, H, W] completed depth (metres, z-depth, 0 = unknown) of clip ``frames``.
 
     Recomputed from the source segment the way the track stage computes its occlusion maps
-    (every laser, both returns, moved to the image pose, then the ``completer``); releases do not
+    (the default TrackConfig: every lidar, first returns, moved to the image pose, then the
+    ``completer``); releases do not
     store depth stacks.
     """
     from drivetrack.tracks.config import TrackConfig
