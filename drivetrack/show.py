@@ -364,8 +364,7 @@ def clip_depth(clip: Clip, source: str, frames: np.ndarray, completer: str = "ne
 
     Recomputed from the source segment the way the track stage computes its occlusion maps
     (the default TrackConfig: every lidar, first returns, moved to the image pose, then the
-    ``completer``); releases do not
-    store depth stacks.
+    ``completer``); releases do not store depth stacks.
     """
     from drivetrack.tracks.config import TrackConfig
     from drivetrack.tracks.depth_stage import DepthJob, complete_depth, sparse_depth
