@@ -24,10 +24,8 @@ integer pixel ``floor(x)``). All storage goes through fsspec.
 from __future__ import annotations
 
 import io
-import os
 import posixpath
 import re
-import tempfile
 import zipfile
 from dataclasses import dataclass
 
@@ -588,15 +586,6 @@ def render_video(clip: Clip, track_index: np.ndarray, frames: np.ndarray | None 
 
 # ---- writing ---------------------------------------------------------------------------------
 
-def _put_local(local: str, url: str) -> str:
-    fs, path = _fs(url)
-    parent = posixpath.dirname(path)
-    if parent:
-        fs.makedirs(parent, exist_ok=True)
-    fs.put_file(local, path)
-    return url
-
-
 def write_image(url: str, image: np.ndarray) -> str:
     """Write uint8 [H, W, 3] RGB as PNG (or JPEG by extension) at ``url``; returns ``url``."""
     import cv2
@@ -632,9 +621,9 @@ def write_video(url: str, images: list[np.ndarray], fps: float = 10.0) -> str:
     h, w = images[0].shape[:2]
     ph, pw = h + h % 2, w + w % 2
     frames = [np.pad(im, ((0, ph - h), (0, pw - w), (0, 0))) if (ph, pw) != (h, w) else im for im in images]
-    fd, tmp = tempfile.mkstemp(suffix=ext)
-    os.close(fd)
-    try:
+    from drivetrack.storage import atomic_local_path
+
+    with atomic_local_path(url, ext) as tmp:
         if ext == ".mp4":
             with imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264",
                                     pixelformat="yuv420p", macro_block_size=2, quality=8,
@@ -644,12 +633,6 @@ def write_video(url: str, images: list[np.ndarray], fps: float = 10.0) -> str:
                     writer.append_data(frame)
         else:
             imageio.mimsave(tmp, frames, format="GIF", duration=1.0 / fps, loop=0)
-        _put_local(tmp, url)
-    except Exception as error:
-        raise OSError(f"could not write {url}: {error}") from error
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return url
 
 

@@ -28,7 +28,6 @@ Layout (``OUT/{split}/drivetrack_ground_truth/{segment}/``), every file an ``.np
 from __future__ import annotations
 
 import io
-import zipfile
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,29 +48,15 @@ def ground_truth_url(root: str, split: str, segment: str) -> str:
 
 
 def write_npz(url: str, arrays: dict[str, np.ndarray], compresslevel: int = 1) -> int:
-    """Write a deterministic compressed ``.npz`` through fsspec; returns the number of bytes.
-
-    Members are streamed into the zip (no second copy of a large array in memory) with fixed
-    timestamps, so identical arrays give identical bytes.
-    """
+    """Write a deterministic compressed ``.npz`` (:func:`drivetrack.storage.write_npz`);
+    returns the number of bytes written."""
     import fsspec
 
+    from drivetrack.storage import write_npz as _write
+
+    _write(url, arrays, compresslevel)
     fs, path = fsspec.core.url_to_fs(url)
-    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name, arr in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info._compresslevel = compresslevel     # honoured by ZipFile.open(info, "w")
-            with zf.open(info, "w", force_zip64=True) as member:
-                np.lib.format.write_array(member, np.ascontiguousarray(arr), allow_pickle=False)
-    size = buf.tell()
-    buf.seek(0)
-    with fs.open(path, "wb") as f:
-        while chunk := buf.read(64 << 20):
-            f.write(chunk)
-    return size
+    return int(fs.size(path))
 
 
 def _read_npz(url: str) -> dict[str, np.ndarray]:

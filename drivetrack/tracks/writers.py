@@ -7,14 +7,11 @@ every file is an ``np.savez_compressed`` archive that loads with ``np.load(allow
 """
 from __future__ import annotations
 
-import os
 import re
-import tempfile
-import zipfile
 
-import fsspec
 import numpy as np
 
+from drivetrack import storage
 from drivetrack.geometry import invert_rigid
 from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_path
 from drivetrack.tracks.core import ObjectTracks
@@ -127,44 +124,9 @@ def tapvid3d_arrays(tracks: ObjectTracks) -> dict[str, np.ndarray]:
 
 
 def write_npz(url: str, arrays: dict[str, np.ndarray], compresslevel: int = NPZ_COMPRESSLEVEL) -> str:
-    """Write ``arrays`` as a compressed npz at ``url`` (any fsspec URL), atomically; returns url.
-
-    The file is what ``np.savez_compressed`` writes (a zip of deflated ``<key>.npy`` members),
-    but with a chosen deflate level: level 1 is several times faster than numpy's fixed level 6
-    on video frames, for a slightly larger file. Object arrays are refused (the file must load
-    with ``allow_pickle=False``).
-    """
-    for key, value in arrays.items():
-        if not isinstance(value, np.ndarray) or value.dtype == object:
-            raise ValueError(f"{url}: array {key!r} is {type(value).__name__}"
-                             f"{'' if not isinstance(value, np.ndarray) else ' of dtype object'}; "
-                             f"only plain numpy arrays can be written without pickle")
-    fs, path = fsspec.core.url_to_fs(url)
-    parent = path.rsplit("/", 1)[0] if "/" in path else ""
-    local = "file" in (fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,))
-    if local:
-        os.makedirs(parent or ".", exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".npz", dir=parent or ".")
-    else:
-        fd, tmp = tempfile.mkstemp(prefix="drivetrack-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as handle, zipfile.ZipFile(handle, "w", zipfile.ZIP_DEFLATED,
-                                                           compresslevel=compresslevel) as archive:
-            for key, value in arrays.items():
-                with archive.open(f"{key}.npy", "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
-        if local:
-            os.replace(tmp, path)
-        else:
-            if parent:
-                fs.makedirs(parent, exist_ok=True)
-            fs.put_file(tmp, path)
-    except Exception as error:
-        raise OSError(f"could not write {url}: {error}") from error
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return url
+    """Write a clip's arrays as a compressed npz at ``url``: :func:`drivetrack.storage.write_npz`
+    (atomic, deterministic bytes, no pickles) at the clips' deflate level."""
+    return storage.write_npz(url, arrays, compresslevel)
 
 
 def _drivetrack_writer(out_root_url: str, split: str, tracks: ObjectTracks) -> str:
