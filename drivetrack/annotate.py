@@ -228,7 +228,7 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
     boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,
                                         lasers=config.track.laser_values, returns=config.track.returns,
                                         compensate_sweep_motion=config.track.compensate_sweep_motion)
-    return dataclasses.replace(scene, boxes=boxes,
+    return dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
                                box_refinement={oid: r.summary() for oid, r in results.items()})
 
 
@@ -371,11 +371,37 @@ def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[O
     """``(objects, rejections, segment_row)`` tables of a tracked segment.
 
     ``written`` is :func:`write_segment_outputs`' result; object rows name their DriveTrack file
-    relative to ``out_url`` and carry the ``refine_*`` columns of the pose refinement, if any.
+    relative to ``out_url``, carry the ``refine_*`` columns of the pose refinement, if any, and the
+    ``label_speed_err_p*`` columns: the speed-error percentiles of the same tracks under the
+    labelled poses (equal to ``speed_err_p*`` when the labels were used as read).
     """
     files = {key: _relative(out_url, urls[0]) for key, urls in written.items()}
-    objects = _with_refinement(object_stats(tracks, files), scene.box_refinement)
+    objects = _with_label_consistency(object_stats(tracks, files), scene, tracks)
+    objects = _with_refinement(objects, scene.box_refinement)
     return objects, rejection_stats(plan, tracks), segment_stats(scene.split, scene.segment, plan, tracks)
+
+
+def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[ObjectTracks]) -> pd.DataFrame:
+    """Objects table plus ``label_speed_err_p*``: speed-error percentiles under the labelled poses."""
+    from drivetrack.consistency import label_speed_errors
+    from drivetrack.tracks.stats import SPEED_PERCENTILES
+
+    columns = [f"label_speed_err_p{p}" for p in SPEED_PERCENTILES]
+    if objects.empty:
+        return objects.assign(**{c: pd.Series(dtype=float) for c in columns})
+    if scene.box_labels is None:   # the tracks were carried with the labels: same figures
+        return objects.assign(**{c: objects[f"speed_err_p{p}"] for c, p in zip(columns, SPEED_PERCENTILES)})
+    rows = {}
+    for t in tracks:
+        if t.rejection is not None:
+            continue
+        errors = label_speed_errors(scene, scene.box_labels, t)
+        errors = errors[np.isfinite(errors)]
+        rows[(t.camera_name, t.object_id)] = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
+                                              else np.full(len(SPEED_PERCENTILES), np.nan))
+    values = np.array([rows.get((c, o), np.full(len(SPEED_PERCENTILES), np.nan))
+                       for c, o in zip(objects["camera"], objects["object_id"])], dtype=float)
+    return objects.assign(**{c: values[:, i] for i, c in enumerate(columns)})
 
 
 def _with_refinement(objects: pd.DataFrame, refinement: dict[str, dict]) -> pd.DataFrame:

@@ -148,6 +148,8 @@ class Scene:
         source_files: component -> URL of the parquet file it came from (for provenance).
         box_refinement: object id -> flat summary of the pose refinement applied to its boxes
             (``drivetrack.refine.RefinedPoses.summary()``); empty when the labels are used as read.
+        box_labels: the labelled boxes as read, when ``boxes`` holds refined poses; None when
+            ``boxes`` are the labels themselves.
     """
     segment: str
     split: str
@@ -158,6 +160,7 @@ class Scene:
     boxes: Boxes
     source_files: dict[str, str] = field(default_factory=dict)
     box_refinement: dict[str, dict] = field(default_factory=dict)
+    box_labels: Boxes | None = None
 
     @property
     def num_frames(self) -> int:

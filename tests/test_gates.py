@@ -15,7 +15,7 @@ import pytest
 
 from drivetrack.cli import main as cli_main
 from drivetrack.gates import card_summary, run_gates
-from test_gates_fixtures import (EMPTY_SEGMENT, NAN_SPEED, NOISY, NONFINITE, OUTSIDE, apply_defect,
+from test_gates_fixtures import (EMPTY_SEGMENT, NAN_SPEED, NOISY, NONFINITE, OUTSIDE, REFINE_WORSE, apply_defect,
                                  good_tables, make_output, write_output)
 
 SPEED_MEDIANS = {f"release.speed_err_median.{p}" for p in ("p25", "p50", "p75", "p95", "p99")}
@@ -43,7 +43,7 @@ def _inconsistent(root):
 @pytest.fixture(scope="module")
 def reports(tmp_path_factory):
     out = {}
-    for name in ("good", "label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err"):
+    for name in ("good", "label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err", "refine_worse"):
         root = tmp_path_factory.mktemp(name)
         make_output(root, None if name == "good" else name)
         docs = name in ("good", "label_noise")  # Data Docs cost ~2 s per run: build them twice
@@ -216,3 +216,24 @@ def test_refinement_fallbacks_beyond_tolerance_fail_the_refine_gate(tmp_path):
 
     plain = write_output(tmp_path / "plain", *good_tables(seed=3))
     assert "object.refine_trusted" not in {r.gate for r in run_gates(str(plain), data_docs=False).results}
+
+
+def test_refined_poses_less_consistent_than_labels_block(reports):
+    """Speed consistency is checked for the refined poses and against the labels' own."""
+    _, good = reports["good"]
+    assert "object.refine_speed_err_not_worse" in {r.gate for r in good.results}
+    _, report = reports["refine_worse"]
+    assert not report.success
+    assert _failed(report) == {"object.refine_speed_err_not_worse"}, _failed(report)
+    failure = _failure(report, "object.refine_speed_err_not_worse")
+    assert _objects(failure) == {tuple(k) for k in REFINE_WORSE}
+    row = failure.failing[0]
+    assert row["speed_err_p50"] > row["label_speed_err_p50"] + 0.25   # the context columns are shown
+
+
+def test_older_tables_without_label_columns_skip_the_refinement_gate(tmp_path):
+    objects, segments, rejections = good_tables()
+    objects = objects.drop(columns=[c for c in objects.columns if c.startswith("label_")])
+    report = run_gates(str(write_output(tmp_path, objects, segments, rejections)), data_docs=False)
+    assert report.success
+    assert "object.refine_speed_err_not_worse" not in {r.gate for r in report.results}

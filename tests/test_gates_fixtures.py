@@ -22,9 +22,11 @@ NOISY = [("seg_a0", "FRONT", "obj_0"), ("seg_a0", "FRONT", "obj_1"), ("seg_a1", 
 NONFINITE = ("seg_a1", "FRONT", "obj_1")
 OUTSIDE = ("seg_b0", "FRONT", "obj_2")
 NAN_SPEED = ("seg_b1", "FRONT", "obj_1")
+#: Objects whose refined poses are less consistent than their labels (defect ``refine_worse``).
+REFINE_WORSE = [("seg_a0", "FRONT", "obj_2"), ("seg_b1", "FRONT", "obj_0")]
 EMPTY_SEGMENT = "seg_a1"
 
-DEFECTS = ("label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err")
+DEFECTS = ("label_noise", "corrupt_tracks", "empty_segment", "nan_speed_err", "refine_worse")
 
 
 def good_tables(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
@@ -45,6 +47,9 @@ def good_tables(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame
                     min_camera_distance_m=float(rng.uniform(4, 19)),
                     box_speed_mean_mps=float(rng.uniform(0, 15)),
                     **{f"speed_err_{p}": float(v) for p, v in zip(("p25", "p50", "p75", "p95", "p99"), err)},
+                    # the labels' poses: less consistent than the refined ones (label jitter)
+                    **{f"label_speed_err_{p}": float(v) * 1.5
+                       for p, v in zip(("p25", "p50", "p75", "p95", "p99"), err)},
                     num_nonfinite_visible=0, num_visible_outside_image=0))
             rejected = {r: int(rng.integers(0, 4)) for r in REASONS}
             seg_rows.append(dict(split=split, segment=segment, status="done", error="",
@@ -70,6 +75,8 @@ def apply_defect(objects, segments, rejections, defect):
         # boxes jittered by decimetres per frame: track speeds differ from box speeds by m/s
         for i, key in enumerate(NOISY):
             objects.loc[_match(objects, key), cols] = PAPER * 25 + 0.1 * i
+            # ... under the labels as under the poses used (refinement kept the labels)
+            objects.loc[_match(objects, key), [f"label_{c}" for c in cols]] = PAPER * 25 + 0.1 * i
     elif defect == "corrupt_tracks":
         objects.loc[_match(objects, NONFINITE), "num_nonfinite_visible"] = 7
         objects.loc[_match(objects, OUTSIDE), "num_visible_outside_image"] = 12
@@ -79,6 +86,12 @@ def apply_defect(objects, segments, rejections, defect):
     elif defect == "nan_speed_err":
         objects.loc[_match(objects, NAN_SPEED), "speed_err_p75"] = np.nan
         objects.loc[_match(objects, NAN_SPEED), "speed_err_p99"] = np.inf
+    elif defect == "refine_worse":
+        # the refinement registered to the wrong points: its poses move unlike a rigid body
+        label_cols = [f"label_{c}" for c in cols]
+        for key in REFINE_WORSE:
+            objects.loc[_match(objects, key), label_cols] = objects.loc[_match(objects, key), cols].to_numpy()
+            objects.loc[_match(objects, key), cols] += 0.3
     elif defect is not None:
         raise ValueError(f"unknown defect {defect!r}; known {DEFECTS}")
     return objects, segments, rejections

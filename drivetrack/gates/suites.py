@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivetrack.gates.config import PERCENTILES, gate_reason, gate_value
-from drivetrack.gates.tables import (OBJECT_KEYS, REACHED_PREFIX, REJECTED_PREFIX, SEGMENT_KEYS, SHARE_PREFIX,
-                                     SPEED_ERR_COLUMNS, SPLIT_KEYS, GateTables)
+from drivetrack.gates.tables import (OBJECT_KEYS, REACHED_PREFIX, REFINE_SPEED_ERR_INCREASE, REJECTED_PREFIX,
+                                     SEGMENT_KEYS, SHARE_PREFIX, SPEED_ERR_COLUMNS, SPLIT_KEYS, GateTables)
 
 LEVELS = ("object", "segment", "release")
 
@@ -107,6 +107,13 @@ def object_specs(cfg: dict, tables: GateTables) -> list[GateSpec]:
              "mostly": float(v("refine_trusted_mostly"))},
             r("refine_trusted_mostly"), keys, ("refine_residual_label_m", "refine_residual_m",
                                                "refine_translation_max_m")))
+    if REFINE_SPEED_ERR_INCREASE in tables.objects.columns:
+        specs.append(GateSpec(
+            "object.refine_speed_err_not_worse", "object", "objects", "ExpectColumnValuesToBeBetween",
+            {"column": REFINE_SPEED_ERR_INCREASE, "max_value": float(v("refine_speed_err_increase_max_mps")),
+             "mostly": float(v("speed_err_mostly"))},
+            r("refine_speed_err_increase_max_mps") + " | mostly: " + r("speed_err_mostly"), keys,
+            ("speed_err_p50", "label_speed_err_p50", "refine_reason")))
     if v("require_files"):
         specs.append(GateSpec("object.file_exists", "object", "objects", "ExpectColumnValuesToBeInSet",
                               {"column": "file_exists", "value_set": [True]}, r("require_files"), keys))

@@ -19,6 +19,11 @@ from drivetrack.gates.config import PERCENTILES
 from drivetrack.layout import DRIVETRACK, parse_clip_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
+#: The same percentiles for the same tracks under the labelled poses (``drivetrack.consistency``);
+#: written by annotate since pose refinement, absent from older outputs.
+LABEL_SPEED_ERR_COLUMNS = tuple(f"label_speed_err_{p}" for p in PERCENTILES)
+#: Derived: speed_err_p50 - label_speed_err_p50, m/s (what pose refinement did to the consistency).
+REFINE_SPEED_ERR_INCREASE = "refine_speed_err_p50_increase_mps"
 
 OBJECT_COLUMNS = ("split", "segment", "camera", "object_id", "file", "num_tracks", "num_frames",
                   "visible_fraction", "min_camera_distance_m", *SPEED_ERR_COLUMNS,
@@ -98,6 +103,8 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
 
     Derived columns:
       objects: ``speed_err_num_nonfinite`` (NaN or infinite speed-error percentiles, 0..5),
+        ``refine_speed_err_p50_increase_mps`` (speed_err_p50 - label_speed_err_p50, when the
+        table has the labels' percentiles; 0 where the labels' figure is NaN),
         ``file_exists`` (bool: the row's ``file`` is in the output folder).
       segments: ``reached_<reason>`` (clips that reached the filter: considered minus the clips
         rejected by the filters applied before it, in the track stage's order) and
@@ -126,6 +133,10 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     # -- objects ---------------------------------------------------------------------------------
     speed = objects[list(SPEED_ERR_COLUMNS)].apply(pd.to_numeric, errors="coerce")
     objects["speed_err_num_nonfinite"] = (~np.isfinite(speed.to_numpy(dtype=float))).sum(axis=1)
+    if set(LABEL_SPEED_ERR_COLUMNS) <= set(objects.columns):
+        label_p50 = pd.to_numeric(objects["label_speed_err_p50"], errors="coerce")
+        # NaN labels' figure (no label in some clip frame): no comparison, counted as not worse
+        objects[REFINE_SPEED_ERR_INCREASE] = (speed["speed_err_p50"] - label_p50).fillna(0.0)
     all_files = {p[len(root):].lstrip("/") for p in fs.find(root)} if root != "/" else set()
     rel = objects["file"].map(lambda f: _relative(f, fs, root))
     objects["file_exists"] = rel.isin(all_files)

@@ -1,0 +1,104 @@
+"""Speed consistency of the tracks under the *labelled* box poses (paper Table 3, labels' side).
+
+The track stage computes each track's speed with the poses it carries points with: the refined
+poses when pose refinement (:mod:`drivetrack.refine`) ran, else the labels. To show what the
+refinement did to the consistency check, this module recomputes the same statistic for the same
+tracks with the labels' poses: a track's source return ``X`` (vehicle frame of its source frame
+``s``) has box-frame point ``q = box_from_vehicle_label[s] X``; its labelled world path is
+``world_from_vehicle[tau] vehicle_from_box_label[tau] q`` and its speed the path length over the
+clip's duration. The error is ``|speed - annotated box speed|``, the box speed being the same
+annotated ``speed`` field the track stage uses.
+
+Pure numpy; nothing here imports Prefect. Used by :mod:`drivetrack.annotate` to fill the
+``label_speed_err_p*`` columns of ``stats/objects.parquet`` (gate ``object.refine_speed_err_not_worse``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from drivetrack.geometry import box_from_center_heading, invert_rigid
+
+__all__ = ["lidar_rows_from_sources", "label_speed_errors", "CHUNK_POINTS"]
+
+#: Points carried at once (bounds the [T, chunk, 3] float64 temporaries: 48 MB at 200 frames).
+CHUNK_POINTS = 32768
+
+
+def _keys(frame, laser, return_index, row, col) -> np.ndarray:
+    """int64 key of a return: frame (20 bits) | laser (3) | return (2) | row (10) | col (16)."""
+    frame = np.asarray(frame, np.int64)
+    return ((((frame << 3 | np.asarray(laser, np.int64)) << 2 | np.asarray(return_index, np.int64)) << 10
+             | np.asarray(row, np.int64)) << 16) | np.asarray(col, np.int64)
+
+
+def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray, where: str = "") -> np.ndarray:
+    """Row indices into ``lidar`` (:class:`drivetrack.scene.LidarReturns`) of tracks' source returns.
+
+    Args:
+        lidar: the segment's returns.
+        frames: int [N], segment frame of each track's source return.
+        lidar_sources: int [N, 4], (laser_name, return 1|2, range-image row, col).
+        where: named in the error.
+
+    Raises:
+        ValueError naming ``where`` and the first source that is not a return of ``lidar``.
+    """
+    sources = np.asarray(lidar_sources, np.int64).reshape(-1, 4)
+    frames = np.asarray(frames, np.int64).reshape(-1)
+    if sources.shape[0] != frames.shape[0]:
+        raise ValueError(f"{where}: {frames.shape[0]} source frames for {sources.shape[0]} lidar_sources")
+    table = _keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col)
+    order = np.argsort(table, kind="stable")
+    ordered = table[order]
+    wanted = _keys(frames, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3])
+    pos = np.minimum(np.searchsorted(ordered, wanted), max(ordered.size - 1, 0))
+    found = ordered[pos] == wanted if ordered.size else np.zeros(wanted.size, bool)
+    if not np.all(found):
+        i = int(np.flatnonzero(~found)[0])
+        raise ValueError(f"{where}: track {i} names a LiDAR return (frame {int(frames[i])}, laser "
+                         f"{int(sources[i, 0])}, return {int(sources[i, 1])}, row {int(sources[i, 2])}, "
+                         f"col {int(sources[i, 3])}) that the segment does not have")
+    return order[pos] if ordered.size else np.zeros(0, np.int64)
+
+
+def label_speed_errors(scene, labels, tracks) -> np.ndarray:
+    """float64 [N]: ``|track speed under the labelled poses - annotated box speed|`` per track.
+
+    Args:
+        scene: :class:`drivetrack.scene.Scene` the tracks come from (its LiDAR and vehicle poses;
+            its boxes may be the refined ones: they are not used).
+        labels: :class:`drivetrack.scene.Boxes`, the labelled boxes (before refinement).
+        tracks: :class:`drivetrack.tracks.ObjectTracks` of one clip.
+
+    NaN for every track when a clip frame has no label for the object, when the clip has a
+    single frame or zero duration, or when the object has no annotated speed.
+    """
+    n = int(tracks.num_tracks)
+    where = f"segment {scene.segment!r} camera {tracks.camera_name} object {tracks.object_id!r}"
+    out = np.full(n, np.nan)
+    frames = np.asarray(tracks.frames, np.int64)
+    t_count = frames.size
+    duration_s = (float(tracks.timestamps_micros[-1]) - float(tracks.timestamps_micros[0])) * 1e-6 if t_count else 0.0
+    if n == 0 or t_count < 2 or not duration_s > 0 or not np.isfinite(tracks.box_speed_mps):
+        return out
+    mine = np.flatnonzero(labels.object_id == tracks.object_id)
+    row_of_frame = np.full(int(max(frames.max(), labels.frame[mine].max(initial=0))) + 1, -1, np.int64)
+    row_of_frame[labels.frame[mine]] = mine
+    rows = row_of_frame[frames]
+    if np.any(rows < 0):
+        return out
+    vehicle_from_box = box_from_center_heading(labels.center[rows], labels.heading[rows])      # [T,4,4]
+    world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
+    world_step = world_from_box[1:] - world_from_box[:-1]                                       # [T-1,4,4]
+    box_from_vehicle = invert_rigid(vehicle_from_box)
+
+    source_clip = np.asarray(tracks.query_frames, np.int64)
+    lidar_rows = lidar_rows_from_sources(scene.lidar, frames[source_clip], tracks.lidar_sources, where)
+    x = scene.lidar.points_vehicle[lidar_rows]                                                  # [N,3]
+    q = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], x) + box_from_vehicle[source_clip, :3, 3]
+    speeds = np.empty(n)
+    for start in range(0, n, CHUNK_POINTS):
+        chunk = q[start:start + CHUNK_POINTS]
+        steps = np.einsum("tij,nj->tni", world_step[:, :3, :3], chunk) + world_step[:, None, :3, 3]
+        speeds[start:start + chunk.shape[0]] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
+    return np.abs(speeds - float(tracks.box_speed_mps))
