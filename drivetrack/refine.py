@@ -95,6 +95,14 @@ class RefineConfig:
             iterations instead of all; noisy labels drop their residual within 1-2 iterations.
         tolerance_m, tolerance_deg: stop (at the finest gate) when the RMS over frames of an
             iteration's centre / heading step is below these.
+        fit_extent: grow a refined object's box (size and centre, the same body-frame change in
+            every frame; never shrunk, bottom kept) so that it holds the registered returns of
+            all frames plus ``extent_margin_m``, by at most ``max_extent_growth_m`` per face.
+            Relative poses, hence carried tracks, are unchanged; what changes is which returns
+            the track stage selects (see docs/refinement.md, "Box extent").
+        kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
+            kernels of ``drivetrack.refine_kernel``) or ``numpy`` (the scipy/numpy reference,
+            same results up to floating-point rounding and ties).
     """
     enabled: bool = True
     iterations: int = 10
@@ -124,6 +132,10 @@ class RefineConfig:
     early_stop_iteration: int = 2
     tolerance_m: float = 1e-3
     tolerance_deg: float = 0.02
+    fit_extent: bool = True
+    extent_margin_m: float = 0.02
+    max_extent_growth_m: float = 0.1
+    kernel: str = "numba"
 
     def __post_init__(self):
         positive = ("iterations", "max_correspondence_m", "min_correspondence_m", "huber_k",
@@ -134,7 +146,7 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
-        for name in ("candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
+        for name in ("extent_margin_m", "max_extent_growth_m", "candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
                      "min_improvement", "early_stop_iteration"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
@@ -146,6 +158,8 @@ class RefineConfig:
         if self.min_frames_with_points < 2:
             raise ValueError(f"RefineConfig.min_frames_with_points must be >= 2 (registration needs another "
                              f"frame), got {self.min_frames_with_points}")
+        if self.kernel not in ("numba", "numpy"):
+            raise ValueError(f"RefineConfig.kernel must be 'numba' or 'numpy', got {self.kernel!r}")
         if self.min_correspondence_m > self.max_correspondence_m:
             raise ValueError(f"RefineConfig.min_correspondence_m ({self.min_correspondence_m}) exceeds "
                              f"max_correspondence_m ({self.max_correspondence_m})")
@@ -173,6 +187,8 @@ class RefinedPoses:
         world_from_box: float64 [T, 4, 4] = ``world_from_vehicle @ vehicle_from_box``.
         center_vehicle: float64 [T, 3] metres and heading: float64 [T] radians in (-pi, pi] of
             the returned boxes (vehicle frame of each frame).
+        size: float64 [T, 3] metres, of the returned boxes: the input sizes, grown on refined
+            objects with ``RefineConfig.fit_extent``.
         correction_translation_m: float64 [T, 3], returned centre minus label centre (vehicle
             frame), zero on fallback.
         correction_rotation_deg: float64 [T], returned heading minus label heading, wrapped to
@@ -193,6 +209,7 @@ class RefinedPoses:
     world_from_box: np.ndarray
     center_vehicle: np.ndarray
     heading: np.ndarray
+    size: np.ndarray
     correction_translation_m: np.ndarray
     correction_rotation_deg: np.ndarray
     residual_m: float
@@ -289,8 +306,9 @@ class _Selection:
         self.frame_full = counts > self.screen          # frames with returns beyond the screen
 
     def select(self, center: np.ndarray, heading: np.ndarray, margin: float, clearance: float):
-        """(body points float64 [P, 3], frames int64 [P]) of the capped returns inside the
-        boxes (center [T, 3], heading [T]) grown by ``margin``, in (frame, priority) order."""
+        """(body points float64 [P, 3], frames int64 [P], rows int64 [P] into ``self.points``) of
+        the capped returns inside the boxes (center [T, 3], heading [T]) grown by ``margin``, in
+        (frame, priority) order."""
         idx = self.screened
         f = self.frame[idx]
         q = _body_points(center, heading, self.points[idx], f)
@@ -310,7 +328,7 @@ class _Selection:
         counts = np.bincount(f, minlength=self.t_count)
         start = np.concatenate([[0], np.cumsum(counts)[:-1]])
         keep = (np.arange(idx.size) - start[f]) < self.cap
-        return q[keep], f[keep]
+        return q[keep], f[keep], idx[keep]
 
 
 def _normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -359,6 +377,34 @@ class _Data:
     num_points: np.ndarray   # [T] returns taking part
 
 
+@dataclass
+class _Pairs:
+    """Correspondences of one association, held fixed over the Gauss-Newton steps that follow.
+
+    A pair joins a used return ``a`` (row ``src`` of the selection, frame ``fa``) with its
+    nearest model point ``b`` of another frame (row ``dst``, frame ``fb``). The model normal at
+    ``b`` is stored in the *vehicle frame of b's frame* (``normal_vehicle``): a rigid frame's
+    local surface only rotates with that frame's pose, so the body-frame normal at any later state
+    is ``R(-psi_fb) normal_vehicle``, with no new neighbour search or PCA.
+    """
+    src: np.ndarray             # int64 [C] rows into the selection's points
+    dst: np.ndarray             # int64 [C]
+    fa: np.ndarray              # int64 [C]
+    fb: np.ndarray              # int64 [C]
+    normal_vehicle: np.ndarray  # float64 [C, 3]
+    planarity_weight: np.ndarray    # float64 [C] in [0, 1]
+    num_points: np.ndarray      # int64 [T]
+
+
+def _use_kernel(config: RefineConfig) -> bool:
+    """Whether the numba kernels run (``config.kernel == "numba"`` and numba importable)."""
+    if config.kernel != "numba":
+        return False
+    from drivetrack.refine_kernel import NUMBA_AVAILABLE
+
+    return NUMBA_AVAILABLE
+
+
 def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray) -> np.ndarray:
     """float64 [C, 4]: d (n . q) / d (c, psi) for body points q = R(-psi) (x - c), normals n."""
     c, s = np.cos(heading), np.sin(heading)
@@ -366,54 +412,89 @@ def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray) -> np.nda
                      n[:, 0] * q[:, 1] - n[:, 1] * q[:, 0]], axis=-1)
 
 
-def _data_terms(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
-                config: RefineConfig, t_count: int, normal_equations: bool = True) -> _Data:
-    """Point-to-plane normal equations at state (center, heading), jointly over all frames.
-
-    Each used return ``q_a`` (frame a) is paired with its nearest body point ``m = q_b`` of another
-    frame b; the residual ``n . (q_a - q_b)`` depends on both poses, so both move (8 Jacobian
-    non-zeros per row, accumulated straight into the dense [4T, 4T] normal equations); the normal
-    ``n`` at ``m`` is held fixed. ``normal_equations=False`` computes the residuals only.
-    """
+def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
+               config: RefineConfig, t_count: int) -> _Pairs | None:
+    """Correspondences at state (center, heading): one ``cKDTree`` over all used body points,
+    one k-nearest query serving both the leave-one-frame-out association (within ``gate_m``) and
+    the neighbourhood of each target's PCA normal. None when there is too little to pair."""
     from scipy.spatial import cKDTree
 
-    q, f = selection.select(center, heading, config.inlier_margin_m, config.ground_clearance_m)
+    q, f, rows = selection.select(center, heading, config.inlier_margin_m, config.ground_clearance_m)
     num_points = np.bincount(f, minlength=t_count).astype(np.int64)
-    n_state = 4 * t_count
-    empty = _Data(np.zeros((n_state, n_state)), np.zeros(n_state), np.zeros(0), np.zeros(0, np.int64),
-                  float("nan"), num_points)
     if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
-        return empty
-    tree = cKDTree(q)
+        return _Pairs(*(np.zeros(0, np.int64),) * 4, np.zeros((0, 3)), np.zeros(0), num_points)
     k = int(min(max(config.association_neighbours, config.normal_neighbours), q.shape[0]))
-    dist, nbr = tree.query(q, k=k)                                       # one query serves both uses
-    dist, nbr = dist.reshape(-1, k), nbr.reshape(-1, k)
+    use_kernel = _use_kernel(config)
+    if use_kernel:                                                       # one query serves both uses
+        from drivetrack import refine_kernel
+
+        dist, nbr = refine_kernel.knn(q, k)
+    else:
+        dist, nbr = cKDTree(q).query(q, k=k)
+        dist, nbr = dist.reshape(-1, k), nbr.reshape(-1, k)
     ka = min(config.association_neighbours, k)
     other = (dist[:, :ka] <= gate_m) & (f[nbr[:, :ka]] != f[:, None])    # leave-one-frame-out
     has = other.any(axis=1)
     first = np.argmax(other, axis=1)
     src = np.flatnonzero(has)
     dst = nbr[src, first[src]]
-    if src.size < 4:
-        return empty
     targets, target_of = np.unique(dst, return_inverse=True)
-    normal_t, planarity_t = _normals(q, nbr[targets, :min(config.normal_neighbours, k)])
-    normal, planarity = normal_t[target_of], planarity_t[target_of]
-    fa, fb, n = f[src], f[dst], normal
-    r = np.einsum("ni,ni->n", n, q[src] - q[dst])
+    neighbours = nbr[targets, :min(config.normal_neighbours, k)]
+    normal_t, planarity_t = (refine_kernel.normals(q, neighbours) if use_kernel else _normals(q, neighbours))
+    fb = f[dst]
+    n_body = normal_t[target_of]
+    c, s = np.cos(heading[fb]), np.sin(heading[fb])                      # body -> vehicle of fb
+    normal_vehicle = np.stack([c * n_body[:, 0] - s * n_body[:, 1], s * n_body[:, 0] + c * n_body[:, 1],
+                               n_body[:, 2]], axis=-1)
+    weight = np.clip(planarity_t[target_of] / config.min_planarity, 0.0, 1.0)
+    return _Pairs(rows[src], rows[dst], f[src], fb, normal_vehicle, weight, num_points)
+
+
+def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray, heading: np.ndarray,
+                config: RefineConfig, t_count: int, normal_equations: bool = True) -> _Data:
+    """Point-to-plane normal equations of fixed correspondences at state (center, heading).
+
+    The residual ``n . (q_a - q_b)`` depends on both poses, so both move (8 Jacobian non-zeros per
+    row, accumulated straight into the dense [4T, 4T] normal equations); the normal rotates with
+    frame b's heading. ``normal_equations=False`` computes the residuals only.
+    """
+    n_state = 4 * t_count
+    num_points = pairs.num_points if pairs is not None else np.zeros(t_count, np.int64)
+    if pairs is None or pairs.src.size < 4:
+        return _Data(np.zeros((n_state, n_state)), np.zeros(n_state), np.zeros(0), np.zeros(0, np.int64),
+                     float("nan"), num_points)
+    fa, fb = pairs.fa, pairs.fb
+    qa = _body_points(center, heading, selection.points[pairs.src], fa)
+    qb = _body_points(center, heading, selection.points[pairs.dst], fb)
+    nv = pairs.normal_vehicle
+    c, s = np.cos(heading[fb]), np.sin(heading[fb])                      # vehicle of fb -> body
+    n = np.stack([c * nv[:, 0] + s * nv[:, 1], -s * nv[:, 0] + c * nv[:, 1], nv[:, 2]], axis=-1)
+    r = np.einsum("ni,ni->n", n, qa - qb)
     scale = max(1.4826 * float(np.median(np.abs(r))), config.point_sigma_floor_m)
     if not normal_equations:
-        return _Data(empty.hessian, empty.gradient, r, fa, scale, num_points)
+        return _Data(np.zeros((0, 0)), np.zeros(0), r, fa, scale, num_points)
     w = np.minimum(1.0, config.huber_k * scale / np.maximum(np.abs(r), 1e-12)) / scale ** 2
-    w = w * np.clip(planarity / config.min_planarity, 0.0, 1.0)
-    jac = np.concatenate([_point_jacobian(n, q[src], heading[fa]),
-                          -_point_jacobian(n, q[dst], heading[fb])], axis=1)          # [C, 8]
+    w = w * pairs.planarity_weight
+    if _use_kernel(config):
+        from drivetrack import refine_kernel
+
+        hessian, gradient = refine_kernel.normal_equations(n, qa, qb, heading[fa], heading[fb], fa, fb, w, r,
+                                                           t_count)
+        return _Data(hessian, gradient, r, fa, scale, num_points)
+    jac = np.concatenate([_point_jacobian(n, qa, heading[fa]), -_point_jacobian(n, qb, heading[fb])], axis=1)  # [C, 8]
     cols = np.concatenate([4 * fa[:, None] + np.arange(4), 4 * fb[:, None] + np.arange(4)], axis=1)  # [C, 8]
     blocks = (w[:, None, None] * jac[:, :, None] * jac[:, None, :]).reshape(-1)           # [C * 64]
     flat = (cols[:, :, None] * n_state + cols[:, None, :]).reshape(-1)
     hessian = np.bincount(flat, weights=blocks, minlength=n_state * n_state).reshape(n_state, n_state)
     gradient = np.bincount(cols.reshape(-1), weights=(jac * (w * r)[:, None]).reshape(-1), minlength=n_state)
     return _Data(hessian, gradient, r, fa, scale, num_points)
+
+
+def _data_terms(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
+                config: RefineConfig, t_count: int, normal_equations: bool = True) -> _Data:
+    """Associate at (center, heading) within ``gate_m`` and evaluate the terms there."""
+    pairs = _associate(selection, center, heading, gate_m, config, t_count)
+    return _pair_terms(selection, pairs, center, heading, config, t_count, normal_equations)
 
 
 def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, config: RefineConfig):
@@ -548,7 +629,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     def labels(reason: str, detail: str, residual=float("nan"), residual_label=float("nan"),
                num_points=None, iterations=0) -> RefinedPoses:
         out = _result(label_center.copy(), label_heading.copy(), label_center, label_heading,
-                      world_from_vehicle, residual_m=residual, residual_label_m=residual_label,
+                      world_from_vehicle, size=size.copy(), residual_m=residual, residual_label_m=residual_label,
                       residual_per_frame_m=nan_frames.copy(),
                       num_points=np.zeros(t_count, np.int64) if num_points is None else num_points,
                       refined=False, used_fallback=reason not in ("disabled", "labels_consistent"),
@@ -594,7 +675,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     gates[0] = config.max_correspondence_m
     # The labels' own consistency, measured exactly as the final result is (the first iteration
     # starts from the same terms).
-    data = _data_terms(selection, center, heading, config.max_correspondence_m, config, t_count)
+    pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count)
+    data = _pair_terms(selection, pairs, center, heading, config, t_count)
     residual_label = data.scale
     # The refined residual never drops below the noise floor (``point_sigma_floor_m``): labels
     # within ``min_improvement`` of it are already consistent, whatever the iterations would do.
@@ -640,8 +722,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         if small:                                   # converged at this gate: jump to the finest
             gates[it + 1:] = config.min_correspondence_m
 
-    final = _data_terms(selection, center, heading, config.max_correspondence_m, config, t_count,
-                        normal_equations=False)
+    final_pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count)
+    final = _pair_terms(selection, final_pairs, center, heading, config, t_count, normal_equations=False)
     residual = final.scale
     inlier = np.abs(final.residual) <= config.huber_k * (residual if np.isfinite(residual) else 0.0)
     sq = np.bincount(final.frame[inlier], weights=final.residual[inlier] ** 2, minlength=t_count)
@@ -669,11 +751,34 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                      f"{residual:.4f} m refined: less than {config.min_improvement:.0%} better",
                      residual=residual, residual_label=residual_label, num_points=final.num_points,
                      iterations=iterations)
-    return _result(center, heading, label_center, label_heading, world_from_vehicle,
+    size_out = size.copy()
+    extent_detail = ""
+    if config.fit_extent and inlier.any():
+        # The refined frames agree with each other, so the registered returns of all frames form
+        # one body-frame model; grow the box (never shrink, never lower its bottom: ground) so it
+        # holds that model. Without this the refined boxes share one small offset (the mean label
+        # error, the gauge) and, with point selection at the box faces, lose whole faces in every
+        # frame where noisy labels lost them in about half the frames.
+        src = final_pairs.src[inlier]
+        fa = final_pairs.fa[inlier]
+        q = _body_points(center, heading, selection.points[src], fa)
+        half_f = half[fa]
+        grow_hi = np.clip(np.max(q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
+        grow_lo = np.clip(np.max(-q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
+        grow_lo[2] = 0.0
+        if np.any(grow_hi > 0) or np.any(grow_lo > 0):
+            offset = (grow_hi - grow_lo) / 2.0                                   # body frame
+            cos_h, sin_h = np.cos(heading), np.sin(heading)
+            center = center + np.stack([cos_h * offset[0] - sin_h * offset[1], sin_h * offset[0] + cos_h * offset[1],
+                                        np.full(t_count, offset[2])], axis=-1)
+            size_out = size + (grow_hi + grow_lo)
+            extent_detail = (f"; box grown to the registered returns by {np.round(grow_lo * 100, 1).tolist()} / "
+                             f"{np.round(grow_hi * 100, 1).tolist()} cm (-x -y -z / +x +y +z)")
+    return _result(center, heading, label_center, label_heading, world_from_vehicle, size=size_out,
                    residual_m=residual, residual_label_m=residual_label,
                    residual_per_frame_m=per_frame_residual, num_points=final.num_points, refined=True,
                    used_fallback=False, reason="refined",
-                   detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m",
+                   detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m{extent_detail}",
                    iterations=iterations, cpu_seconds=time.process_time() - cpu0)
 
 
@@ -690,7 +795,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
 
     Returns:
         ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
-        the ``center`` and ``heading`` of refined objects, and ``{object_id: RefinedPoses}``.
+        the ``center``, ``heading`` and ``size`` of refined objects, and ``{object_id: RefinedPoses}``.
         Passing ``boxes`` as the scene's labels makes the track stage select points with, and
         carry them by, the refined poses.
     """
@@ -706,7 +811,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     if returns is not None:
         selected &= np.isin(lidar.return_index, np.asarray(returns))
     timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
-    center, heading = boxes.center.copy(), boxes.heading.copy()
+    center, heading, size = boxes.center.copy(), boxes.heading.copy(), boxes.size.copy()
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
     # move each candidate to where its surface was at the frame time (with the labels' motion)
     # before registering, as the track stage does (drivetrack.tracks.sweep).
@@ -764,6 +869,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         if result.refined:
             center[rows] = result.center_vehicle
             heading[rows] = result.heading
+            size[rows] = result.size
     refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
-    refined.center, refined.heading = center, heading
+    refined.center, refined.heading, refined.size = center, heading, size
     return refined, results

@@ -149,7 +149,7 @@ def test_exact_labels_lose_nothing():
     # forced (no early stop, no improvement required), refinement stays within millimetres of the
     # exact poses (measured 8.4 mm with the default 120 returns per frame)
     forced = refine_object_poses(labels, SIZE, wfv, pts, frame, ts,
-                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0))
+                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0, fit_extent=False))
     assert forced.refined
     assert relative_error(forced.world_from_box, wfv @ exact, CORNERS) < 0.011
     centre, heading = absolute_error(forced.vehicle_from_box, exact)
@@ -295,10 +295,63 @@ def test_capped_selection_equals_the_cap_over_all_candidates():
     priority = rng.uniform(size=frame.size)
     half = np.repeat(np.array([[1.0, 1.0, 1.0]]), t_count, axis=0)
     center, heading = np.zeros((t_count, 3)), np.zeros(t_count)
-    q, f = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2)
+    q, f, _ = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2)
     inside = np.all(np.abs(points[:, :2]) <= 1.1, axis=1) & (points[:, 2] <= 1.1) & (points[:, 2] >= -0.8)
     for t in range(t_count):
         idx = np.flatnonzero(inside & (frame == t))
         want = points[idx[np.argsort(priority[idx])][:cap]]
         np.testing.assert_array_equal(q[f == t], want)
     assert (f == 2).sum() == cap and (f == 3).sum() == cap and (f == 0).sum() < cap
+
+
+def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
+    exact, labels, wfv, pts, frame, ts, refined = noisy
+    plain = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(fit_extent=False))
+    config = RefineConfig()
+    grow = refined.size - SIZE                                          # [T, 3], same in every frame
+    assert np.all(grow >= 0) and np.all(grow <= 2 * config.max_extent_growth_m + 1e-12)
+    np.testing.assert_allclose(grow, np.broadcast_to(grow[0], grow.shape), atol=1e-12)
+    assert grow[0].max() > 0                                             # returns lie on the faces
+    np.testing.assert_array_equal(plain.size, np.broadcast_to(SIZE, plain.size.shape))
+    # the bottom stays (ground clearance is measured from it); the relative poses are unchanged
+    np.testing.assert_allclose(refined.center_vehicle[:, 2] - refined.size[:, 2] / 2,
+                               plain.center_vehicle[:, 2] - SIZE[2] / 2, atol=1e-9)
+    np.testing.assert_allclose(refined.heading, plain.heading, atol=1e-12)
+    rel = lambda w: w[None] @ invert_rigid(w)[:, None]                   # noqa: E731
+    np.testing.assert_allclose(rel(refined.world_from_box)[..., :3, :3], rel(plain.world_from_box)[..., :3, :3],
+                               atol=1e-9)
+    # every object return (not ground: 0.2 m above the bottom) is inside the grown box in every frame
+    local = np.einsum("nji,nj->ni", refined.vehicle_from_box[frame, :3, :3], pts - refined.vehicle_from_box[frame, :3, 3])
+    exact_local = np.einsum("nji,nj->ni", exact[frame, :3, :3], pts - exact[frame, :3, 3])
+    on_object = np.all(np.abs(exact_local) <= SIZE / 2 + 0.02, axis=-1) & (exact_local[:, 2] > -SIZE[2] / 2 + 0.2)
+    half = refined.size[frame] / 2
+    inside = np.all(np.abs(local) <= half, axis=-1)
+    inside_plain = np.all(np.abs(np.einsum("nji,nj->ni", plain.vehicle_from_box[frame, :3, :3],
+                                           pts - plain.vehicle_from_box[frame, :3, 3])) <= SIZE / 2, axis=-1)
+    # measured: 99.9% of the object's returns inside the grown boxes, about half without growth
+    assert inside[on_object].mean() > 0.99 > inside_plain[on_object].mean()
+    assert "grown" in refined.detail
+
+
+def test_numba_kernels_match_the_numpy_reference(noisy):
+    from scipy.spatial import cKDTree
+
+    from drivetrack import refine_kernel
+    from drivetrack.refine import _normals
+    exact, labels, wfv, pts, frame, ts, refined = noisy
+    q = pts[:3000]
+    dist, index = refine_kernel.knn(q, 12)
+    ref_dist, ref_index = cKDTree(q).query(q, k=12)
+    np.testing.assert_allclose(dist, ref_dist, atol=1e-12)
+    assert (index == ref_index).mean() > 0.999                          # differences only at ties
+    n, planarity = refine_kernel.normals(q, ref_index)
+    ref_n, ref_planarity = _normals(q, ref_index)
+    np.testing.assert_allclose(np.abs(np.einsum("ni,ni->n", n, ref_n)), 1.0, atol=1e-9)
+    np.testing.assert_allclose(planarity, ref_planarity, atol=1e-9)
+    numpy_result = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(kernel="numpy"))
+    assert numpy_result.reason == refined.reason and numpy_result.iterations == refined.iterations
+    np.testing.assert_allclose(numpy_result.vehicle_from_box, refined.vehicle_from_box, atol=1e-9)
+    with pytest.raises(ValueError, match="kernel"):
+        RefineConfig(kernel="cuda")
+    with pytest.raises(ValueError, match="k must be"):
+        refine_kernel.knn(q[:5], 6)
