@@ -4,7 +4,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from drivetrack.storage import atomic_local_path, write_npz
+from drivetrack.storage import StreamedArray, atomic_local_path, write_npz
 
 
 def test_npz_bytes_are_deterministic_and_load_without_pickle(tmp_path):
@@ -30,3 +30,55 @@ def test_failed_write_leaves_nothing_and_names_the_url(tmp_path):
 def test_object_arrays_are_refused(tmp_path):
     with pytest.raises(ValueError, match="dtype object"):
         write_npz(str(tmp_path / "x.npz"), {"a": np.array([None])})
+
+
+def _pieces(array, sizes):
+    """Chunks of ``array`` along axis 0 with the given row counts (cycled)."""
+    def chunks():
+        start, i = 0, 0
+        while start < array.shape[0]:
+            stop = start + sizes[i % len(sizes)]
+            yield array[start:stop]
+            start, i = stop, i + 1
+    return chunks
+
+
+@pytest.mark.parametrize("sizes", [[1], [3], [5, 1, 2], [10_000]])
+def test_streamed_arrays_give_the_bytes_of_whole_arrays(tmp_path, sizes):
+    rng = np.random.default_rng(0)
+    arrays = {"video": rng.integers(0, 255, (7, 9, 11, 3), dtype=np.uint8),
+              "tracks": rng.normal(size=(13, 7, 2)).astype(np.float32),
+              "visibles": rng.random((13, 7)) > 0.5,
+              "jpeg": np.array([b"\xff\xd8ab\xff\xd9", b"\xff\xd8abcdef\xff\xd9", b"\xff\xd8\xff\xd9"]),
+              "none": np.zeros((0, 7, 3), np.float32)}
+    write_npz(str(tmp_path / "whole.npz"), arrays)
+    streamed = write_npz(str(tmp_path / "streamed.npz"),
+                         {k: StreamedArray(v.shape, v.dtype, _pieces(v, sizes)) if k != "visibles" else v
+                          for k, v in arrays.items()})
+    assert (tmp_path / "whole.npz").read_bytes() == (tmp_path / "streamed.npz").read_bytes()
+    with np.load(streamed, allow_pickle=False) as z:
+        for key, value in arrays.items():
+            assert z[key].dtype == value.dtype and z[key].shape == value.shape
+            np.testing.assert_array_equal(z[key], value)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (lambda: iter([np.zeros((2, 4), np.float32), np.zeros((1, 5), np.float32)]),
+     r"but chunk 1 \(after 2 rows\) is float32 \(1, 5\)"),
+    (lambda: iter([np.zeros((3, 4), np.float64)]), r"chunk 0 \(after 0 rows\) is float64"),
+    (lambda: iter([np.zeros((2, 4), np.float32)]), r"its chunks gave 2 rows"),
+    (lambda: iter([np.zeros((2, 4), np.float32), np.zeros((2, 4), np.float32)]), r"chunk 1 \(after 2 rows\)"),
+    (lambda: iter([[1.0, 2.0, 3.0, 4.0]]), r"chunk 0 \(after 0 rows\) is list"),
+])
+def test_wrong_chunks_raise_naming_url_and_key_and_leave_no_file(tmp_path, bad, message):
+    target = tmp_path / "out" / "clip.npz"
+    with pytest.raises(ValueError, match=r"clip\.npz: array 'tracks' is declared float32 \(3, 4\), .*" + message):
+        write_npz(str(target), {"ok": np.arange(3), "tracks": StreamedArray((3, 4), np.float32, bad)})
+    assert not target.exists() and list((tmp_path / "out").iterdir()) == []
+
+
+def test_streamed_array_needs_a_dimension_and_no_objects(tmp_path):
+    with pytest.raises(ValueError, match="at least one dimension"):
+        StreamedArray((), np.float32, lambda: iter(()))
+    with pytest.raises(ValueError, match="dtype object"):
+        write_npz(str(tmp_path / "x.npz"), {"a": StreamedArray((1,), object, lambda: iter(()))})
