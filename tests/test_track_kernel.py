@@ -212,3 +212,46 @@ def test_unknown_kernel_is_refused_naming_the_field():
         TrackConfig(kernel="cuda")
     assert "kernel" in {f.name for f in fields(TrackConfig)}
     assert TrackConfig.from_dict(TrackConfig(kernel="numpy").to_dict()).kernel == "numpy"
+
+
+# ---------------------------------------------------------------- streaming variants (writers)
+
+def test_fill_positions_and_frame_variant_equal_fill_tracks_bit_for_bit():
+    model, p, cam, shift, veh, _, maps = _hand_built_clip(n=1001)
+    params = kernel.camera_parameters(model)
+    n, t = p.shape[0], cam.shape[0]
+    tracks, visibles, points3d = np.empty((n, t, 2), np.float32), np.empty((n, t), bool), np.empty((n, t, 3), np.float32)
+    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, params, maps, 0.95, tracks, visibles, points3d)
+    assert np.isnan(tracks).any() and not visibles.all()          # held and never-valid positions occur
+    for start, stop in ((0, n), (0, 300), (300, 1001), (1000, 1001)):
+        part = np.ascontiguousarray(p[start:stop])
+        got_t, got_p = np.empty((stop - start, t, 2), np.float32), np.empty((stop - start, t, 3), np.float32)
+        kernel.fill_positions(part, cam, shift, veh, params, got_t, got_p)
+        assert got_t.tobytes() == tracks[start:stop].tobytes() and got_p.tobytes() == points3d[start:stop].tobytes()
+    only = np.empty((n, t, 3), np.float32)
+    kernel.fill_positions(p, cam, shift, veh, params, np.empty((0, t, 2), np.float32), only, False, True)
+    assert only.tobytes() == points3d.tobytes()
+    for start, stop in ((0, t), (2, 5), (6, 7)):
+        frames = np.empty((stop - start, n, 3), np.float32)
+        kernel.fill_points3d_frames(p, np.ascontiguousarray(veh[start:stop]), frames)
+        assert frames.tobytes() == np.ascontiguousarray(points3d[:, start:stop].swapaxes(0, 1)).tobytes()
+
+
+def test_summarise_tracks_equals_the_numpy_summary():
+    from drivetrack.tracks.core import _summarise_tracks
+
+    model, p, cam, shift, veh, _, maps = _hand_built_clip(n=800)
+    n, t = p.shape[0], cam.shape[0]
+    tracks, visibles, points3d = np.empty((n, t, 2), np.float32), np.empty((n, t), bool), np.empty((n, t, 3), np.float32)
+    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, kernel.camera_parameters(model), maps, 0.95,
+                       tracks, visibles, points3d)
+    # plant the cases the sanity counts exist for: a visible NaN, a visible position outside the image
+    visibles[0, :] = True
+    tracks[0, 1] = np.nan
+    tracks[0, 2] = (W, 5.0)
+    source = np.random.default_rng(1).integers(0, t, n)
+    pixels = np.empty((n, 2), np.float32)
+    counts = kernel.summarise_tracks(tracks, visibles, source, float(W), float(H), pixels)
+    expect_pixels, expect_counts = _summarise_tracks(tracks, visibles, source, model)
+    assert counts.tolist() == expect_counts.tolist() and counts[0] >= 1 and counts[1] >= 1
+    assert pixels.tobytes() == expect_pixels.tobytes()

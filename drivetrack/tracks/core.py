@@ -13,6 +13,13 @@ Visibility of a point at tau: in front of the camera with trusted distortion, in
 and not behind the scene surface: with ``D = lookup_max4(depth_tau, pixel)`` (z-depth, metres),
 occluded iff ``D > 0 and D < occlusion_ratio * z`` where z is the point's z-depth from the
 camera. Unknown depth (0) means no known surface in front, hence visible.
+
+Memory: a job keeps per kept point its box-frame point, speeds, sources and ``visibles`` [N, T]
+(1 byte per point and frame), never ``tracks`` or ``points3d`` (20 bytes per point and frame).
+Those are recomputed from the job's transforms by its :class:`TrackSource`, a chunk of points or
+frames at a time, when a writer streams them into a file (:mod:`drivetrack.tracks.writers`);
+``ObjectTracks.tracks`` / ``.points3d`` materialise them whole on first access for in-memory
+consumers (evaluation, previews).
 """
 from __future__ import annotations
 
@@ -29,8 +36,22 @@ from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
 from drivetrack.waymo.schema import BoxType, CameraName
 
-__all__ = ["ObjectTracks", "run_object_job", "track_speeds", "rolling_shutter_projector",
-           "image_time_offsets", "fill_invalid_positions"]
+__all__ = ["ObjectTracks", "TrackSource", "run_object_job", "track_speeds", "rolling_shutter_projector",
+           "image_time_offsets", "fill_invalid_positions", "points_per_chunk", "frames_per_chunk"]
+
+#: Elements (point-frames) per chunk of the streamed outputs: [k, T, 2 + 3] float32 and the
+#: job's scratch are ~20 MiB; the time-major [F, N, 3] temporaries of the TAPVid-3D writer ~40 MiB.
+CHUNK_POINT_FRAMES = 1 << 20
+
+
+def points_per_chunk(num_frames: int) -> int:
+    """Points per point-major chunk of a clip of ``num_frames`` frames (>= 1)."""
+    return max(1, CHUNK_POINT_FRAMES // max(int(num_frames), 1))
+
+
+def frames_per_chunk(num_points: int) -> int:
+    """Frames per time-major chunk of a clip of ``num_points`` tracks (>= 1)."""
+    return max(1, CHUNK_POINT_FRAMES // max(int(num_points), 1))
 
 
 @dataclass
@@ -41,11 +62,8 @@ class ObjectTracks:
         split, segment, camera (``CameraName`` value), object_id, object_type (``BoxType`` value).
         frames: int64 [T], the clip's frame indices in the segment.
         timestamps_micros: int64 [T].
-        tracks: float32 [N, T, 2], pixels, finite everywhere; meaningful where visible. Where
-            the point is behind the camera or its distortion is untrusted, the position of the
-            nearest frame with a valid projection is held (:func:`fill_invalid_positions`).
         visibles: bool [N, T].
-        points3d: float32 [N, T, 3], metres, vehicle frame of each frame tau.
+        points_box: float64 [N, 3], metres, each track's point in its box's frame.
         query_frames: int32 [N], clip frame of the LiDAR return that produced the track.
         lidar_sources: int32 [N, 4], (laser_name, return 1|2, range-image row, col).
         track_speed_mps: float64 [N], mean world-frame speed of each track over the clip.
@@ -55,11 +73,23 @@ class ObjectTracks:
         camera_from_vehicle: float64 [T, 4, 4] (vehicle frame of each frame, camera at the image
             pose); with ``world_from_vehicle`` float64 [T, 4, 4] they give camera extrinsics.
         jpeg: list [T] of the clip's JPEG bytes (references into the scene, not copies).
+        source: the :class:`TrackSource` that computes ``tracks`` and ``points3d`` in chunks.
+        query_pixels: float32 [N, 2], ``tracks[i, f_i]`` at the TAPVid-3D query frame ``f_i``
+            (``query_frames[i]`` when visible there, else the first visible frame).
+        num_nonfinite_visible, num_visible_outside_image: visible point-frames whose ``tracks``
+            position is not finite / lies outside the image (sanity counts, 0 when correct).
         min_camera_distance_m: closest camera-to-box-centre distance over the clip.
         projection: ``rolling_shutter`` or ``global_shutter``.
         num_candidates: returns inside the box over the clip (before the visibility filter).
         num_dropped_invisible, num_dropped_speed: candidates dropped by each filter.
         rejection: None, or a reason from ``REJECTION_REASONS`` when no track survived.
+
+    Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
+    everywhere for a track with one valid projection; meaningful where visible. Where the point is
+    behind the camera or its distortion is untrusted, the position of the nearest frame with a
+    valid projection is held (:func:`fill_invalid_positions`). ``points3d`` float32 [N, T, 3],
+    metres, vehicle frame of each frame tau. Writers stream them instead
+    (:meth:`TrackSource.point_chunks`, :meth:`TrackSource.frame_chunks`).
     """
     split: str
     segment: str
@@ -68,9 +98,8 @@ class ObjectTracks:
     object_type: int
     frames: np.ndarray
     timestamps_micros: np.ndarray
-    tracks: np.ndarray
     visibles: np.ndarray
-    points3d: np.ndarray
+    points_box: np.ndarray
     query_frames: np.ndarray
     lidar_sources: np.ndarray
     track_speed_mps: np.ndarray
@@ -80,12 +109,17 @@ class ObjectTracks:
     camera_from_vehicle: np.ndarray
     world_from_vehicle: np.ndarray
     jpeg: list = field(repr=False)
+    source: TrackSource = field(repr=False)
+    query_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.float32), repr=False)
+    num_nonfinite_visible: int = 0
+    num_visible_outside_image: int = 0
     min_camera_distance_m: float = float("nan")
     projection: str = "global_shutter"
     num_candidates: int = 0
     num_dropped_invisible: int = 0
     num_dropped_speed: int = 0
     rejection: str | None = None
+    _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def camera_name(self) -> str:
@@ -97,11 +131,155 @@ class ObjectTracks:
 
     @property
     def num_tracks(self) -> int:
-        return int(self.tracks.shape[0])
+        return int(self.visibles.shape[0])
 
     @property
     def num_frames(self) -> int:
         return int(self.frames.shape[0])
+
+    @property
+    def tracks(self) -> np.ndarray:
+        """float32 [N, T, 2] (see the class docstring); computed whole on first access."""
+        return self._materialise("tracks")
+
+    @property
+    def points3d(self) -> np.ndarray:
+        """float32 [N, T, 3] (see the class docstring); computed whole on first access."""
+        return self._materialise("points3d")
+
+    def _materialise(self, name: str) -> np.ndarray:
+        if name not in self._materialised:
+            which = 0 if name == "tracks" else 1
+            out = np.empty((self.num_tracks, self.num_frames, 2 if which == 0 else 3), dtype=np.float32)
+            row = 0
+            for chunk in self.source.point_chunks(what=(name,)):
+                out[row:row + chunk[which].shape[0]] = chunk[which]
+                row += chunk[which].shape[0]
+            if row != out.shape[0]:
+                raise RuntimeError(f"segment {self.segment!r} camera {self.camera_name} object {self.object_id!r}: "
+                                   f"the track source gave {row} of {out.shape[0]} tracks")
+            self._materialised[name] = out
+        return self._materialised[name]
+
+
+class _NumpyProjection:
+    """The numpy reference projection of box-frame points (global or rolling shutter).
+
+    ``project(chunk)`` -> ``(points_camera float64 [T, n, 3], pixels float64 [T, n, 2], valid
+    bool [T, n])`` for box-frame points float64 [n, 3], exactly as the job computes them.
+    """
+
+    def __init__(self, model, rolling, projector, frames_meta, frames, camera_from_box, shift_camera,
+                 world_from_box, shift_world, velocity_world):
+        self.model, self.rolling, self.projector, self.frames_meta = model, rolling, projector, frames_meta
+        self.frames, self.camera_from_box, self.shift_camera = frames, camera_from_box, shift_camera
+        self.world_from_box, self.shift_world, self.velocity_world = world_from_box, shift_world, velocity_world
+
+    def project(self, chunk: np.ndarray):
+        points_camera = _carry(self.camera_from_box, chunk) + self.shift_camera[:, None]   # [T, n, 3]
+        if not self.rolling:
+            pixels, valid = self.model.pixels_from_camera(points_camera)
+        else:
+            pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
+            valid = np.zeros(points_camera.shape[:2], dtype=bool)
+            for tau, t in enumerate(self.frames.tolist()):
+                velocity = np.broadcast_to(self.velocity_world[tau], chunk.shape)
+                px, ok, _ = self.projector(self.frames_meta, t, _carry(self.world_from_box[tau:tau + 1], chunk)[0]
+                                           + self.shift_world[tau], velocity)
+                pixels[tau], valid[tau] = px, ok
+            valid &= points_camera[..., 0] > 0
+        return points_camera, pixels, valid
+
+
+class TrackSource:
+    """Recomputes a clip's ``tracks`` and ``points3d`` from its transforms, a chunk at a time.
+
+    Kernel path (global shutter, numba): :func:`drivetrack.tracks.kernel.fill_positions` over
+    chunks of the kept points, :func:`~drivetrack.tracks.kernel.fill_points3d_frames` over chunks
+    of frames. Numpy path (the reference; rolling shutter): the job's own computation over its
+    candidate chunks (``chunk_points``), keeping the kept points of each. Either gives exactly
+    (bit for bit) what the job would have materialised. Holds no depth map and no image.
+    """
+
+    def __init__(self, points_box: np.ndarray, camera_from_box: np.ndarray, shift_camera: np.ndarray,
+                 vehicle_from_box: np.ndarray, camera: np.ndarray | None,
+                 numpy_path: tuple | None = None):
+        """``points_box`` float64 [N, 3] kept points; transforms [T, 4, 4]; ``camera`` the kernel's
+        camera parameters (None for the numpy path); ``numpy_path`` = (projection, candidate
+        box points float64 [n, 3], kept mask bool [n], chunk_points) for the numpy path."""
+        self.points_box = np.ascontiguousarray(points_box, dtype=np.float64)
+        self.camera_from_box = np.ascontiguousarray(camera_from_box, dtype=np.float64)
+        self.shift_camera = np.ascontiguousarray(shift_camera, dtype=np.float64)
+        self.vehicle_from_box = np.ascontiguousarray(vehicle_from_box, dtype=np.float64)
+        self.camera = camera
+        self.numpy_path = numpy_path
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points_box.shape[0])
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.vehicle_from_box.shape[0])
+
+    def _numpy_chunks(self):
+        """(candidate chunk float64 [n, 3], indices of its kept points) of the numpy path."""
+        _, candidates, keep, step = self.numpy_path
+        for start in range(0, candidates.shape[0], step):
+            idx = np.flatnonzero(keep[start:start + step])
+            if idx.size:
+                yield candidates[start:start + step], idx
+
+    def point_chunks(self, points: int | None = None, what: tuple[str, ...] = ("tracks", "points3d")):
+        """Yield ``(tracks float32 [k, T, 2], points3d float32 [k, T, 3])`` of consecutive tracks.
+
+        ``points`` tracks per chunk (default :func:`points_per_chunk`); the numpy path yields
+        the kept points of each of its candidate chunks instead. An output not named in ``what``
+        is not computed (None in its place).
+        """
+        t_count = self.num_frames
+        with_tracks, with_points3d = "tracks" in what, "points3d" in what
+        if self.numpy_path is not None:
+            projection = self.numpy_path[0]
+            for chunk, idx in self._numpy_chunks():
+                tracks = points3d = None
+                if with_tracks:
+                    _, pixels, _ = projection.project(chunk)
+                    tracks = fill_invalid_positions(np.swapaxes(pixels[:, idx], 0, 1).astype(np.float32))
+                if with_points3d:
+                    points3d = np.swapaxes(_carry(self.vehicle_from_box, chunk[idx]), 0, 1).astype(np.float32)
+                yield tracks, points3d
+            return
+        from drivetrack.tracks import kernel
+
+        step = points or points_per_chunk(t_count)
+        for start in range(0, self.num_points, step):
+            part = self.points_box[start:start + step]
+            k = part.shape[0]
+            tracks = np.empty((k if with_tracks else 0, t_count, 2), dtype=np.float32)
+            points3d = np.empty((k if with_points3d else 0, t_count, 3), dtype=np.float32)
+            kernel.fill_positions(part, self.camera_from_box, self.shift_camera, self.vehicle_from_box,
+                                  self.camera, tracks, points3d, with_tracks, with_points3d)
+            yield (tracks if with_tracks else None), (points3d if with_points3d else None)
+
+    def frame_chunks(self, frames: int | None = None):
+        """Yield time-major ``points3d`` float32 [F, N, 3] of consecutive frames (vehicle frame
+        of each frame); ``frames`` per chunk (default :func:`frames_per_chunk`)."""
+        step = frames or frames_per_chunk(self.num_points)
+        n = self.num_points
+        for start in range(0, self.num_frames, step):
+            transforms = self.vehicle_from_box[start:start + step]
+            out = np.empty((transforms.shape[0], n, 3), dtype=np.float32)
+            if self.numpy_path is not None:
+                row = 0
+                for chunk, idx in self._numpy_chunks():
+                    out[:, row:row + idx.size] = _carry(transforms, chunk[idx]).astype(np.float32)
+                    row += idx.size
+            else:
+                from drivetrack.tracks import kernel
+
+                kernel.fill_points3d_frames(self.points_box, transforms, out)
+            yield out
 
 
 def rolling_shutter_projector():
@@ -284,6 +462,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         p_box = np.ascontiguousarray(p_box, dtype=np.float64)
         camera_from_box = np.ascontiguousarray(camera_from_box, dtype=np.float64)
         shift_camera = np.ascontiguousarray(shift_camera, dtype=np.float64)
+        vehicle_from_box = np.ascontiguousarray(vehicle_from_box, dtype=np.float64)
         clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
         params = kernel.camera_parameters(model)
         kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
@@ -291,35 +470,39 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                              box_speed_mean, max_deviation, status, speeds)
         keep = status == kernel.KEPT
         kept = int(keep.sum())
-        tracks = np.empty((kept, t_count, 2), dtype=np.float32)
-        visibles = np.empty((kept, t_count), dtype=bool)
-        points3d = np.empty((kept, t_count, 3), dtype=np.float32)
         kept_box = np.ascontiguousarray(p_box[keep])
-        kernel.fill_tracks(kept_box, np.arange(kept, dtype=np.int64),
-                           camera_from_box, shift_camera,
-                           np.ascontiguousarray(vehicle_from_box, dtype=np.float64), params, clip_maps,
-                           float(config.occlusion_ratio), tracks, visibles, points3d)
+        query_source = source_clip[keep]
+        visibles = np.empty((kept, t_count), dtype=bool)
+        query_pixels = np.empty((kept, 2), dtype=np.float32)
+        # tracks and points3d a chunk of points at a time, kept only for visibles and the query
+        # pixels: the writers recompute them without the depth maps (TrackSource)
+        step = points_per_chunk(t_count)
+        scratch_tracks = np.empty((min(step, kept), t_count, 2), dtype=np.float32)
+        scratch_points = np.empty((min(step, kept), t_count, 3), dtype=np.float32)
+        checks = np.zeros(2, dtype=np.int64)
+        for start in range(0, kept, step):
+            stop = min(start + step, kept)
+            tracks, points3d = scratch_tracks[:stop - start], scratch_points[:stop - start]
+            kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
+                               camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
+                               float(config.occlusion_ratio), tracks, visibles[start:stop], points3d)
+            checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
+                                              float(model.width), float(model.height), query_pixels[start:stop])
+        del scratch_tracks, scratch_points
+        source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
-        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        projection = _NumpyProjection(model, rolling, projector, frames_meta, frames, camera_from_box,
+                                      shift_camera, world_from_box, shift_world, velocity_world)
+        parts: list[tuple[np.ndarray, np.ndarray]] = []
         keep = np.zeros(n, dtype=bool)
         speeds = np.zeros(n, dtype=np.float64)
+        checks = np.zeros(2, dtype=np.int64)
         dropped_invisible = dropped_speed = 0
         for start in range(0, n, config.chunk_points):
             chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
-            points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]   # [T, n, 3]
-            if not rolling:
-                pixels, valid = model.pixels_from_camera(points_camera)
-            else:
-                pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
-                valid = np.zeros(points_camera.shape[:2], dtype=bool)
-                for tau, t in enumerate(frames.tolist()):
-                    velocity = np.broadcast_to(velocity_world[tau], chunk.shape)
-                    px, ok, _ = projector(frames_meta, t, _carry(world_from_box[tau:tau + 1], chunk)[0]
-                                          + shift_world[tau], velocity)
-                    pixels[tau], valid[tau] = px, ok
-                valid &= points_camera[..., 0] > 0
+            points_camera, pixels, valid = projection.project(chunk)
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
@@ -340,18 +523,20 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             dropped_speed += int((seen & ~chunk_keep).sum())
             keep[start:stop] = chunk_keep
             idx = np.flatnonzero(chunk_keep)
-            parts.append((fill_invalid_positions(np.swapaxes(pixels[:, idx], 0, 1).astype(np.float32)),
-                          np.ascontiguousarray(visible[:, idx].T),
-                          np.swapaxes(_carry(vehicle_from_box, chunk[idx]), 0, 1).astype(np.float32)))
-        if len(parts) == 1:
-            tracks, visibles, points3d = parts[0]
-        elif parts:
-            tracks, visibles, points3d = (np.concatenate(a, axis=0) for a in zip(*parts))
+            tracks = fill_invalid_positions(np.swapaxes(pixels[:, idx], 0, 1).astype(np.float32))
+            chunk_visibles = np.ascontiguousarray(visible[:, idx].T)
+            chunk_query, chunk_checks = _summarise_tracks(tracks, chunk_visibles, source_clip[start:stop][idx], model)
+            checks += chunk_checks
+            parts.append((chunk_visibles, chunk_query))
+        if parts:
+            visibles = np.concatenate([p[0] for p in parts], axis=0)
+            query_pixels = np.concatenate([p[1] for p in parts], axis=0)
         else:
-            tracks = np.empty((0, t_count, 2), dtype=np.float32)
             visibles = np.empty((0, t_count), dtype=bool)
-            points3d = np.empty((0, t_count, 3), dtype=np.float32)
+            query_pixels = np.empty((0, 2), dtype=np.float32)
         del parts
+        source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
+                             numpy_path=(projection, p_box, keep, int(config.chunk_points)))
 
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
@@ -359,12 +544,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     result = ObjectTracks(
         split=scene.split, segment=scene.segment, camera=job.camera, object_id=job.object_id,
         object_type=job.object_type, frames=frames.copy(), timestamps_micros=timestamps,
-        tracks=tracks, visibles=visibles, points3d=points3d,
+        visibles=visibles, points_box=source.points_box,
         query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources[keep],
         track_speed_mps=speeds[keep], box_speed_mps=box_speed_mean, speed_error_mps=errors[keep],
         camera_model=model, camera_from_vehicle=geometry.camera_from_vehicle[frames].copy(),
         world_from_vehicle=scene.world_from_vehicle[frames].copy(),
-        jpeg=[frames_meta.jpeg[t] for t in frames.tolist()],
+        jpeg=[frames_meta.jpeg[t] for t in frames.tolist()], source=source, query_pixels=query_pixels,
+        num_nonfinite_visible=int(checks[0]), num_visible_outside_image=int(checks[1]),
         min_camera_distance_m=job.min_camera_distance_m,
         # the projection model in use; a global-shutter camera under it projects as global
         projection="rolling_shutter" if projector is not None else "global_shutter",
@@ -373,3 +559,23 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         rejection=None if keep.any() else "no_visible_points",
     )
     return result
+
+
+def _summarise_tracks(tracks: np.ndarray, visibles: np.ndarray, source_frames: np.ndarray,
+                      model: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """Query pixels and sanity counts of a chunk of tracks (numpy; as ``kernel.summarise_tracks``).
+
+    Args: tracks float32 [k, T, 2], visibles bool [k, T], source_frames int [k] (clip frames).
+    Returns: ``(query_pixels float32 [k, 2], int64 [2] = (visible but not finite, visible and
+    finite but outside the image))``; the query frame is the source frame when visible there,
+    else the first visible frame (TAPVid-3D ``queries_xyt``).
+    """
+    rows = np.arange(tracks.shape[0])
+    source = source_frames.astype(np.int64)
+    frame = np.where(visibles[rows, source], source, np.argmax(visibles, axis=1))
+    finite = np.isfinite(tracks).all(axis=-1)
+    with np.errstate(invalid="ignore"):
+        inside = ((tracks[..., 0] >= 0) & (tracks[..., 0] < model.width)
+                  & (tracks[..., 1] >= 0) & (tracks[..., 1] < model.height))
+    counts = np.array([(visibles & ~finite).sum(), (visibles & finite & ~inside).sum()], dtype=np.int64)
+    return tracks[rows, frame].astype(np.float32), counts

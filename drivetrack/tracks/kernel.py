@@ -10,9 +10,14 @@ outputs are written directly in [N, T] order.
 
 Two passes keep memory at what is kept: :func:`screen_points` decides for every candidate whether
 it survives (visible at some frame, and the optional speed filter) and computes its speed; it stops
-at a point's first visible frame. :func:`fill_tracks` then materialises only the kept points,
+at a point's first visible frame. :func:`fill_tracks` then computes the kept points' tracks,
 holding the nearest valid position where the projection is invalid (as
-``core.fill_invalid_positions``).
+``core.fill_invalid_positions``), a chunk of points at a time.
+
+The writers stream the outputs without the depth maps (visibility is known by then):
+:func:`fill_positions` gives exactly ``fill_tracks``' ``tracks`` and ``points3d`` of a chunk of
+points (point-major), :func:`fill_points3d_frames` its ``points3d`` for a range of frames
+(time-major), with the same float64 arithmetic in the same order (bit-identical results).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``), so a process
 pays the compile once (or never, with a warm cache).
@@ -23,7 +28,8 @@ import numpy as np
 
 from drivetrack.geometry import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
 
-__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks"]
+__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
+           "fill_points3d_frames", "summarise_tracks"]
 
 try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
     from numba import njit
@@ -217,6 +223,93 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
             points3d[i, tau, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
             points3d[i, tau, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
             points3d[i, tau, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+
+
+@njit(cache=True, nogil=True)
+def fill_positions(points_box, camera_from_box, shift_camera, vehicle_from_box, camera, tracks, points3d,
+                   with_tracks=True, with_points3d=True):
+    """``tracks`` float32 [K, T, 2] and ``points3d`` float32 [K, T, 3] exactly as :func:`fill_tracks`.
+
+    No depth maps and no visibility: what a writer needs once ``visibles`` are known. Arguments
+    as :func:`fill_tracks` (points processed in their order); ``with_tracks`` /
+    ``with_points3d`` False leave that output untouched (it may then be any float32 array of
+    the right rank, e.g. empty).
+    """
+    n = points_box.shape[0]
+    t_count = camera_from_box.shape[0]
+    valid_at = np.zeros(t_count, dtype=np.bool_)
+    before = np.empty(t_count, dtype=np.int64)
+    f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
+                                              camera[5], camera[6], camera[7], camera[8])
+    for i in range(n):
+        px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+        for tau in range(t_count if with_tracks else 0):
+            c = camera_from_box[tau]
+            # the same operations in the same order as fill_tracks (shift added to the translation)
+            c03 = c[0, 3] + shift_camera[tau, 0]
+            c13 = c[1, 3] + shift_camera[tau, 1]
+            c23 = c[2, 3] + shift_camera[tau, 2]
+            x = c[0, 0] * px + c[0, 1] * py + c[0, 2] * pz + c03
+            y = c[1, 0] * px + c[1, 1] * py + c[1, 2] * pz + c13
+            z = c[2, 0] * px + c[2, 1] * py + c[2, 2] * pz + c23
+            pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
+            fx, fy = np.float32(pix_x), np.float32(pix_y)
+            tracks[i, tau, 0] = fx
+            tracks[i, tau, 1] = fy
+            valid_at[tau] = valid and np.isfinite(fx) and np.isfinite(fy)
+        if with_tracks:
+            _hold_nearest_valid(tracks[i], valid_at, before)
+        for tau in range(t_count if with_points3d else 0):
+            m = vehicle_from_box[tau]
+            points3d[i, tau, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
+            points3d[i, tau, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
+            points3d[i, tau, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+
+
+@njit(cache=True, nogil=True)
+def fill_points3d_frames(points_box, vehicle_from_box, points3d):
+    """Time-major ``points3d`` float32 [F, K, 3] of the frames of ``vehicle_from_box`` [F, 4, 4].
+
+    ``points3d[f, i]`` equals :func:`fill_tracks`' ``points3d[i, f]`` for the same transforms
+    (pass a slice of the clip's transforms for a range of frames).
+    """
+    n = points_box.shape[0]
+    for f in range(vehicle_from_box.shape[0]):
+        m = vehicle_from_box[f]
+        for i in range(n):
+            px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+            points3d[f, i, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
+            points3d[f, i, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
+            points3d[f, i, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+
+
+@njit(cache=True, nogil=True)
+def summarise_tracks(tracks, visibles, source_frames, width, height, query_pixels):
+    """Query pixels and sanity counts of a chunk of tracks (as ``core._summarise_tracks``).
+
+    ``query_pixels`` float32 [K, 2] (output) takes ``tracks[i, f]`` at the TAPVid-3D query
+    frame ``f``: ``source_frames[i]`` when visible there, else the first visible frame (0 when
+    none). Returns int64 [2]: visible point-frames whose position is not finite, and those
+    finite but outside ``[0, width) x [0, height)``.
+    """
+    counts = np.zeros(2, dtype=np.int64)
+    for i in range(tracks.shape[0]):
+        source = source_frames[i]
+        frame = source if visibles[i, source] else -1
+        for tau in range(tracks.shape[1]):
+            if visibles[i, tau]:
+                if frame < 0:
+                    frame = tau
+                x, y = tracks[i, tau, 0], tracks[i, tau, 1]
+                if not (np.isfinite(x) and np.isfinite(y)):
+                    counts[0] += 1
+                elif not (x >= 0 and x < width and y >= 0 and y < height):
+                    counts[1] += 1
+        if frame < 0:
+            frame = 0
+        query_pixels[i, 0] = tracks[i, frame, 0]
+        query_pixels[i, 1] = tracks[i, frame, 1]
+    return counts
 
 
 @njit(cache=True, nogil=True)

@@ -33,11 +33,6 @@ REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "
 
 def _object_row(t: ObjectTracks, file: str) -> dict:
     visible = t.visibles
-    finite = np.isfinite(t.tracks).all(axis=-1)
-    model = t.camera_model
-    with np.errstate(invalid="ignore"):
-        inside = ((t.tracks[..., 0] >= 0) & (t.tracks[..., 0] < model.width)
-                  & (t.tracks[..., 1] >= 0) & (t.tracks[..., 1] < model.height))
     errors = t.speed_error_mps[np.isfinite(t.speed_error_mps)]
     pct = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
            else np.full(len(SPEED_PERCENTILES), np.nan))
@@ -48,8 +43,9 @@ def _object_row(t: ObjectTracks, file: str) -> dict:
         "visible_fraction": float(visible.mean()) if visible.size else float("nan"),
         "min_camera_distance_m": float(t.min_camera_distance_m),
         "box_speed_mean_mps": float(t.box_speed_mps),
-        "num_nonfinite_visible": int((visible & ~finite).sum()),
-        "num_visible_outside_image": int((visible & finite & ~inside).sum()),
+        # counted by the job on its tracks (ObjectTracks docstring): tracks are never materialised here
+        "num_nonfinite_visible": int(t.num_nonfinite_visible),
+        "num_visible_outside_image": int(t.num_visible_outside_image),
         "num_candidates": int(t.num_candidates), "num_dropped_invisible": int(t.num_dropped_invisible),
         "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
     }
