@@ -23,6 +23,7 @@ consumers (evaluation, previews).
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import warnings
 import zlib
@@ -493,7 +494,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
-        projection = _NumpyProjection(model, rolling, projector, frames_meta, frames, camera_from_box,
+        # the projection is kept by the result's TrackSource: without the camera's images (a
+        # result crossing processes must not carry the segment's JPEGs)
+        shutter_meta = dataclasses.replace(frames_meta, jpeg=[None] * len(frames_meta.jpeg))
+        projection = _NumpyProjection(model, rolling, projector, shutter_meta, frames, camera_from_box,
                                       shift_camera, world_from_box, shift_world, velocity_world)
         parts: list[tuple[np.ndarray, np.ndarray]] = []
         keep = np.zeros(n, dtype=bool)

@@ -143,8 +143,9 @@ def _tracks_xyz_chunks(tracks: ObjectTracks, opencv_from_vehicle: np.ndarray):
     for points in tracks.source.frame_chunks():                                       # [F,N,3] float32
         transforms = opencv_from_vehicle[start:start + points.shape[0]]
         start += points.shape[0]
-        xyz = np.einsum("tij,tnj->tni", transforms[:, :3, :3], points.astype(np.float64)) \
-            + transforms[:, None, :3, 3]
+        xyz = np.einsum("tij,tnj->tni", transforms[:, :3, :3], points.astype(np.float64))
+        del points
+        xyz += transforms[:, None, :3, 3]
         yield xyz.astype(np.float32)
 
 
