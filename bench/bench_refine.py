@@ -11,6 +11,7 @@ per object for comparison.
 
     .venv/bin/python -m bench.run refine          # rewrites its block of docs/benchmarks.md
     .venv/bin/python bench/bench_refine.py --quick  # 2 noise levels, 24 frames, docs untouched
+    .venv/bin/python bench/bench_refine.py --full   # and the full-size segment (second table)
 
 Generated segments are cached under ``$DRIVETRACK_BENCH_DIR`` (default ``/tmp/drivetrack-bench``).
 """
@@ -111,34 +112,125 @@ def measure(levels=LEVELS, frames: int = 40, work: Path | None = None) -> list[d
     return rows
 
 
+def measure_full(noise_m: float = 0.05, frames: int = 30, seed: int = SEED, cache: Path | None = None) -> dict:
+    """The full-size segment of ``bench/bench_tracks.py`` (preset ``full``, 1920x1280, cached by
+    ``ensure_source``), its labels with ``noisy_scene``'s noise (``noise_m``, 1 deg per 5 cm), tracked
+    with the labels and with refined boxes; the track stage and the refinement timed in this process.
+
+    Track stage CPU = ``plan_segment`` + ``prepare_segment`` (maps given) + the object jobs, as in the
+    small-preset table; its object jobs alone are reported too (``bench_tracks``' "track CPU s").
+    Refinement CPU = what ``annotate.refine_scene`` does: its own ``plan_segment`` (to pick the
+    objects) + ``refine_scene_boxes`` (candidate gather + per-object solves)."""
+    from bench.bench_tracks import SPLIT, depth_for, ensure_source, noisy_scene, track_stage
+    from drivetrack.annotate import AnnotateConfig, load_scene_for
+    from drivetrack.evaluate import evaluate_tracks
+    from drivetrack.refine import refine_scene_boxes
+    from drivetrack.tracks import plan_segment, prepare_segment
+
+    cache = cache or ROOT / ".bench-cache"
+    root, segment = ensure_source(cache, "full", seed, frames)
+    config = AnnotateConfig()
+    track = config.track
+    scene = load_scene_for(root, SPLIT, segment, config, refine=False)
+    noisy = noisy_scene(scene, noise_m, seed)
+    out = {"preset": "full", "frames": frames, "seed": seed, "noise_m": noise_m, "lidar_returns": len(scene.lidar)}
+    # refinement, as annotate.refine_scene runs it (objects picked by a plan of the labels)
+    c0 = time.process_time()
+    objects = sorted({job.object_id for job in plan_segment(noisy, track).jobs})
+    c1 = time.process_time()
+    boxes, refined = refine_scene_boxes(noisy, config.refine_config(), objects, lasers=track.laser_values,
+                                        returns=track.returns, compensate_sweep_motion=track.compensate_sweep_motion)
+    c2 = time.process_time()
+    solve = sum(r.cpu_seconds for r in refined.values())
+    scene_refined = dataclasses.replace(noisy, boxes=boxes)
+    out.update(objects=len(objects), refine_plan_cpu_s=c1 - c0, refine_boxes_cpu_s=c2 - c1,
+               refine_solve_cpu_s=solve, refine_gather_cpu_s=(c2 - c1) - solve, refine_cpu_s=c2 - c0,
+               reasons={k: sum(r.reason == k for r in refined.values()) for k in {r.reason for r in refined.values()}},
+               iterations=[r.iterations for r in refined.values()])
+    plans = {"labels": plan_segment(noisy, track), "refined": plan_segment(scene_refined, track)}
+    depth, _, _ = depth_for(scene, track, plans.values())
+    truths: dict = {}
+    for kind, s in (("labels", noisy), ("refined", scene_refined)):
+        c0 = time.process_time()
+        ctx = prepare_segment(s, track, depth=depth, plan=plan_segment(s, track))
+        c1 = time.process_time()
+        tracks, jobs_cpu, _, annotations = track_stage(ctx)
+        out[f"{kind}_track_cpu_s"] = (c1 - c0) + jobs_cpu
+        out[f"{kind}_track_jobs_cpu_s"] = jobs_cpu
+        out[f"{kind}_clips"] = len(ctx.plan.jobs)
+        summary = evaluate_tracks(tracks, root, truths=truths).summary
+        first = summary["modes"].get("first", {})
+        out[kind] = {"OA": first.get("occlusion_accuracy", float("nan")),
+                     "AJ": first.get("average_jaccard", float("nan")),
+                     "delta_avg": first.get("average_pts_within_thresh", float("nan")),
+                     "px_median": summary.get("pixel_error_median", float("nan")),
+                     "purity": summary.get("purity", float("nan")), "recall": summary.get("recall", float("nan")),
+                     "tracks": summary.get("num_tracks", 0)}
+        del ctx, tracks
+    out["refine_over_track_cpu"] = out["refine_cpu_s"] / max(out["labels_track_cpu_s"], 1e-9)
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def _full_table(r: dict) -> str:
+    n = max(r["objects"], 1)
+    head = ("| boxes | OA | AJ | delta_avg | px error (median) | purity | recall | track stage CPU s "
+            "(jobs only) | refinement CPU s: total = plan + gather + solves |\n|---|---|---|---|---|---|---|---|---|\n")
+    lines = []
+    for kind in ("labels", "refined"):
+        s = r[kind]
+        refine = "-" if kind == "labels" else (
+            f"{r['refine_cpu_s']:.2f} = {r['refine_plan_cpu_s']:.2f} + {r['refine_gather_cpu_s']:.2f} + "
+            f"{r['refine_solve_cpu_s']:.2f} ({r['refine_cpu_s'] / n:.2f}/object; {r['refine_over_track_cpu']:.1f}x "
+            f"track stage, {r['refine_boxes_cpu_s'] / max(r['labels_track_cpu_s'], 1e-9):.1f}x without the plan)")
+        lines.append(f"| {kind} | {s['OA']:.3f} | {s['AJ']:.3f} | {s['delta_avg']:.3f} | {s['px_median']:.2f} | "
+                     f"{100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | {r[kind + '_track_cpu_s']:.2f} "
+                     f"({r[kind + '_track_jobs_cpu_s']:.2f}) | {refine} |")
+    return head + "\n".join(lines) + "\n"
+
+
 def _table(rows: list[dict]) -> str:
     head = ("| label noise | boxes | OA | AJ | delta_avg | px error (median) | purity | recall | "
-            "CPU s/object: track stage | refinement | refinement outcome |\n"
+            "CPU s/object (segment): track stage | refinement | refinement outcome |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         for kind in ("baseline", "refined"):
             s = r[kind]
             label = f"{100 * r['noise_m']:.0f} cm / {r['noise_deg']:g} deg" if kind == "baseline" else ""
+            n = max(r["objects"], 1)
+            track = f"{r['track_cpu_s_per_object']:.3f} ({r['track_cpu_s_per_object'] * n:.2f})"
             if kind == "baseline":
-                tail = f"{r['track_cpu_s_per_object']:.2f} | - | -"
+                tail = f"{track} | - | -"
             else:
                 outcome = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items()))
-                tail = (f"{r['track_cpu_s_per_object']:.2f} | {r['refine_cpu_s_per_object']:.2f} "
-                        f"({r['refine_over_track_cpu']:.1f}x track) | {outcome}")
+                tail = (f"{track} | {r['refine_cpu_s_per_object']:.3f} ({r['refine_cpu_s_per_object'] * n:.2f}; "
+                        f"{r['refine_over_track_cpu']:.1f}x track) | {outcome}")
             lines.append(f"| {label} | {'labels' if kind == 'baseline' else 'refined'} | {s['OA']:.3f} | "
                          f"{s['AJ']:.3f} | {s['delta_avg']:.3f} | {s['px_median']:.2f} | "
                          f"{100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | {tail} |")
     return head + "\n".join(lines) + "\n"
 
 
-def write_doc(rows: list[dict], machine: str, frames: int) -> None:
+def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = None) -> None:
     block = (f"{DOC_START}\n## Pose refinement\n\n"
              f"`bench/bench_refine.py`: one synthetic segment per label-noise level (preset `small`, "
              f"{frames} frames, seed {SEED}; 480x320 images), default `TrackConfig`, default `RefineConfig`; "
              f"tracks scored against the exact truth (`drivetrack.evaluate`, query mode `first`). "
-             f"Machine: {machine}; load average {os.getloadavg()[0]:.1f} at the end of the run (CPU "
-             f"seconds, not wall time, are reported).\n\n" + _table(rows) + f"\n{DOC_END}")
+             f"CPU seconds (`time.process_time`) of the track stage (plan + object jobs, depth maps excluded) and "
+             f"of `refine_scene_boxes` (candidate gather + solves) on the objects of the plan, in the same "
+             f"process. Machine: {machine}; load average {os.getloadavg()[0]:.1f} at the end of the run (CPU "
+             f"seconds, not wall time, are reported).\n\n" + _table(rows))
+    if full is not None:
+        block += (f"\nFull-size segment (`bench_refine.py --full`: `bench_tracks`' cached preset `full`, "
+                  f"{full['frames']} frames, seed {full['seed']}, 1920x1280, {full['lidar_returns'] / 1e6:.1f} M "
+                  f"returns, {full['objects']} annotated objects), labels with {100 * full['noise_m']:.0f} cm / "
+                  f"{full['noise_m'] / 0.05:g} deg noise (`bench_tracks.noisy_scene`), default `AnnotateConfig`; "
+                  f"track stage = plan + prepare (maps given) + object jobs; refinement = `annotate.refine_scene` "
+                  f"(its plan + `refine_scene_boxes`); outcome "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(full["reasons"].items()))
+                  + f", iterations {full['iterations']}:\n\n" + _full_table(full))
+    block += f"\n{DOC_END}"
     text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
     if DOC_START in text:
         text = re.sub(re.escape(DOC_START) + ".*?" + re.escape(DOC_END), lambda _: block, text, flags=re.S)
@@ -150,14 +242,21 @@ def write_doc(rows: list[dict], machine: str, frames: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two noise levels, 24 frames, docs untouched")
+    parser.add_argument("--full", action="store_true",
+                        help="also the full-size segment of bench_tracks (5 cm / 1 deg labels; minutes, ~4 GiB)")
+    parser.add_argument("--full-only", action="store_true", help="only the full-size segment, docs untouched")
     args = parser.parse_args(argv if argv is not None else [])
     from bench.run import machine_description
 
     if args.quick:
         measure(levels=(LEVELS[0], LEVELS[2]), frames=24)
         return 0
+    if args.full_only:
+        measure_full()
+        return 0
     rows = measure()
-    write_doc(rows, machine_description(), 40)
+    full = measure_full() if args.full else None
+    write_doc(rows, machine_description(), 40, full)
     return 0
 
 

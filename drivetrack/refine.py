@@ -782,6 +782,39 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                    iterations=iterations, cpu_seconds=time.process_time() - cpu0)
 
 
+def _gather_numpy(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lasers, returns,
+                  frame_offsets: np.ndarray, box_frame: np.ndarray, box_center: np.ndarray,
+                  box_radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reference of ``drivetrack.refine_kernel.gather`` (same arguments, same result): the
+    selected returns sorted once by (frame, vehicle x), so a box's candidates are a contiguous run
+    (a searchsorted on x), then tested on y and z."""
+    frame = np.repeat(np.arange(frame_offsets.size - 1), np.diff(frame_offsets))
+    selected = np.ones(points.shape[0], dtype=bool)
+    if lasers is not None:
+        selected &= np.isin(laser, np.asarray(lasers))
+    if returns is not None:
+        selected &= np.isin(return_index, np.asarray(returns))
+    chosen = np.flatnonzero(selected)
+    x = points[chosen, 0]
+    reach = float(np.abs(box_center[:, 0]).max(initial=0.0)) + float(box_radius.max(initial=0.0))
+    span = 2.0 * (max(float(np.abs(x).max(initial=0.0)), reach) + 1.0)      # frames never overlap
+    key = frame[chosen].astype(np.float64) * span + x                         # increasing in (frame, x)
+    order = np.argsort(key, kind="stable")
+    chosen, key = chosen[order], key[order]
+    box_frame = np.asarray(box_frame, dtype=np.int64)
+    # the runs are widened by a millimetre (the key's rounding), the exact test follows
+    lo = np.searchsorted(key, box_frame * span + box_center[:, 0] - box_radius - 1e-3, side="left")
+    hi = np.searchsorted(key, box_frame * span + box_center[:, 0] + box_radius + 1e-3, side="right")
+    length = np.maximum(hi - lo, 0)
+    owner = np.repeat(np.arange(box_frame.size), length)
+    first = np.concatenate([[0], np.cumsum(length)[:-1]]).astype(np.int64)
+    index = chosen[np.repeat(lo, length) + np.arange(owner.size) - first[owner]]
+    near = np.all(np.abs(points[index] - box_center[owner]) <= box_radius[owner, None], axis=-1)
+    index, owner = index[near], owner[near]
+    order = np.lexsort((index, owner))
+    return index[order].astype(np.int64), owner[order].astype(np.int64)
+
+
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
                        returns=None, compensate_sweep_motion: bool = True):
     """Refine every object of ``scene`` over its labelled frames; returns boxes usable as labels.
@@ -805,11 +838,6 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     boxes, lidar = scene.boxes, scene.lidar
     object_id = boxes.object_id.astype(str)
     ids = sorted(set(object_id.tolist())) if object_ids is None else [str(i) for i in object_ids]
-    selected = np.ones(len(lidar), dtype=bool)
-    if lasers is not None:
-        selected &= np.isin(lidar.laser, np.asarray(lasers))
-    if returns is not None:
-        selected &= np.isin(lidar.return_index, np.asarray(returns))
     timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
     center, heading, size = boxes.center.copy(), boxes.heading.copy(), boxes.size.copy()
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
@@ -820,35 +848,30 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
 
         box_velocity, box_yaw_rate = scene_box_motion(scene)
-    # Returns of the selected lasers sorted by (frame, vehicle x): the candidates of a box are then
-    # a contiguous run per frame (a searchsorted on x), tested on y and z only.
-    chosen = np.flatnonzero(selected)
-    x = lidar.points_vehicle[chosen, 0]
-    reach = float(np.abs(boxes.center[:, 0]).max(initial=0.0)) + 0.5 * float(
-        np.linalg.norm(boxes.size, axis=-1).max(initial=0.0)) + config.candidate_margin_m
-    span = 2.0 * (max(float(np.abs(x).max(initial=0.0)), reach) + 1.0)      # frames never overlap
-    key = lidar.frame[chosen].astype(np.float64) * span + x                     # increasing in (frame, x)
-    order = np.argsort(key, kind="stable")
-    chosen, key = chosen[order], key[order]
-    results = {}
+    object_rows = []
     for oid in ids:
         rows = np.flatnonzero(object_id == oid)
         if rows.size == 0:
             raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
-        rows = rows[np.argsort(boxes.frame[rows], kind="stable")]
+        object_rows.append(rows[np.argsort(boxes.frame[rows], kind="stable")])
+    # Candidates of every box of every object at once: the returns of the box's frame within its
+    # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
+    all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
+    radius_all = 0.5 * np.linalg.norm(boxes.size[all_rows], axis=-1) + config.candidate_margin_m
+    gather = _gather_numpy
+    if _use_kernel(config):
+        from drivetrack.refine_kernel import gather
+    index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
+                                  lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
+    row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
+    bounds = np.searchsorted(owner_all, row_start)
+    results = {}
+    for k, (oid, rows) in enumerate(zip(ids, object_rows)):
         frames = boxes.frame[rows].astype(np.int64)
         vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])
-        # all frames of the object at once: the returns within the box's bounding cube (radius)
-        radius = 0.5 * np.linalg.norm(boxes.size[rows], axis=-1) + config.candidate_margin_m     # [n]
-        lo = np.searchsorted(key, frames * span + boxes.center[rows, 0] - radius, side="left")
-        hi = np.searchsorted(key, frames * span + boxes.center[rows, 0] + radius, side="right")
-        length = np.maximum(hi - lo, 0)
-        owner = np.repeat(np.arange(rows.size), length)                          # [N] index into rows
-        first = np.concatenate([[0], np.cumsum(length)[:-1]])
-        index = chosen[np.repeat(lo, length) + np.arange(owner.size) - first[owner]]
+        index = index_all[bounds[k]:bounds[k + 1]]
+        owner = owner_all[bounds[k]:bounds[k + 1]] - row_start[k]               # [N] index into rows
         p = lidar.points_vehicle[index]
-        near = np.all(np.abs(p - boxes.center[rows][owner]) <= radius[owner, None], axis=-1)
-        p, owner, index = p[near], owner[near], index[near]
         if offsets is None:
             local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner)
         else:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations"]
+__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather"]
 
 try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
     from numba import njit
@@ -44,71 +44,94 @@ def _knn_grid(points, k, cell, dist, index):
     for a in range(3):
         lo[a] = points[:, a].min()
         dims[a] = int((points[:, a].max() - lo[a]) / cell) + 1
-    ncell = dims[0] * dims[1] * dims[2]
+    d1, d2 = dims[1], dims[2]
+    ncell = dims[0] * d1 * d2
     ci = np.empty((n, 3), np.int64)
     key = np.empty(n, np.int64)
     for i in range(n):
         for a in range(3):
             c = int((points[i, a] - lo[a]) / cell)
             ci[i, a] = min(max(c, 0), dims[a] - 1)
-        key[i] = (ci[i, 0] * dims[1] + ci[i, 1]) * dims[2] + ci[i, 2]
+        key[i] = (ci[i, 0] * d1 + ci[i, 1]) * d2 + ci[i, 2]
     order = np.argsort(key, kind="mergesort")              # stable: index order within a cell
+    # the points copied in cell order: a cell's points are contiguous in memory
+    sp = np.empty((n, 3))
+    for s in range(n):
+        for a in range(3):
+            sp[s, a] = points[order[s], a]
     start = np.zeros(ncell + 1, np.int64)
     for i in range(n):
         start[key[i] + 1] += 1
     for c in range(ncell):
         start[c + 1] += start[c]
-    max_ring = max(dims[0], max(dims[1], dims[2]))
+    max_ring = max(dims[0], max(d1, d2))
     best_d = np.empty(k)
     best_i = np.empty(k, np.int64)
     for i in range(n):
         found = 0
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        c0, c1, c2 = ci[i, 0], ci[i, 1], ci[i, 2]
         r = 0
         while True:
-            for di in range(-r, r + 1):
-                gi = ci[i, 0] + di
-                if gi < 0 or gi >= dims[0]:
-                    continue
-                for dj in range(-r, r + 1):
-                    gj = ci[i, 1] + dj
-                    if gj < 0 or gj >= dims[1]:
-                        continue
-                    for dk in range(-r, r + 1):
-                        if abs(di) != r and abs(dj) != r and abs(dk) != r:
-                            continue                        # inner cells: scanned at a smaller r
-                        gk = ci[i, 2] + dk
-                        if gk < 0 or gk >= dims[2]:
+            for gi in range(max(c0 - r, 0), min(c0 + r + 1, dims[0])):
+                edge_i = gi == c0 - r or gi == c0 + r
+                gx = 0.0
+                cl = lo[0] + gi * cell
+                if x < cl:
+                    gx = (cl - x) ** 2
+                elif x > cl + cell:
+                    gx = (x - cl - cell) ** 2
+                for gj in range(max(c1 - r, 0), min(c1 + r + 1, d1)):
+                    edge_j = edge_i or gj == c1 - r or gj == c1 + r
+                    gy = gx
+                    cl = lo[1] + gj * cell
+                    if y < cl:
+                        gy += (cl - y) ** 2
+                    elif y > cl + cell:
+                        gy += (y - cl - cell) ** 2
+                    if found == k and gy > best_d[k - 1]:
+                        continue                            # the whole row is farther than the k-th
+                    base = (gi * d1 + gj) * d2
+                    if edge_j:                              # rows inside the shell: only its two z ends
+                        klo, khi, kstep = max(c2 - r, 0), min(c2 + r + 1, d2), 1
+                    else:
+                        klo, khi, kstep = c2 - r, c2 + r + 1, 2 * r
+                    gk = klo
+                    while gk < khi:
+                        if gk < 0 or gk >= d2:
+                            gk += kstep if kstep > 0 else 1
                             continue
-                        c = (gi * dims[1] + gj) * dims[2] + gk
-                        if start[c] == start[c + 1]:
-                            continue
-                        if found == k:                  # skip cells farther than the k-th so far
-                            gap = 0.0
-                            for a, g in ((0, gi), (1, gj), (2, gk)):
-                                p = points[i, a]
-                                cell_lo = lo[a] + g * cell
-                                if p < cell_lo:
-                                    gap += (cell_lo - p) ** 2
-                                elif p > cell_lo + cell:
-                                    gap += (p - cell_lo - cell) ** 2
-                            if gap > best_d[k - 1]:
-                                continue
-                        for s in range(start[c], start[c + 1]):
-                            j = order[s]
-                            d = (points[j, 0] - x) ** 2 + (points[j, 1] - y) ** 2 + (points[j, 2] - z) ** 2
-                            if found == k and (d > best_d[k - 1] or (d == best_d[k - 1] and j > best_i[k - 1])):
-                                continue
-                            m = found if found < k else k - 1
-                            while m > 0 and (best_d[m - 1] > d or (best_d[m - 1] == d and best_i[m - 1] > j)):
-                                best_d[m] = best_d[m - 1]
-                                best_i[m] = best_i[m - 1]
-                                m -= 1
-                            best_d[m] = d
-                            best_i[m] = j
-                            if found < k:
-                                found += 1
-            # every point closer to point i than the faces of the block of rings <= r is in it
+                        c = base + gk
+                        if start[c] != start[c + 1]:
+                            ok = True
+                            if found == k:
+                                gap = gy
+                                cl = lo[2] + gk * cell
+                                if z < cl:
+                                    gap += (cl - z) ** 2
+                                elif z > cl + cell:
+                                    gap += (z - cl - cell) ** 2
+                                ok = gap <= best_d[k - 1]
+                            if ok:
+                                for s in range(start[c], start[c + 1]):
+                                    d = (sp[s, 0] - x) ** 2 + (sp[s, 1] - y) ** 2 + (sp[s, 2] - z) ** 2
+                                    if found == k and d > best_d[k - 1]:
+                                        continue
+                                    j = order[s]
+                                    if found == k and d == best_d[k - 1] and j > best_i[k - 1]:
+                                        continue
+                                    m = found if found < k else k - 1
+                                    while m > 0 and (best_d[m - 1] > d or (best_d[m - 1] == d and best_i[m - 1] > j)):
+                                        best_d[m] = best_d[m - 1]
+                                        best_i[m] = best_i[m - 1]
+                                        m -= 1
+                                    best_d[m] = d
+                                    best_i[m] = j
+                                    if found < k:
+                                        found += 1
+                        if kstep == 0:
+                            break
+                        gk += kstep
             reach = np.inf
             for a in range(3):
                 p = points[i, a]
@@ -121,7 +144,7 @@ def _knn_grid(points, k, cell, dist, index):
             index[i, m] = best_i[m]
 
 
-def knn(points: np.ndarray, k: int, cell_m: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+def knn(points: np.ndarray, k: int, cell_m: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
     """(distances float64 [N, k], indices int64 [N, k]): each point's k nearest among ``points``
     [N, 3] (itself first), ascending; exactly ``cKDTree(points).query(points, k)`` up to ties.
     ``cell_m``: grid cell (metres), about the spacing of k neighbours; only speed depends on it."""
@@ -238,3 +261,70 @@ def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, heading_a: n
                              np.ascontiguousarray(fa, dtype=np.int64), np.ascontiguousarray(fb, dtype=np.int64),
                              f64(w), f64(r), hessian, gradient)
     return hessian, gradient
+
+
+@njit(cache=True, nogil=True)
+def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offsets, box_frame, box_center,
+                   box_radius, count_only, counts, index, owner):
+    # boxes grouped by frame, so each return of a frame is read once whatever the number of boxes
+    n_box = box_frame.shape[0]
+    by_frame = np.argsort(box_frame, kind="mergesort")
+    fill = np.zeros(n_box, np.int64)
+    if not count_only:
+        for b in range(1, n_box):
+            fill[b] = fill[b - 1] + counts[b - 1]                  # output in (box, row) order
+    s = 0
+    while s < n_box:
+        f = box_frame[by_frame[s]]
+        e = s
+        while e < n_box and box_frame[by_frame[e]] == f:
+            e += 1
+        for i in range(frame_offsets[f], frame_offsets[f + 1]):
+            if not (laser_ok[laser[i] + 128] and return_ok[return_index[i] + 128]):
+                continue
+            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+            for m in range(s, e):
+                b = by_frame[m]
+                r = box_radius[b]
+                if abs(x - box_center[b, 0]) <= r and abs(y - box_center[b, 1]) <= r and \
+                        abs(z - box_center[b, 2]) <= r:
+                    if count_only:
+                        counts[b] += 1
+                    else:
+                        index[fill[b]] = i
+                        owner[fill[b]] = b
+                        fill[b] += 1
+        s = e
+
+
+def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lasers, returns,
+           frame_offsets: np.ndarray, box_frame: np.ndarray, box_center: np.ndarray,
+           box_radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index int64 [K], owner int64 [K]): the returns within each box's bounding cube.
+
+    ``points`` float64 [M, 3] sorted by frame (``frame_offsets`` int64 [T + 1]: rows of frame t are
+    ``[frame_offsets[t], frame_offsets[t+1])``), ``laser`` / ``return_index`` int8 [M]; only rows
+    whose laser is in ``lasers`` and return index in ``returns`` (None: all) take part. Per box b
+    (``box_frame`` int [B], ``box_center`` float64 [B, 3], ``box_radius`` float64 [B], metres): the
+    rows i of its frame with ``|points[i] - box_center[b]| <= box_radius[b]`` on every axis, in
+    (box, row) order; ``owner`` is b. One pass over each box's frame, no sort of all returns.
+    Reference: ``drivetrack.refine._gather_numpy``."""
+    def table(values):
+        ok = np.zeros(256, np.bool_)
+        if values is None:
+            ok[:] = True
+        else:
+            ok[np.asarray(values, dtype=np.int64).reshape(-1) + 128] = True
+        return ok
+
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    args = (points, np.ascontiguousarray(laser, dtype=np.int8), np.ascontiguousarray(return_index, dtype=np.int8),
+            table(lasers), table(returns), np.ascontiguousarray(frame_offsets, dtype=np.int64),
+            np.ascontiguousarray(box_frame, dtype=np.int64), np.ascontiguousarray(box_center, dtype=np.float64),
+            np.ascontiguousarray(box_radius, dtype=np.float64))
+    counts = np.zeros(box_frame.shape[0], np.int64)
+    empty = np.empty(0, np.int64)
+    _gather_kernel(*args, True, counts, empty, empty)
+    index, owner = np.empty(int(counts.sum()), np.int64), np.empty(int(counts.sum()), np.int64)
+    _gather_kernel(*args, False, counts, index, owner)
+    return index, owner

@@ -355,3 +355,50 @@ def test_numba_kernels_match_the_numpy_reference(noisy):
         RefineConfig(kernel="cuda")
     with pytest.raises(ValueError, match="k must be"):
         refine_kernel.knn(q[:5], 6)
+
+
+@pytest.mark.parametrize("cell_m", [0.05, 0.15, 1.0])
+def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
+    """Dense clusters, isolated far points (many empty shells) and any cell size: the same
+    neighbours and distances as cKDTree (continuous random coordinates: no ties)."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack import refine_kernel
+    rng = np.random.default_rng(4)
+    q = np.concatenate([rng.normal(0.0, 0.05, (300, 3)), rng.normal(1.0, 0.3, (300, 3)),
+                        rng.uniform(-4.0, 4.0, (20, 3))])
+    dist, index = refine_kernel.knn(q, 9, cell_m=cell_m)
+    ref_dist, ref_index = cKDTree(q).query(q, k=9)
+    np.testing.assert_array_equal(index, ref_index)
+    np.testing.assert_allclose(dist, ref_dist, atol=1e-12)
+
+
+def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
+    from drivetrack import refine_kernel
+    from drivetrack.refine import _gather_numpy
+    rng = np.random.default_rng(5)
+    t_count, per_frame = 4, 3000
+    points = rng.uniform(-20.0, 20.0, (t_count * per_frame, 3))
+    offsets = np.arange(t_count + 1) * per_frame
+    laser = rng.integers(1, 6, points.shape[0]).astype(np.int8)
+    return_index = rng.integers(1, 3, points.shape[0]).astype(np.int8)
+    box_frame = np.array([2, 0, 2, 3, 0])                          # unsorted, two boxes per frame
+    box_center = rng.uniform(-10.0, 10.0, (5, 3))
+    box_radius = np.array([3.0, 5.0, 2.0, 4.0, 6.0])
+    for lasers, returns in ((None, None), ((1, 3), (1,))):
+        args = (points, laser, return_index, lasers, returns, offsets, box_frame, box_center, box_radius)
+        index, owner = refine_kernel.gather(*args)
+        ref_index, ref_owner = _gather_numpy(*args)
+        np.testing.assert_array_equal(index, ref_index)
+        np.testing.assert_array_equal(owner, ref_owner)
+        expect_index, expect_owner = [], []
+        for b in range(5):
+            rows = np.arange(offsets[box_frame[b]], offsets[box_frame[b] + 1])
+            ok = np.all(np.abs(points[rows] - box_center[b]) <= box_radius[b], axis=-1)
+            if lasers is not None:
+                ok &= np.isin(laser[rows], lasers) & np.isin(return_index[rows], returns)
+            expect_index.append(rows[ok])
+            expect_owner.append(np.full(int(ok.sum()), b))
+        np.testing.assert_array_equal(index, np.concatenate(expect_index))
+        np.testing.assert_array_equal(owner, np.concatenate(expect_owner))
+        assert index.size > 20
