@@ -222,7 +222,8 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
     # Only objects that pass the planning filters with their labels (type, camera, frames in view,
     # distance) are worth refining: the rest are never annotated. Label noise of centimetres does
     # not move an object across these coarse filters.
-    object_ids = sorted({job.object_id for job in plan_segment(scene, config.track).jobs})
+    # (Which clips pass needs no point selection: the costly part of planning a full segment.)
+    object_ids = sorted({job.object_id for job in plan_segment(scene, config.track, select_points=False).jobs})
     if not object_ids:
         return scene
     boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,

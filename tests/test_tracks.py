@@ -274,6 +274,13 @@ def test_filters_are_counted_by_reason_and_distance_is_from_the_camera():
     table = rejection_stats(plan, results)
     assert len(table) == 16 and set(table.camera) == {"FRONT", "SIDE_LEFT"}
 
+    # without point selection (what pose refinement asks): the same filters but no_points
+    quick = plan_segment(scene, CONFIG, select_points=False)
+    assert {job.object_id for job in quick.jobs} == {"good", "near_camera", "empty"}
+    assert {(r["camera"], r["object_id"]): r["reason"] for r in quick.rejections} == {
+        k: v for k, v in reasons.items() if v != "no_points"}
+    assert quick.box_points(quick.jobs[0].box_rows)[0].size == 0
+
 
 def test_longest_run_policy_keeps_the_longest_run():
     b = SceneBuilder()

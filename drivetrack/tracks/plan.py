@@ -274,18 +274,26 @@ def _boxes_in_view(scene: Scene, geometry: CameraGeometry, rows: np.ndarray, gri
     return seen & geometry.has_image[boxes.frame[rows]]
 
 
-def plan_segment(scene: Scene, config: TrackConfig) -> SegmentPlan:
+def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) -> SegmentPlan:
     """Apply the cheap filters to every (camera, object) of ``scene``; see the module docstring.
 
     Rejections are recorded in ``plan.rejections`` with one reason from
     :data:`REJECTION_REASONS` each; accepted clips become ``plan.jobs``.
+
+    ``select_points=False`` skips the selection of each box's LiDAR returns (the costly part on a
+    full segment) and with it the ``no_points`` filter: enough to know which clips pass the
+    camera, type, view, frames and distance filters (pose refinement asks only that); the plan's
+    :meth:`SegmentPlan.box_points` then returns no points.
     """
     _check_scene(scene)
     boxes = scene.boxes
     object_ids = boxes.object_id.astype(str)
     ids = sorted(set(object_ids.tolist()))
     type_ok_rows = np.flatnonzero(np.isin(boxes.type, config.object_type_values))
-    offsets, index = select_object_points(scene, config, type_ok_rows)
+    if select_points:
+        offsets, index = select_object_points(scene, config, type_ok_rows)
+    else:
+        offsets, index = np.zeros(len(boxes) + 1, dtype=np.int64), np.zeros(0, dtype=np.int64)
     cameras = {int(c): camera_geometry(scene, int(c)) for c in sorted(scene.cameras)}
     plan = SegmentPlan(scene, config, cameras, offsets, index, num_objects_labelled=len(ids))
     points_per_row = np.diff(offsets)
@@ -357,7 +365,7 @@ def plan_segment(scene: Scene, config: TrackConfig) -> SegmentPlan:
                 reject("too_far", f"closest {distance:.1f} m > {config.max_camera_distance_m} m")
                 continue
             num_points = int(points_per_row[clip_rows].sum())
-            if num_points == 0:
+            if num_points == 0 and select_points:
                 reject("no_points", f"no LiDAR return in the box over frames {run[0]}-{run[1]}")
                 continue
             plan.jobs.append(ObjectJob(c, oid, object_type, frames, clip_rows, distance, num_points))
