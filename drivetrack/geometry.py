@@ -100,16 +100,29 @@ def rigid_from_rotation_translation(rotation: np.ndarray, translation: np.ndarra
     return out
 
 
-def box_from_center_heading(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
-    """``parent_from_box`` float64 [..., 4, 4] of a Waymo box.
+def box_from_center_heading(center: np.ndarray, heading: np.ndarray, pitch: np.ndarray | None = None,
+                            roll: np.ndarray | None = None) -> np.ndarray:
+    """``parent_from_box`` float64 [..., 4, 4] of a Waymo box, optionally tilted.
 
     Args:
         center: float [..., 3], box centre in the parent frame (for ``lidar_box``: the vehicle
             frame of the box's own frame), metres.
         heading: float [...], yaw about +z, radians. The box frame has x along the heading
             (length, ``size.x``), y to its left (width, ``size.y``), z up (height, ``size.z``).
+        pitch, roll: optional float [...], radians (None: 0, a ``lidar_box`` label, exactly
+            ``Rz(heading)``). Rotation ``R = Rz(heading) @ Ry(pitch) @ Rx(roll)`` (intrinsic z-y'-x'',
+            the order of :func:`rotation_from_rpy`): roll about the box's own x (length) axis, then
+            pitch about its y (width) axis, then heading about the parent z. Positive pitch tips the
+            box's front (+x) down (``R[2, 0] = -sin(pitch)``); positive roll lifts its left (+y)
+            side (``R[2, 1] = cos(pitch) sin(roll)``). ``heading`` stays the yaw of the box x axis
+            projected on the parent xy plane (``atan2(R[1, 0], R[0, 0])``).
     """
-    return rigid_from_rotation_translation(rotation_z(heading), center)
+    if pitch is None and roll is None:
+        return rigid_from_rotation_translation(rotation_z(heading), center)
+    heading = np.asarray(heading, dtype=np.float64)
+    pitch = np.zeros_like(heading) if pitch is None else pitch
+    roll = np.zeros_like(heading) if roll is None else roll
+    return rigid_from_rotation_translation(rotation_from_rpy(roll, pitch, heading), center)
 
 
 def points_in_box_mask(points_box: np.ndarray, size: np.ndarray, margin: float = 0.0) -> np.ndarray:

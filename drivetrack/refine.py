@@ -44,7 +44,7 @@ import numpy as np
 from drivetrack.geometry import box_from_center_heading
 
 __all__ = ["RefineConfig", "RefinedPoses", "refine_object_poses", "refine_scene_boxes",
-           "REFINE_REASONS", "poses_from_center_heading", "center_heading_from_poses"]
+           "REFINE_REASONS", "poses_from_center_heading", "center_heading_from_poses", "tilt_from_poses"]
 
 #: ``RefinedPoses.reason`` values. ``refined``: refined poses returned; ``disabled``: refinement
 #: off by configuration; ``labels_consistent``: the labels are already as consistent with the
@@ -80,6 +80,12 @@ class RefineConfig:
         accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
             stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
             of a roof, so z is the least observed direction) and yaw acceleration.
+        pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
+            parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
+            roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
+            labels: level in the vehicle frame); refined boxes then carry ``pitch``/``roll``.
+        pitch_roll_accel_sigma_radps2: (6 DOF) motion model stiffness of the box's pitch and
+            roll in the *world* (the ego's own pitch and roll are taken out with its pose).
         min_points_total, min_frames_with_points, min_points_per_frame: fallback
             ``too_few_points`` unless the labels select at least ``min_points_total`` returns and
             at least ``min_frames_with_points`` frames have ``min_points_per_frame`` returns.
@@ -122,6 +128,8 @@ class RefineConfig:
     accel_sigma_mps2: float = 2.0
     vertical_accel_sigma_mps2: float = 0.3
     yaw_accel_sigma_radps2: float = 1.0
+    pitch_roll_sigma_deg: float | None = 1.0
+    pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60
     min_frames_with_points: int = 3
     min_points_per_frame: int = 10
@@ -140,7 +148,8 @@ class RefineConfig:
     def __post_init__(self):
         positive = ("iterations", "max_correspondence_m", "min_correspondence_m", "huber_k",
                     "point_sigma_floor_m", "min_planarity", "label_sigma_m", "label_sigma_deg", "accel_sigma_mps2",
-                    "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "max_residual_m", "max_correction_m",
+                    "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "pitch_roll_accel_sigma_radps2",
+                    "max_residual_m", "max_correction_m",
                     "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg")
         for name in positive:
             value = getattr(self, name)
@@ -151,6 +160,10 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"RefineConfig.{name} must be >= 0, got {value!r}")
+        if self.pitch_roll_sigma_deg is not None and not (np.isfinite(self.pitch_roll_sigma_deg)
+                                                          and self.pitch_roll_sigma_deg > 0):
+            raise ValueError(f"RefineConfig.pitch_roll_sigma_deg must be a positive number or None (4 DOF), "
+                             f"got {self.pitch_roll_sigma_deg!r}")
         if self.normal_neighbours < 3:
             raise ValueError(f"RefineConfig.normal_neighbours must be >= 3, got {self.normal_neighbours}")
         if self.association_neighbours < 2:
@@ -182,8 +195,9 @@ class RefinedPoses:
     """Result of :func:`refine_object_poses` for one object over its T frames.
 
     Attributes:
-        vehicle_from_box: float64 [T, 4, 4], refined box poses (the labels on fallback); yaw-only
-            in each frame's vehicle frame, like a label.
+        vehicle_from_box: float64 [T, 4, 4], refined box poses (the labels on fallback), vehicle
+            frame of each frame; rotation ``Rz(heading) Ry(pitch) Rx(roll)`` (yaw-only, like a
+            label, with ``RefineConfig.pitch_roll_sigma_deg=None``).
         world_from_box: float64 [T, 4, 4] = ``world_from_vehicle @ vehicle_from_box``.
         center_vehicle: float64 [T, 3] metres and heading: float64 [T] radians in (-pi, pi] of
             the returned boxes (vehicle frame of each frame).
@@ -193,6 +207,8 @@ class RefinedPoses:
             frame), zero on fallback.
         correction_rotation_deg: float64 [T], returned heading minus label heading, wrapped to
             (-180, 180], zero on fallback.
+        pitch, roll: float64 [T] radians of the returned boxes (the labels' on fallback: 0 for
+            yaw-only labels; 0 with 4 DOF).
         residual_m: robust point-to-plane residual (1.4826 x median |r|, metres) of the refined
             poses; NaN when never computed (too few points, disabled).
         residual_label_m: the same measure at the labels (the labels' own consistency).
@@ -222,6 +238,8 @@ class RefinedPoses:
     detail: str = ""
     iterations: int = 0
     cpu_seconds: float = 0.0
+    pitch: np.ndarray | None = None
+    roll: np.ndarray | None = None
 
     def summary(self) -> dict:
         """Flat dict for the statistics tables and the gates (one row per object)."""
@@ -236,6 +254,8 @@ class RefinedPoses:
             "refine_translation_max_m": float(translation.max()) if has else 0.0,
             "refine_rotation_p50_deg": float(np.median(rotation)) if has else 0.0,
             "refine_rotation_max_deg": float(rotation.max()) if has else 0.0,
+            "refine_tilt_max_deg": float(np.rad2deg(np.max(np.hypot(self.pitch, self.roll))))
+            if has and self.pitch is not None else 0.0,
             "refine_residual_m": float(self.residual_m),
             "refine_residual_label_m": float(self.residual_label_m),
             "refine_num_points": int(self.num_points.sum()),
@@ -267,11 +287,40 @@ def _wrap(angle: np.ndarray) -> np.ndarray:
     return -((-np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi)
 
 
-def _body_points(center: np.ndarray, heading: np.ndarray, points: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """float64 [M, 3]: ``box_from_vehicle(s_frame) x`` for points x [M, 3] of frames ``frame``."""
-    d = points - center[frame]
-    c, s = np.cos(heading[frame]), np.sin(heading[frame])
-    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=-1)
+def _to_body(vec: np.ndarray, heading: np.ndarray, tilt: np.ndarray | None) -> np.ndarray:
+    """float64 [M, 3] ``R^T vec`` for vectors vec [M, 3], R = Rz(heading) Ry(pitch) Rx(roll) per row
+    (heading [M], tilt [M, 2] = (pitch, roll) or None: yaw only)."""
+    c, s = np.cos(heading), np.sin(heading)
+    u = np.stack([c * vec[:, 0] + s * vec[:, 1], -s * vec[:, 0] + c * vec[:, 1], vec[:, 2]], axis=-1)
+    if tilt is None:
+        return u
+    ct, st, cr, sr = np.cos(tilt[:, 0]), np.sin(tilt[:, 0]), np.cos(tilt[:, 1]), np.sin(tilt[:, 1])
+    vx, vz = ct * u[:, 0] - st * u[:, 2], st * u[:, 0] + ct * u[:, 2]                 # Ry^T u
+    return np.stack([vx, cr * u[:, 1] + sr * vz, -sr * u[:, 1] + cr * vz], axis=-1)   # Rx^T v
+
+
+def _from_body(vec: np.ndarray, heading: np.ndarray, tilt: np.ndarray | None) -> np.ndarray:
+    """float64 [M, 3] ``R vec``: the inverse of :func:`_to_body`."""
+    if tilt is not None:
+        ct, st, cr, sr = np.cos(tilt[:, 0]), np.sin(tilt[:, 0]), np.cos(tilt[:, 1]), np.sin(tilt[:, 1])
+        vy, vz = cr * vec[:, 1] - sr * vec[:, 2], sr * vec[:, 1] + cr * vec[:, 2]     # Rx q
+        vec = np.stack([ct * vec[:, 0] + st * vz, vy, -st * vec[:, 0] + ct * vz], axis=-1)  # Ry v
+    c, s = np.cos(heading), np.sin(heading)
+    return np.stack([c * vec[:, 0] - s * vec[:, 1], s * vec[:, 0] + c * vec[:, 1], vec[:, 2]], axis=-1)
+
+
+def _body_points(center: np.ndarray, heading: np.ndarray, points: np.ndarray, frame: np.ndarray,
+                 tilt: np.ndarray | None = None) -> np.ndarray:
+    """float64 [M, 3]: ``box_from_vehicle(s_frame) x`` for points x [M, 3] of frames ``frame``
+    (tilt [T, 2] = per-frame (pitch, roll), None: yaw-only boxes)."""
+    return _to_body(points - center[frame], heading[frame], None if tilt is None else tilt[frame])
+
+
+def tilt_from_poses(vehicle_from_box: np.ndarray) -> np.ndarray:
+    """float64 [T, 2] (pitch, roll) radians of box poses [T, 4, 4] with rotation
+    ``Rz(heading) Ry(pitch) Rx(roll)``; exactly 0 for yaw-only poses."""
+    r = np.asarray(vehicle_from_box, dtype=np.float64)[..., :3, :3]
+    return np.stack([-np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0)), np.arctan2(r[..., 2, 1], r[..., 2, 2])], axis=-1)
 
 
 def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) -> np.ndarray:
@@ -305,18 +354,19 @@ class _Selection:
         self.screened = np.flatnonzero(self.rank < self.screen)
         self.frame_full = counts > self.screen          # frames with returns beyond the screen
 
-    def select(self, center: np.ndarray, heading: np.ndarray, margin: float, clearance: float):
+    def select(self, center: np.ndarray, heading: np.ndarray, margin: float, clearance: float,
+               tilt: np.ndarray | None = None):
         """(body points float64 [P, 3], frames int64 [P], rows int64 [P] into ``self.points``) of
-        the capped returns inside the boxes (center [T, 3], heading [T]) grown by ``margin``, in
-        (frame, priority) order."""
+        the capped returns inside the boxes (center [T, 3], heading [T], tilt [T, 2] or None)
+        grown by ``margin``, in (frame, priority) order."""
         idx = self.screened
         f = self.frame[idx]
-        q = _body_points(center, heading, self.points[idx], f)
+        q = _body_points(center, heading, self.points[idx], f, tilt)
         inside = _inside(q, self.half[idx], margin, clearance)
         short = self.frame_full & (np.bincount(f[inside], minlength=self.t_count) < self.cap)
         if short.any():                                 # widen to whole frames where needed
             more = np.flatnonzero(short[self.frame] & (self.rank >= self.screen))
-            q_more = _body_points(center, heading, self.points[more], self.frame[more])
+            q_more = _body_points(center, heading, self.points[more], self.frame[more], tilt)
             in_more = _inside(q_more, self.half[more], margin, clearance)
             idx = np.concatenate([idx[inside], more[in_more]])
             q = np.concatenate([q[inside], q_more[in_more]])
@@ -405,21 +455,36 @@ def _use_kernel(config: RefineConfig) -> bool:
     return NUMBA_AVAILABLE
 
 
-def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray) -> np.ndarray:
-    """float64 [C, 4]: d (n . q) / d (c, psi) for body points q = R(-psi) (x - c), normals n."""
+def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray, tilt: np.ndarray | None = None) -> np.ndarray:
+    """float64 [C, 4] (yaw only: d (n . q) / d (c, psi) for body points q = Rz(-psi) (x - c)) or,
+    with tilt [C, 2] = (pitch theta, roll phi), float64 [C, 6]: d (n . q) / d (c, psi, theta, phi)
+    for q = Rx(-phi) Ry(-theta) Rz(-psi) (x - c), body normals n [C, 3] held fixed.
+
+    With v = Rx q, u = Ry v (= Rz^T (x - c)), k = Rx n, m = Ry k:
+    dq/dc = -R^T, so d/dc = -(Rz m); d/dpsi = m . (u_y, -u_x, 0); d/dtheta = k . (-v_z, 0, v_x);
+    d/dphi = n . (0, q_z, -q_y)."""
+    if tilt is None:
+        c, s = np.cos(heading), np.sin(heading)
+        return np.stack([-(c * n[:, 0] - s * n[:, 1]), -(s * n[:, 0] + c * n[:, 1]), -n[:, 2],
+                         n[:, 0] * q[:, 1] - n[:, 1] * q[:, 0]], axis=-1)
+    ct, st, cr, sr = np.cos(tilt[:, 0]), np.sin(tilt[:, 0]), np.cos(tilt[:, 1]), np.sin(tilt[:, 1])
+    vy, vz = cr * q[:, 1] - sr * q[:, 2], sr * q[:, 1] + cr * q[:, 2]          # v = Rx q (v_x = q_x)
+    ux, uy = ct * q[:, 0] + st * vz, vy                                        # u = Ry v
+    ky, kz = cr * n[:, 1] - sr * n[:, 2], sr * n[:, 1] + cr * n[:, 2]          # k = Rx n (k_x = n_x)
+    mx, mz = ct * n[:, 0] + st * kz, -st * n[:, 0] + ct * kz                   # m = Ry k (m_y = k_y)
     c, s = np.cos(heading), np.sin(heading)
-    return np.stack([-(c * n[:, 0] - s * n[:, 1]), -(s * n[:, 0] + c * n[:, 1]), -n[:, 2],
-                     n[:, 0] * q[:, 1] - n[:, 1] * q[:, 0]], axis=-1)
+    return np.stack([-(c * mx - s * ky), -(s * mx + c * ky), -mz, mx * uy - ky * ux,
+                     -n[:, 0] * vz + kz * q[:, 0], n[:, 1] * q[:, 2] - n[:, 2] * q[:, 1]], axis=-1)
 
 
 def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
-               config: RefineConfig, t_count: int) -> _Pairs | None:
+               config: RefineConfig, t_count: int, tilt: np.ndarray | None = None) -> _Pairs | None:
     """Correspondences at state (center, heading): one ``cKDTree`` over all used body points,
     one k-nearest query serving both the leave-one-frame-out association (within ``gate_m``) and
     the neighbourhood of each target's PCA normal. None when there is too little to pair."""
     from scipy.spatial import cKDTree
 
-    q, f, rows = selection.select(center, heading, config.inlier_margin_m, config.ground_clearance_m)
+    q, f, rows = selection.select(center, heading, config.inlier_margin_m, config.ground_clearance_m, tilt)
     num_points = np.bincount(f, minlength=t_count).astype(np.int64)
     if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
         return _Pairs(*(np.zeros(0, np.int64),) * 4, np.zeros((0, 3)), np.zeros(0), num_points)
@@ -443,32 +508,32 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     normal_t, planarity_t = (refine_kernel.normals(q, neighbours) if use_kernel else _normals(q, neighbours))
     fb = f[dst]
     n_body = normal_t[target_of]
-    c, s = np.cos(heading[fb]), np.sin(heading[fb])                      # body -> vehicle of fb
-    normal_vehicle = np.stack([c * n_body[:, 0] - s * n_body[:, 1], s * n_body[:, 0] + c * n_body[:, 1],
-                               n_body[:, 2]], axis=-1)
+    normal_vehicle = _from_body(n_body, heading[fb], None if tilt is None else tilt[fb])   # body -> vehicle of fb
     weight = np.clip(planarity_t[target_of] / config.min_planarity, 0.0, 1.0)
     return _Pairs(rows[src], rows[dst], f[src], fb, normal_vehicle, weight, num_points)
 
 
 def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray, heading: np.ndarray,
-                config: RefineConfig, t_count: int, normal_equations: bool = True) -> _Data:
-    """Point-to-plane normal equations of fixed correspondences at state (center, heading).
+                config: RefineConfig, t_count: int, normal_equations: bool = True,
+                tilt: np.ndarray | None = None) -> _Data:
+    """Point-to-plane normal equations of fixed correspondences at state (center, heading[, tilt]).
 
-    The residual ``n . (q_a - q_b)`` depends on both poses, so both move (8 Jacobian non-zeros per
-    row, accumulated straight into the dense [4T, 4T] normal equations); the normal rotates with
-    frame b's heading. ``normal_equations=False`` computes the residuals only.
+    The residual ``n . (q_a - q_b)`` depends on both poses, so both move (2 x 4 Jacobian non-zeros
+    per row, 2 x 6 with tilt, accumulated straight into the dense [DT, DT] normal equations, D = 4
+    or 6); the normal rotates with frame b's pose. ``normal_equations=False`` computes the
+    residuals only.
     """
-    n_state = 4 * t_count
+    dof = 4 if tilt is None else 6
+    n_state = dof * t_count
     num_points = pairs.num_points if pairs is not None else np.zeros(t_count, np.int64)
     if pairs is None or pairs.src.size < 4:
         return _Data(np.zeros((n_state, n_state)), np.zeros(n_state), np.zeros(0), np.zeros(0, np.int64),
                      float("nan"), num_points)
     fa, fb = pairs.fa, pairs.fb
-    qa = _body_points(center, heading, selection.points[pairs.src], fa)
-    qb = _body_points(center, heading, selection.points[pairs.dst], fb)
-    nv = pairs.normal_vehicle
-    c, s = np.cos(heading[fb]), np.sin(heading[fb])                      # vehicle of fb -> body
-    n = np.stack([c * nv[:, 0] + s * nv[:, 1], -s * nv[:, 0] + c * nv[:, 1], nv[:, 2]], axis=-1)
+    qa = _body_points(center, heading, selection.points[pairs.src], fa, tilt)
+    qb = _body_points(center, heading, selection.points[pairs.dst], fb, tilt)
+    tilt_a, tilt_b = (None, None) if tilt is None else (tilt[fa], tilt[fb])
+    n = _to_body(pairs.normal_vehicle, heading[fb], tilt_b)             # vehicle of fb -> body
     r = np.einsum("ni,ni->n", n, qa - qb)
     scale = max(1.4826 * float(np.median(np.abs(r))), config.point_sigma_floor_m)
     if not normal_equations:
@@ -479,11 +544,12 @@ def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray,
         from drivetrack import refine_kernel
 
         hessian, gradient = refine_kernel.normal_equations(n, qa, qb, heading[fa], heading[fb], fa, fb, w, r,
-                                                           t_count)
+                                                           t_count, tilt_a, tilt_b)
         return _Data(hessian, gradient, r, fa, scale, num_points)
-    jac = np.concatenate([_point_jacobian(n, qa, heading[fa]), -_point_jacobian(n, qb, heading[fb])], axis=1)  # [C, 8]
-    cols = np.concatenate([4 * fa[:, None] + np.arange(4), 4 * fb[:, None] + np.arange(4)], axis=1)  # [C, 8]
-    blocks = (w[:, None, None] * jac[:, :, None] * jac[:, None, :]).reshape(-1)           # [C * 64]
+    jac = np.concatenate([_point_jacobian(n, qa, heading[fa], tilt_a),
+                          -_point_jacobian(n, qb, heading[fb], tilt_b)], axis=1)                  # [C, 2D]
+    cols = np.concatenate([dof * fa[:, None] + np.arange(dof), dof * fb[:, None] + np.arange(dof)], axis=1)
+    blocks = (w[:, None, None] * jac[:, :, None] * jac[:, None, :]).reshape(-1)           # [C * 4D^2]
     flat = (cols[:, :, None] * n_state + cols[:, None, :]).reshape(-1)
     hessian = np.bincount(flat, weights=blocks, minlength=n_state * n_state).reshape(n_state, n_state)
     gradient = np.bincount(cols.reshape(-1), weights=(jac * (w * r)[:, None]).reshape(-1), minlength=n_state)
@@ -491,23 +557,39 @@ def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray,
 
 
 def _data_terms(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
-                config: RefineConfig, t_count: int, normal_equations: bool = True) -> _Data:
-    """Associate at (center, heading) within ``gate_m`` and evaluate the terms there."""
-    pairs = _associate(selection, center, heading, gate_m, config, t_count)
-    return _pair_terms(selection, pairs, center, heading, config, t_count, normal_equations)
+                config: RefineConfig, t_count: int, normal_equations: bool = True,
+                tilt: np.ndarray | None = None) -> _Data:
+    """Associate at (center, heading[, tilt]) within ``gate_m`` and evaluate the terms there."""
+    pairs = _associate(selection, center, heading, gate_m, config, t_count, tilt)
+    return _pair_terms(selection, pairs, center, heading, config, t_count, normal_equations, tilt)
 
 
-def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, config: RefineConfig):
-    """Linear motion-model residuals ``e = S x + e0`` over the stacked state x [4T].
+def _world_tilt_offset(world_from_vehicle: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """float64 [T, 2]: (pitch, roll) in the world of a box of heading ``heading`` [T] and no tilt in
+    the vehicle frame, i.e. the ego's tilt seen in the box's axes (to first order the world tilt
+    of a box is its vehicle-frame tilt plus this)."""
+    return tilt_from_poses(world_from_vehicle[:, :3, :3] @ box_from_center_heading(np.zeros((heading.size, 3)),
+                                                                                  heading)[:, :3, :3])
+
+
+def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, config: RefineConfig,
+                     heading: np.ndarray | None = None):
+    """Linear motion-model residuals ``e = S x + e0`` over the stacked state x [DT].
 
     Rows: for every interior frame, the second divided difference of the world centre (3 rows,
     over ``accel_sigma_mps2``) and of the world heading (1 row, over ``yaw_accel_sigma_radps2``).
     World centre of frame t: ``R_t c_t + p_t``; world heading: ``psi_t + yaw(R_t)`` (unwrapped).
-    Returns (S scipy.sparse csr [4(T-2), 4T], e0 float64 [4(T-2)]), or (None, None) when T < 3.
+    With ``heading`` [T] given (the labels' headings, radians), the state has D = 6 per frame and
+    two more rows: the second divided difference of the world pitch and roll (over
+    ``tilt_accel_sigma_radps2``), linearised as ``tilt_t + _world_tilt_offset(t)``: the ego's own
+    pitch and roll (braking, turning, bumps) are in ``world_from_vehicle`` and must not be asked of
+    the object. Returns (S scipy.sparse csr [D(T-2), DT], e0 float64 [D(T-2)]), or (None, None)
+    when T < 3.
     """
     import scipy.sparse as sp
 
     t_count = timestamps_s.shape[0]
+    dof = 4 if heading is None else 6
     if t_count < 3:
         return None, None
     dt = np.diff(timestamps_s)
@@ -520,24 +602,32 @@ def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, c
     frames = interior[:, None] + np.arange(-1, 2)[None, :]                  # [T-2, 3]
     sigma = np.array([config.accel_sigma_mps2, config.accel_sigma_mps2, config.vertical_accel_sigma_mps2])
     rows, cols, vals = [], [], []
-    base_row = 4 * (interior - 1)
+    base_row = dof * (interior - 1)
     for k in range(3):                                                      # 3 frames per stencil
         fk = frames[:, k]
         for a in range(3):                                                  # world axis (row)
             for b in range(3):                                              # state centre axis
                 rows.append(base_row + a)
-                cols.append(4 * fk + b)
+                cols.append(dof * fk + b)
                 vals.append(coef[:, k] * rotation[fk, a, b] / sigma[a])
         rows.append(base_row + 3)
-        cols.append(4 * fk + 3)
+        cols.append(dof * fk + 3)
         vals.append(coef[:, k] / config.yaw_accel_sigma_radps2)
+        if dof == 6:
+            for a in (4, 5):                                                # pitch, roll
+                rows.append(base_row + a)
+                cols.append(dof * fk + a)
+                vals.append(coef[:, k] / config.pitch_roll_accel_sigma_radps2)
     S = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(4 * (t_count - 2), 4 * t_count))
-    e0 = np.zeros(4 * (t_count - 2))
+                      shape=(dof * (t_count - 2), dof * t_count))
+    e0 = np.zeros(dof * (t_count - 2))
     e0_pos = np.einsum("tk,tki->ti", coef, offset[frames]) / sigma
     e0_yaw = np.einsum("tk,tk->t", coef, yaw_w[frames]) / config.yaw_accel_sigma_radps2
-    e0.reshape(-1, 4)[:, :3] = e0_pos
-    e0.reshape(-1, 4)[:, 3] = e0_yaw
+    e0.reshape(-1, dof)[:, :3] = e0_pos
+    e0.reshape(-1, dof)[:, 3] = e0_yaw
+    if dof == 6:
+        tilt_w = _world_tilt_offset(world_from_vehicle, heading)            # [T, 2]
+        e0.reshape(-1, dof)[:, 4:] = np.einsum("tk,tka->ta", coef, tilt_w[frames]) / config.pitch_roll_accel_sigma_radps2
     return S, e0
 
 
@@ -585,11 +675,13 @@ def _check_inputs(vehicle_from_box, size, world_from_vehicle, points_vehicle, po
     return vehicle_from_box, np.ascontiguousarray(size), world_from_vehicle, points_vehicle, point_frame, timestamps_s
 
 
-def _result(center, heading, label_center, label_heading, world_from_vehicle, **kw) -> RefinedPoses:
-    vehicle_from_box = box_from_center_heading(center, heading)
+def _result(center, heading, label_center, label_heading, world_from_vehicle, tilt=None, **kw) -> RefinedPoses:
+    vehicle_from_box = (box_from_center_heading(center, heading) if tilt is None else
+                        box_from_center_heading(center, heading, tilt[:, 0], tilt[:, 1]))
+    tilt = np.zeros((heading.shape[0], 2)) if tilt is None else tilt
     return RefinedPoses(
         vehicle_from_box=vehicle_from_box, world_from_box=world_from_vehicle @ vehicle_from_box,
-        center_vehicle=center, heading=_wrap(heading),
+        center_vehicle=center, heading=_wrap(heading), pitch=tilt[:, 0].copy(), roll=tilt[:, 1].copy(),
         correction_translation_m=center - label_center,
         correction_rotation_deg=np.rad2deg(_wrap(heading - label_heading)), **kw)
 
@@ -601,7 +693,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
 
     Args:
         vehicle_from_box: float64 [T, 4, 4], labelled box poses, vehicle frame of each frame
-            (yaw-only, as ``box_from_center_heading`` makes them; roll/pitch are dropped).
+            (yaw-only, as ``box_from_center_heading`` makes them from a label; any roll/pitch is
+            the start and prior mean of the 6-DOF refinement and dropped by the 4-DOF one).
         size: float64 [3] or [T, 3], box size (length, width, height), metres.
         world_from_vehicle: float64 [T, 4, 4], vehicle pose of each frame.
         points_vehicle: float64 [M, 3], metres, candidate returns near the object (e.g. inside
@@ -623,13 +716,16 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     t_count = vehicle_from_box.shape[0]
     label_center, label_heading = center_heading_from_poses(vehicle_from_box)
     label_heading = np.unwrap(label_heading)
+    label_tilt = tilt_from_poses(vehicle_from_box)                     # [T, 2], 0 for yaw-only labels
+    six = config.pitch_roll_sigma_deg is not None
+    dof = 6 if six else 4
     half = size / 2.0
     nan_frames = np.full(t_count, np.nan)
 
     def labels(reason: str, detail: str, residual=float("nan"), residual_label=float("nan"),
                num_points=None, iterations=0) -> RefinedPoses:
         out = _result(label_center.copy(), label_heading.copy(), label_center, label_heading,
-                      world_from_vehicle, size=size.copy(), residual_m=residual, residual_label_m=residual_label,
+                      world_from_vehicle, tilt=label_tilt.copy(), size=size.copy(), residual_m=residual, residual_label_m=residual_label,
                       residual_per_frame_m=nan_frames.copy(),
                       num_points=np.zeros(t_count, np.int64) if num_points is None else num_points,
                       refined=False, used_fallback=reason not in ("disabled", "labels_consistent"),
@@ -648,7 +744,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
 
     # Selection at the labels decides whether there is enough to register at all.
-    q0 = _body_points(label_center, label_heading, points, frame)
+    q0 = _body_points(label_center, label_heading, points, frame, label_tilt if six else None)
     at_label = _inside(q0, half[frame], config.inlier_margin_m, config.ground_clearance_m)
     per_frame = np.bincount(frame[at_label], minlength=t_count).astype(np.int64)
     frames_ok = int((per_frame >= config.min_points_per_frame).sum())
@@ -661,22 +757,26 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config)
-    prior_w = np.tile([1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2],
-                      t_count)
-    H_fixed = sp.diags(prior_w) + (S.T @ S if S is not None else 0.0)         # prior + motion, [4T, 4T]
-    label_state = np.concatenate([label_center, label_heading[:, None]], axis=1).reshape(-1)
+    S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config, label_heading if six else None)
+    prior = [1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2]
+    if six:
+        prior += [1.0 / np.deg2rad(config.pitch_roll_sigma_deg) ** 2] * 2
+    prior_w = np.tile(prior, t_count)
+    H_fixed = sp.diags(prior_w) + (S.T @ S if S is not None else 0.0)         # prior + motion, [DT, DT]
+    label_state = np.concatenate([label_center, label_heading[:, None]] + ([label_tilt] if six else []),
+                                 axis=1).reshape(-1)
     selection = _Selection(points, frame, priority, half, config.max_points_per_frame, t_count)
 
     center, heading = label_center.copy(), label_heading.copy()
+    tilt = label_tilt.copy() if six else None
     shrink = max(config.iterations // 2, 1)
     gates = np.concatenate([np.geomspace(config.max_correspondence_m, config.min_correspondence_m, shrink),
                             np.full(max(config.iterations - shrink, 0), config.min_correspondence_m)])
     gates[0] = config.max_correspondence_m
     # The labels' own consistency, measured exactly as the final result is (the first iteration
     # starts from the same terms).
-    pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count)
-    data = _pair_terms(selection, pairs, center, heading, config, t_count)
+    pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count, tilt)
+    data = _pair_terms(selection, pairs, center, heading, config, t_count, tilt=tilt)
     residual_label = data.scale
     # The refined residual never drops below the noise floor (``point_sigma_floor_m``): labels
     # within ``min_improvement`` of it are already consistent, whatever the iterations would do.
@@ -687,7 +787,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     iterations = 0
     for it in range(config.iterations):
         if it > 0:
-            data = _data_terms(selection, center, heading, gates[it], config, t_count)
+            data = _data_terms(selection, center, heading, gates[it], config, t_count, tilt=tilt)
         if it > 0 and it == config.early_stop_iteration and \
                 residual_label <= (1.0 + config.min_improvement) * data.scale:
             if not data.scale <= config.max_residual_m:          # no rigid surface to register on
@@ -698,7 +798,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                           f"{data.scale:.4f} m after {it} iterations: less than {config.min_improvement:.0%} "
                           f"better", residual=data.scale, residual_label=residual_label,
                           num_points=data.num_points, iterations=it)
-        state = np.concatenate([center, heading[:, None]], axis=1).reshape(-1)
+        state = np.concatenate([center, heading[:, None]] + ([tilt] if six else []), axis=1).reshape(-1)
         # Normal equations of 1/2 (data + prior + motion) in the increment dx.
         g = data.gradient + prior_w * (state - label_state)
         if S is not None:
@@ -710,20 +810,22 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         if not np.all(np.isfinite(dx)):
             return labels("not_finite", f"non-finite update at iteration {iterations}",
                           residual_label=residual_label, num_points=data.num_points, iterations=iterations)
-        dx = dx.reshape(t_count, 4)
+        dx = dx.reshape(t_count, dof)
         center = center + dx[:, :3]
         heading = heading + dx[:, 3]
+        if six:
+            tilt = tilt + dx[:, 4:]
         # converged when the step is at the level of re-association jitter (RMS over frames: the
         # largest single-frame step keeps jittering by millimetres as correspondences change)
         small = (np.sqrt(np.mean(np.sum(dx[:, :3] ** 2, axis=1))) < config.tolerance_m
-                 and np.rad2deg(np.sqrt(np.mean(dx[:, 3] ** 2))) < config.tolerance_deg)
+                 and np.rad2deg(np.sqrt(np.mean(np.sum(dx[:, 3:] ** 2, axis=1)))) < config.tolerance_deg)
         if small and gates[it] <= config.min_correspondence_m * 1.0001:
             break
         if small:                                   # converged at this gate: jump to the finest
             gates[it + 1:] = config.min_correspondence_m
 
-    final_pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count)
-    final = _pair_terms(selection, final_pairs, center, heading, config, t_count, normal_equations=False)
+    final_pairs = _associate(selection, center, heading, config.max_correspondence_m, config, t_count, tilt)
+    final = _pair_terms(selection, final_pairs, center, heading, config, t_count, normal_equations=False, tilt=tilt)
     residual = final.scale
     inlier = np.abs(final.residual) <= config.huber_k * (residual if np.isfinite(residual) else 0.0)
     sq = np.bincount(final.frame[inlier], weights=final.residual[inlier] ** 2, minlength=t_count)
@@ -733,7 +835,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
 
     translation = np.linalg.norm(center - label_center, axis=-1)
     rotation = np.rad2deg(np.abs(_wrap(heading - label_heading)))
-    if not (np.all(np.isfinite(center)) and np.all(np.isfinite(heading)) and np.isfinite(residual)):
+    if six:      # the tilt's correction counts towards the rotation bound as well
+        rotation = np.maximum(rotation, np.rad2deg(np.max(np.abs(tilt - label_tilt), axis=1)))
+    if not (np.all(np.isfinite(center)) and np.all(np.isfinite(heading)) and np.isfinite(residual)
+            and (tilt is None or np.all(np.isfinite(tilt)))):
         return labels("not_finite", "the refined poses or residual are not finite",
                       residual_label=residual_label, num_points=final.num_points, iterations=iterations)
     if residual > config.max_residual_m:
@@ -761,20 +866,18 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         # frame where noisy labels lost them in about half the frames.
         src = final_pairs.src[inlier]
         fa = final_pairs.fa[inlier]
-        q = _body_points(center, heading, selection.points[src], fa)
+        q = _body_points(center, heading, selection.points[src], fa, tilt)
         half_f = half[fa]
         grow_hi = np.clip(np.max(q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
         grow_lo = np.clip(np.max(-q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
         grow_lo[2] = 0.0
         if np.any(grow_hi > 0) or np.any(grow_lo > 0):
             offset = (grow_hi - grow_lo) / 2.0                                   # body frame
-            cos_h, sin_h = np.cos(heading), np.sin(heading)
-            center = center + np.stack([cos_h * offset[0] - sin_h * offset[1], sin_h * offset[0] + cos_h * offset[1],
-                                        np.full(t_count, offset[2])], axis=-1)
+            center = center + _from_body(np.broadcast_to(offset, (t_count, 3)), heading, tilt)
             size_out = size + (grow_hi + grow_lo)
             extent_detail = (f"; box grown to the registered returns by {np.round(grow_lo * 100, 1).tolist()} / "
                              f"{np.round(grow_hi * 100, 1).tolist()} cm (-x -y -z / +x +y +z)")
-    return _result(center, heading, label_center, label_heading, world_from_vehicle, size=size_out,
+    return _result(center, heading, label_center, label_heading, world_from_vehicle, tilt=tilt, size=size_out,
                    residual_m=residual, residual_label_m=residual_label,
                    residual_per_frame_m=per_frame_residual, num_points=final.num_points, refined=True,
                    used_fallback=False, reason="refined",
@@ -828,7 +931,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
 
     Returns:
         ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
-        the ``center``, ``heading`` and ``size`` of refined objects, and ``{object_id: RefinedPoses}``.
+        the ``center``, ``heading``, ``size`` (and, with 6 DOF, ``pitch`` and ``roll``: 0 on the
+        rows of objects not refined) of refined objects, and ``{object_id: RefinedPoses}``.
         Passing ``boxes`` as the scene's labels makes the track stage select points with, and
         carry them by, the refined poses.
     """
@@ -840,6 +944,10 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     ids = sorted(set(object_id.tolist())) if object_ids is None else [str(i) for i in object_ids]
     timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
     center, heading, size = boxes.center.copy(), boxes.heading.copy(), boxes.size.copy()
+    pitch_all, roll_all = boxes.tilt()
+    tilted = pitch_all is not None or config.pitch_roll_sigma_deg is not None
+    pitch = (np.zeros(len(boxes)) if pitch_all is None else pitch_all.copy()) if tilted else None
+    roll = (np.zeros(len(boxes)) if roll_all is None else roll_all.copy()) if tilted else None
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
     # move each candidate to where its surface was at the frame time (with the labels' motion)
     # before registering, as the track stage does (drivetrack.tracks.sweep).
@@ -868,22 +976,22 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     results = {}
     for k, (oid, rows) in enumerate(zip(ids, object_rows)):
         frames = boxes.frame[rows].astype(np.int64)
-        vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])
+        vehicle_from_box = boxes.vehicle_from_box(rows)
+        row_tilt = None if pitch_all is None and roll_all is None else np.stack(boxes.tilt(rows), axis=-1)  # [R, 2]
         index = index_all[bounds[k]:bounds[k + 1]]
         owner = owner_all[bounds[k]:bounds[k + 1]] - row_start[k]               # [N] index into rows
         p = lidar.points_vehicle[index]
         if offsets is None:
-            local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner)
+            local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner, row_tilt)
         else:
             r = rows[owner]
             local = points_box_at_capture(p, offsets[index], boxes.center[r], boxes.heading[r], box_velocity[r],
-                                          box_yaw_rate[r])
+                                          box_yaw_rate[r], *(boxes.tilt(r)))
         inside = np.all(np.abs(local) <= boxes.size[rows][owner] / 2.0 + config.candidate_margin_m, axis=-1)
         if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time
             local, owner = local[inside], owner[inside]
-            c, s = np.cos(boxes.heading[rows][owner]), np.sin(boxes.heading[rows][owner])
-            p = np.stack([c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]],
-                         axis=-1) + boxes.center[rows][owner]
+            p = _from_body(local, boxes.heading[rows][owner], None if row_tilt is None else row_tilt[owner]) \
+                + boxes.center[rows][owner]
             inside = np.ones(owner.size, dtype=bool)
         result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                      p[inside], owner[inside], timestamps_s[frames], config,
@@ -893,6 +1001,9 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             center[rows] = result.center_vehicle
             heading[rows] = result.heading
             size[rows] = result.size
+            if tilted:
+                pitch[rows], roll[rows] = result.pitch, result.roll
     refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
     refined.center, refined.heading, refined.size = center, heading, size
+    refined.pitch, refined.roll = pitch, roll
     return refined, results

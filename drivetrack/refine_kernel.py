@@ -9,9 +9,9 @@ tree, each with the numpy/scipy reference it must reproduce:
   k-th distance is inside the searched block; ties are broken by the lower index.
 - :func:`normals`: PCA normals and planarity of neighbour lists, the same closed-form 3x3 eigen
   decomposition as ``drivetrack.refine._normals`` (same formulas, same order of operations).
-- :func:`normal_equations`: the dense [4T, 4T] normal equations and gradient of weighted
-  point-to-plane pairs (8 Jacobian non-zeros per pair), as ``drivetrack.refine._pair_terms``
-  assembles them with ``np.bincount``.
+- :func:`normal_equations`: the dense [DT, DT] normal equations and gradient of weighted
+  point-to-plane pairs (2 x D Jacobian non-zeros per pair; D = 4: centre and heading, D = 6: and
+  pitch, roll), as ``drivetrack.refine._pair_terms`` assembles them with ``np.bincount``.
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -223,42 +223,62 @@ def normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 @njit(cache=True, nogil=True)
-def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, fa, fb, w, r, hessian, gradient):
-    jac = np.empty(8)
-    col = np.empty(8, np.int64)
+def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, tilt_a, tilt_b, dof, fa, fb, w, r, hessian, gradient):
+    jac = np.empty(2 * dof)
+    col = np.empty(2 * dof, np.int64)
     for i in range(n.shape[0]):
         for side in range(2):
             q = qa if side == 0 else qb
             psi = heading_a[i] if side == 0 else heading_b[i]
             sign = 1.0 if side == 0 else -1.0
             c, s = np.cos(psi), np.sin(psi)
-            o = 4 * side
-            jac[o + 0] = -sign * (c * n[i, 0] - s * n[i, 1])
-            jac[o + 1] = -sign * (s * n[i, 0] + c * n[i, 1])
-            jac[o + 2] = -sign * n[i, 2]
-            jac[o + 3] = sign * (n[i, 0] * q[i, 1] - n[i, 1] * q[i, 0])
+            o = dof * side
+            if dof == 4:
+                jac[o + 0] = -sign * (c * n[i, 0] - s * n[i, 1])
+                jac[o + 1] = -sign * (s * n[i, 0] + c * n[i, 1])
+                jac[o + 2] = -sign * n[i, 2]
+                jac[o + 3] = sign * (n[i, 0] * q[i, 1] - n[i, 1] * q[i, 0])
+            else:                               # same formulas as refine._point_jacobian
+                tilt = tilt_a if side == 0 else tilt_b
+                ct, st, cr, sr = np.cos(tilt[i, 0]), np.sin(tilt[i, 0]), np.cos(tilt[i, 1]), np.sin(tilt[i, 1])
+                vy, vz = cr * q[i, 1] - sr * q[i, 2], sr * q[i, 1] + cr * q[i, 2]
+                ux, uy = ct * q[i, 0] + st * vz, vy
+                ky, kz = cr * n[i, 1] - sr * n[i, 2], sr * n[i, 1] + cr * n[i, 2]
+                mx, mz = ct * n[i, 0] + st * kz, -st * n[i, 0] + ct * kz
+                jac[o + 0] = -sign * (c * mx - s * ky)
+                jac[o + 1] = -sign * (s * mx + c * ky)
+                jac[o + 2] = -sign * mz
+                jac[o + 3] = sign * (mx * uy - ky * ux)
+                jac[o + 4] = sign * (-n[i, 0] * vz + kz * q[i, 0])
+                jac[o + 5] = sign * (n[i, 1] * q[i, 2] - n[i, 2] * q[i, 1])
             f = fa[i] if side == 0 else fb[i]
-            for m in range(4):
-                col[o + m] = 4 * f + m
+            for m in range(dof):
+                col[o + m] = dof * f + m
         wi, wr = w[i], w[i] * r[i]
-        for a in range(8):
+        for a in range(2 * dof):
             gradient[col[a]] += jac[a] * wr
             wa = wi * jac[a]
-            for b in range(8):
+            for b in range(2 * dof):
                 hessian[col[a], col[b]] += wa * jac[b]
 
 
 def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, heading_a: np.ndarray,
                      heading_b: np.ndarray, fa: np.ndarray, fb: np.ndarray, w: np.ndarray, r: np.ndarray,
-                     t_count: int) -> tuple[np.ndarray, np.ndarray]:
-    """(hessian float64 [4T, 4T], gradient float64 [4T]) of pairs with body normals n [C, 3],
+                     t_count: int, tilt_a: np.ndarray | None = None,
+                     tilt_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(hessian float64 [DT, DT], gradient float64 [DT]) of pairs with body normals n [C, 3],
     body points qa, qb [C, 3] of frames fa, fb [C] at headings heading_a, heading_b [C] (radians),
-    weights w [C] and residuals r [C]; see ``drivetrack.refine._pair_terms`` (the reference)."""
-    hessian = np.zeros((4 * t_count, 4 * t_count))
-    gradient = np.zeros(4 * t_count)
+    weights w [C] and residuals r [C]; D = 4 (centre, heading) when ``tilt_a`` / ``tilt_b`` are
+    None, else D = 6 with tilt_a, tilt_b [C, 2] = (pitch, roll) radians of the two frames; see
+    ``drivetrack.refine._pair_terms`` (the reference)."""
+    dof = 4 if tilt_a is None else 6
+    hessian = np.zeros((dof * t_count, dof * t_count))
+    gradient = np.zeros(dof * t_count)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
+    no_tilt = np.zeros((0, 2))
     _normal_equations_kernel(f64(n), f64(qa), f64(qb), f64(heading_a), f64(heading_b),
-                             np.ascontiguousarray(fa, dtype=np.int64), np.ascontiguousarray(fb, dtype=np.int64),
+                             no_tilt if tilt_a is None else f64(tilt_a), no_tilt if tilt_b is None else f64(tilt_b),
+                             dof, np.ascontiguousarray(fa, dtype=np.int64), np.ascontiguousarray(fb, dtype=np.int64),
                              f64(w), f64(r), hessian, gradient)
     return hessian, gradient
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel
+from drivetrack.geometry import CameraModel, box_from_center_heading
 
 __all__ = ["LidarReturns", "Boxes", "CameraFrames", "Scene"]
 
@@ -73,6 +73,11 @@ class Boxes:
         type: int8 [K], ``BoxType`` value.
         speed: float64 [K, 3], m/s, box velocity (NaN where the source has none).
         num_lidar_points_in_box: int64 [K] (-1 where unknown).
+        pitch, roll: optional float64 [K], radians, the box's tilt in the vehicle frame (rotation
+            ``Rz(heading) Ry(pitch) Rx(roll)``, see ``geometry.box_from_center_heading``). None
+            (the reader's labels, which are yaw-only): 0. Set by pose refinement
+            (``drivetrack.refine``); every stage that carries points with a box uses
+            :meth:`vehicle_from_box`, so they take effect wherever present.
     """
     object_id: np.ndarray
     frame: np.ndarray
@@ -82,13 +87,29 @@ class Boxes:
     type: np.ndarray
     speed: np.ndarray
     num_lidar_points_in_box: np.ndarray
+    pitch: np.ndarray | None = None
+    roll: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
 
     def select(self, mask: np.ndarray) -> "Boxes":
         """Rows where ``mask`` (bool [K] or int index) holds."""
-        return Boxes(**{k: v[mask] for k, v in self.__dict__.items()})
+        return Boxes(**{k: (None if v is None else v[mask]) for k, v in self.__dict__.items()})
+
+    def tilt(self, rows=slice(None)) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``(pitch, roll)`` of rows ``rows`` (float64 [R] each, radians), or (None, None) for
+        yaw-only boxes (then every transform is exactly the label's)."""
+        if self.pitch is None and self.roll is None:
+            return None, None
+        heading = self.heading[rows]
+        return (np.zeros_like(heading) if self.pitch is None else self.pitch[rows],
+                np.zeros_like(heading) if self.roll is None else self.roll[rows])
+
+    def vehicle_from_box(self, rows=slice(None)) -> np.ndarray:
+        """float64 [R, 4, 4] pose of rows ``rows`` (index, mask or slice) in the vehicle frame of
+        each row's frame: ``box_from_center_heading(center, heading, pitch, roll)``."""
+        return box_from_center_heading(self.center[rows], self.heading[rows], *self.tilt(rows))
 
     def object_ids(self) -> list[str]:
         """Distinct object ids, sorted."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import box_from_center_heading, invert_rigid, transform_points
+from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.scene import Scene
 from drivetrack.tracks.config import TrackConfig
 from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
@@ -230,7 +230,8 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
         max_dt = 0.0 if dt is None else float(np.max(np.abs(dt)))
         for row in rows[boxes.frame[rows] == t]:
             center, size = boxes.center[row], boxes.size[row]
-            radius = 0.5 * float(np.hypot(size[0], size[1])) + grow
+            radius = 0.5 * float(np.hypot(size[0], size[1]) if boxes.pitch is None and boxes.roll is None
+                                 else np.linalg.norm(size)) + grow          # a tilted box reaches further
             if dt is not None:
                 radius += max_dt * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance
             lo, hi = np.searchsorted(xs, [center[0] - radius, center[0] + radius], side="left")
@@ -238,11 +239,11 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
             near = np.abs(points[candidates, 1] - center[1]) <= radius
             candidates = candidates[near]
             if dt is None:
-                box_from_vehicle = invert_rigid(box_from_center_heading(center, boxes.heading[row]))
+                box_from_vehicle = invert_rigid(boxes.vehicle_from_box(row))
                 local = transform_points(box_from_vehicle, points[candidates])
             else:
                 local = points_box_at_capture(points[candidates], dt[candidates], center, boxes.heading[row],
-                                              velocity[row], yaw_rate[row])
+                                              velocity[row], yaw_rate[row], *boxes.tilt(row))
             half = size / 2.0 + config.box_margin_m
             inside = np.all(np.abs(local) <= half, axis=-1)
             inside &= local[:, 2] >= -size[2] / 2.0 + config.ground_clearance_m
@@ -266,7 +267,7 @@ def _boxes_in_view(scene: Scene, geometry: CameraGeometry, rows: np.ndarray, gri
     """bool [R]: box rows ``rows`` in view of the camera at their frame (see module docstring)."""
     boxes = scene.boxes
     model = scene.cameras[geometry.camera].model
-    vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])
+    vehicle_from_box = boxes.vehicle_from_box(rows)
     samples_box = grid[None, :, :] * boxes.size[rows][:, None, :]
     camera_from_box = geometry.camera_from_vehicle[boxes.frame[rows]] @ vehicle_from_box
     pixels, valid = model.pixels_from_camera(transform_points(camera_from_box, samples_box))

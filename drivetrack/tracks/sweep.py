@@ -14,7 +14,8 @@ object k at frame t, captured at ``t + dt``, is expressed in the box *at its cap
     p_box       = box_from_vehicle(center(dt), heading(dt)) @ X
 
 which is the body point; ``X_frame = vehicle_from_box_t @ p_box`` is where that surface was at
-the frame time. Velocity and yaw rate come from the object's own box track by central finite
+the frame time. A tilted box (``Boxes.pitch`` / ``roll``, from pose refinement) keeps its pitch
+and roll over the sweep (0.1 s): only centre and heading move. Velocity and yaw rate come from the object's own box track by central finite
 differences over its labelled frames (one-sided at its ends), in the world frame, then rotated
 into the vehicle frame of each box's frame. Why not the ``speed`` column: it is the label's
 velocity, whose frame convention differs between producers and which has no yaw rate; the track
@@ -25,8 +26,6 @@ in the vehicle frame, as Waymo and the synthetic generator write it) when finite
 from __future__ import annotations
 
 import numpy as np
-
-from drivetrack.geometry import box_from_center_heading
 
 __all__ = ["box_motion_world", "scene_box_motion", "points_box_at_capture"]
 
@@ -89,7 +88,7 @@ def scene_box_motion(scene) -> tuple[np.ndarray, np.ndarray]:
     if len(boxes) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     world_from_vehicle = np.asarray(scene.world_from_vehicle, dtype=np.float64)[boxes.frame]
-    world_from_box = world_from_vehicle @ box_from_center_heading(boxes.center, boxes.heading)
+    world_from_box = world_from_vehicle @ boxes.vehicle_from_box()
     time_s = np.asarray(scene.timestamps_micros, dtype=np.float64)[boxes.frame] * 1e-6
     velocity_world, yaw_rate, has_neighbour = box_motion_world(world_from_box, time_s,
                                                                boxes.object_id.astype(str))
@@ -102,7 +101,8 @@ def scene_box_motion(scene) -> tuple[np.ndarray, np.ndarray]:
 
 def points_box_at_capture(points_vehicle: np.ndarray, offset_s: np.ndarray | None, center: np.ndarray,
                           heading: np.ndarray, velocity_vehicle: np.ndarray | None = None,
-                          yaw_rate: np.ndarray | None = None) -> np.ndarray:
+                          yaw_rate: np.ndarray | None = None, pitch: np.ndarray | None = None,
+                          roll: np.ndarray | None = None) -> np.ndarray:
     """float64 [N, 3] box-frame (body) points of returns, with the box moved to each capture time.
 
     Args:
@@ -112,6 +112,8 @@ def points_box_at_capture(points_vehicle: np.ndarray, offset_s: np.ndarray | Non
         heading: float [N] or scalar, box yaw at the frame time, radians.
         velocity_vehicle: float [N, 3] or [3], box velocity in that vehicle frame, m/s (None: 0).
         yaw_rate: float [N] or scalar, rad/s (None: 0).
+        pitch, roll: float [N] or scalar, radians, the box's tilt (``Boxes.pitch`` / ``roll``;
+            None: 0, then the computation is exactly the yaw-only one), held over the sweep.
     With zero offsets or zero motion this is ``box_from_vehicle_t @ X`` exactly.
     """
     points = np.asarray(points_vehicle, dtype=np.float64).reshape(-1, 3)
@@ -125,4 +127,12 @@ def points_box_at_capture(points_vehicle: np.ndarray, offset_s: np.ndarray | Non
         yaw = yaw + np.broadcast_to(np.asarray(yaw_rate, np.float64), (n,)) * dt
     d = points - centre
     cos, sin = np.cos(yaw), np.sin(yaw)
-    return np.stack([cos * d[:, 0] + sin * d[:, 1], -sin * d[:, 0] + cos * d[:, 1], d[:, 2]], axis=-1)
+    u = np.stack([cos * d[:, 0] + sin * d[:, 1], -sin * d[:, 0] + cos * d[:, 1], d[:, 2]], axis=-1)
+    if pitch is None and roll is None:
+        return u
+    # then R^T = Rx(roll)^T Ry(pitch)^T Rz(heading)^T (geometry.box_from_center_heading)
+    theta = np.broadcast_to(np.asarray(0.0 if pitch is None else pitch, dtype=np.float64), (n,))
+    phi = np.broadcast_to(np.asarray(0.0 if roll is None else roll, dtype=np.float64), (n,))
+    ct, st, cr, sr = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+    vx, vz = ct * u[:, 0] - st * u[:, 2], st * u[:, 0] + ct * u[:, 2]
+    return np.stack([vx, cr * u[:, 1] + sr * vz, -sr * u[:, 1] + cr * vz], axis=-1)
