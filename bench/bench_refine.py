@@ -3,7 +3,9 @@
 For each label-noise level (0, 2, 5, 10 cm centre sigma per axis with 0, 0.5, 1, 2 degrees of
 heading sigma) one synthetic segment is generated (same world, same seed, only the written labels
 differ), the standard pipeline runs on the labels (``baseline``) and on the labels replaced by
-:func:`drivetrack.refine.refine_scene_boxes` (``refined``), and both are scored with
+:func:`drivetrack.refine.refine_scene_boxes` with 4 degrees of freedom per frame (``refined_4dof``:
+centre and heading, ``RefineConfig(pitch_roll_sigma_deg=None)``) and with 6 (``refined``: and
+pitch, roll; the default), and all are scored with
 :func:`drivetrack.evaluate.evaluate_tracks`: occlusion accuracy (OA), average Jaccard (AJ),
 delta_avg (query mode ``first``), median pixel error, purity and recall. CPU cost: process CPU
 seconds of the refinement per object, and of the track stage (plan + object jobs, depth excluded)
@@ -37,6 +39,8 @@ DOC_START = "<!-- bench_refine:start -->"
 DOC_END = "<!-- bench_refine:end -->"
 LEVELS = ((0.0, 0.0), (0.02, 0.5), (0.05, 1.0), (0.10, 2.0))      # (centre sigma m, heading sigma deg)
 SEED = 7
+#: refined variants: name -> RefineConfig overrides
+VARIANTS = {"refined_4dof": {"pitch_roll_sigma_deg": None}, "refined": {}}
 
 
 def _segment(root: Path, noise_m: float, noise_deg: float, frames: int) -> tuple[str, str]:
@@ -90,32 +94,33 @@ def measure(levels=LEVELS, frames: int = 40, work: Path | None = None) -> list[d
         scene = load_scene(root, "training", segment, cameras=config.track.camera_values, with_images=True)
         base, base_cpu, jobs, plan = _run_pipeline(scene, config)
         objects = sorted({j.object_id for j in plan.jobs})
-        cpu0 = time.process_time()
-        boxes, refined = refine_scene_boxes(scene, RefineConfig(), object_ids=objects,
-                                            lasers=config.track.laser_values, returns=config.track.returns)
-        refine_cpu = time.process_time() - cpu0
-        reasons = {}
-        for r in refined.values():
-            reasons[r.reason] = reasons.get(r.reason, 0) + 1
-        scene_refined = dataclasses.replace(scene, boxes=boxes)
-        ref, ref_cpu, ref_jobs, _ = _run_pipeline(scene_refined, config)
         row = {"noise_m": noise_m, "noise_deg": noise_deg, "objects": len(objects), "clips": jobs,
-               "baseline": _scores(base, root), "refined": _scores(ref, root),
-               "track_cpu_s_per_object": base_cpu / max(len(objects), 1),
-               "refine_cpu_s_per_object": refine_cpu / max(len(objects), 1),
-               "refine_over_track_cpu": refine_cpu / max(base_cpu, 1e-9),
-               "reasons": reasons,
-               "correction_p50_m": float(np.median([r.summary()["refine_translation_p50_m"] for r in refined.values()]))
-               if refined else float("nan")}
+               "baseline": _scores(base, root), "track_cpu_s_per_object": base_cpu / max(len(objects), 1)}
+        for variant, overrides in VARIANTS.items():
+            cpu0 = time.process_time()
+            boxes, refined = refine_scene_boxes(scene, RefineConfig(**overrides), object_ids=objects,
+                                                lasers=config.track.laser_values, returns=config.track.returns)
+            refine_cpu = time.process_time() - cpu0
+            reasons = {}
+            for r in refined.values():
+                reasons[r.reason] = reasons.get(r.reason, 0) + 1
+            scene_refined = dataclasses.replace(scene, boxes=boxes)
+            ref, ref_cpu, ref_jobs, _ = _run_pipeline(scene_refined, config)
+            row[variant] = _scores(ref, root)
+            row[variant].update(
+                refine_cpu_s_per_object=refine_cpu / max(len(objects), 1),
+                refine_over_track_cpu=refine_cpu / max(base_cpu, 1e-9), reasons=reasons,
+                tilt_max_deg=max([r.summary()["refine_tilt_max_deg"] for r in refined.values()], default=0.0))
         rows.append(row)
         print(json.dumps(row))
     return rows
 
 
-def measure_full(noise_m: float = 0.05, frames: int = 30, seed: int = SEED, cache: Path | None = None) -> dict:
+def measure_full(noises=(0.0, 0.05), frames: int = 30, seed: int = SEED, cache: Path | None = None) -> dict:
     """The full-size segment of ``bench/bench_tracks.py`` (preset ``full``, 1920x1280, cached by
-    ``ensure_source``), its labels with ``noisy_scene``'s noise (``noise_m``, 1 deg per 5 cm), tracked
-    with the labels and with refined boxes; the track stage and the refinement timed in this process.
+    ``ensure_source``), its labels with ``noisy_scene``'s noise (each of ``noises``, metres; 1 deg
+    per 5 cm), tracked with the labels and with the boxes of every refinement variant
+    (:data:`VARIANTS`); the track stage and the refinement timed in this process.
 
     Track stage CPU = ``plan_segment`` + ``prepare_segment`` (maps given) + the object jobs, as in the
     small-preset table; its object jobs alone are reported too (``bench_tracks``' "track CPU s").
@@ -124,7 +129,7 @@ def measure_full(noise_m: float = 0.05, frames: int = 30, seed: int = SEED, cach
     from bench.bench_tracks import SPLIT, depth_for, ensure_source, noisy_scene, track_stage
     from drivetrack.annotate import AnnotateConfig, load_scene_for
     from drivetrack.evaluate import evaluate_tracks
-    from drivetrack.refine import refine_scene_boxes
+    from drivetrack.refine import RefineConfig, refine_scene_boxes
     from drivetrack.tracks import plan_segment, prepare_segment
 
     cache = cache or ROOT / ".bench-cache"
@@ -132,60 +137,81 @@ def measure_full(noise_m: float = 0.05, frames: int = 30, seed: int = SEED, cach
     config = AnnotateConfig()
     track = config.track
     scene = load_scene_for(root, SPLIT, segment, config, refine=False)
-    noisy = noisy_scene(scene, noise_m, seed)
-    out = {"preset": "full", "frames": frames, "seed": seed, "noise_m": noise_m, "lidar_returns": len(scene.lidar)}
-    # refinement, as annotate.refine_scene runs it (objects picked by a plan of the labels)
-    c0 = time.process_time()
-    objects = sorted({job.object_id for job in plan_segment(noisy, track).jobs})
-    c1 = time.process_time()
-    boxes, refined = refine_scene_boxes(noisy, config.refine_config(), objects, lasers=track.laser_values,
-                                        returns=track.returns, compensate_sweep_motion=track.compensate_sweep_motion)
-    c2 = time.process_time()
-    solve = sum(r.cpu_seconds for r in refined.values())
-    scene_refined = dataclasses.replace(noisy, boxes=boxes)
-    out.update(objects=len(objects), refine_plan_cpu_s=c1 - c0, refine_boxes_cpu_s=c2 - c1,
-               refine_solve_cpu_s=solve, refine_gather_cpu_s=(c2 - c1) - solve, refine_cpu_s=c2 - c0,
-               reasons={k: sum(r.reason == k for r in refined.values()) for k in {r.reason for r in refined.values()}},
-               iterations=[r.iterations for r in refined.values()])
-    plans = {"labels": plan_segment(noisy, track), "refined": plan_segment(scene_refined, track)}
-    depth, _, _ = depth_for(scene, track, plans.values())
+    out = {"preset": "full", "frames": frames, "seed": seed, "lidar_returns": len(scene.lidar), "levels": []}
     truths: dict = {}
-    for kind, s in (("labels", noisy), ("refined", scene_refined)):
+    depth = None
+    for noise_m in noises:
+        noisy = noisy_scene(scene, noise_m, seed)
+        level = {"noise_m": noise_m}
+        scenes = {"labels": noisy}
+        # refinement, as annotate.refine_scene runs it (objects picked by a plan of the labels)
         c0 = time.process_time()
-        ctx = prepare_segment(s, track, depth=depth, plan=plan_segment(s, track))
-        c1 = time.process_time()
-        tracks, jobs_cpu, _, annotations = track_stage(ctx)
-        out[f"{kind}_track_cpu_s"] = (c1 - c0) + jobs_cpu
-        out[f"{kind}_track_jobs_cpu_s"] = jobs_cpu
-        out[f"{kind}_clips"] = len(ctx.plan.jobs)
-        summary = evaluate_tracks(tracks, root, truths=truths).summary
-        first = summary["modes"].get("first", {})
-        out[kind] = {"OA": first.get("occlusion_accuracy", float("nan")),
-                     "AJ": first.get("average_jaccard", float("nan")),
-                     "delta_avg": first.get("average_pts_within_thresh", float("nan")),
-                     "px_median": summary.get("pixel_error_median", float("nan")),
-                     "purity": summary.get("purity", float("nan")), "recall": summary.get("recall", float("nan")),
-                     "tracks": summary.get("num_tracks", 0)}
-        del ctx, tracks
-    out["refine_over_track_cpu"] = out["refine_cpu_s"] / max(out["labels_track_cpu_s"], 1e-9)
-    print(json.dumps(out), flush=True)
+        objects = sorted({job.object_id for job in plan_segment(noisy, track).jobs})
+        plan_cpu = time.process_time() - c0
+        level["objects"] = len(objects)
+        for variant, overrides in VARIANTS.items():
+            c1 = time.process_time()
+            refine_config = RefineConfig(**{**config.refine_config().to_dict(), **overrides})
+            boxes, refined = refine_scene_boxes(noisy, refine_config, objects, lasers=track.laser_values,
+                                                returns=track.returns,
+                                                compensate_sweep_motion=track.compensate_sweep_motion)
+            c2 = time.process_time()
+            solve = sum(r.cpu_seconds for r in refined.values())
+            scenes[variant] = dataclasses.replace(noisy, boxes=boxes)
+            level[variant] = dict(
+                refine_plan_cpu_s=plan_cpu, refine_boxes_cpu_s=c2 - c1, refine_solve_cpu_s=solve,
+                refine_gather_cpu_s=(c2 - c1) - solve, refine_cpu_s=plan_cpu + (c2 - c1),
+                reasons={k: sum(r.reason == k for r in refined.values()) for k in {r.reason for r in refined.values()}},
+                iterations=[r.iterations for r in refined.values()],
+                tilt_max_deg=max([r.summary()["refine_tilt_max_deg"] for r in refined.values()], default=0.0))
+        if depth is None:       # maps depend on the LiDAR only: one set for every level and variant
+            depth, _, _ = depth_for(scene, track, [plan_segment(s, track) for s in scenes.values()])
+        for kind, s in scenes.items():
+            c0 = time.process_time()
+            ctx = prepare_segment(s, track, depth=depth, plan=plan_segment(s, track))
+            c1 = time.process_time()
+            tracks, jobs_cpu, _, annotations = track_stage(ctx)
+            entry = level.setdefault(kind, {})
+            entry.update(track_cpu_s=(c1 - c0) + jobs_cpu, track_jobs_cpu_s=jobs_cpu, clips=len(ctx.plan.jobs))
+            summary = evaluate_tracks(tracks, root, truths=truths).summary
+            first = summary["modes"].get("first", {})
+            entry.update({"OA": first.get("occlusion_accuracy", float("nan")),
+                          "AJ": first.get("average_jaccard", float("nan")),
+                          "delta_avg": first.get("average_pts_within_thresh", float("nan")),
+                          "px_median": summary.get("pixel_error_median", float("nan")),
+                          "purity": summary.get("purity", float("nan")), "recall": summary.get("recall", float("nan")),
+                          "tracks": summary.get("num_tracks", 0)})
+            del ctx, tracks
+        for variant in VARIANTS:
+            level[variant]["refine_over_track_cpu"] = (level[variant]["refine_cpu_s"]
+                                                       / max(level["labels"]["track_cpu_s"], 1e-9))
+        out["levels"].append(level)
+        print(json.dumps(level), flush=True)
     return out
 
 
 def _full_table(r: dict) -> str:
-    n = max(r["objects"], 1)
-    head = ("| boxes | OA | AJ | delta_avg | px error (median) | purity | recall | track stage CPU s "
-            "(jobs only) | refinement CPU s: total = plan + gather + solves |\n|---|---|---|---|---|---|---|---|---|\n")
+    head = ("| label noise | boxes | OA | AJ | delta_avg | px error (median) | purity | recall | track stage CPU s "
+            "(jobs only) | refinement CPU s: total = plan + gather + solves | refinement outcome |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|\n")
+    names = {"labels": "labels", "refined_4dof": "refined, 4 DOF", "refined": "refined, 6 DOF"}
     lines = []
-    for kind in ("labels", "refined"):
-        s = r[kind]
-        refine = "-" if kind == "labels" else (
-            f"{r['refine_cpu_s']:.2f} = {r['refine_plan_cpu_s']:.2f} + {r['refine_gather_cpu_s']:.2f} + "
-            f"{r['refine_solve_cpu_s']:.2f} ({r['refine_cpu_s'] / n:.2f}/object; {r['refine_over_track_cpu']:.1f}x "
-            f"track stage, {r['refine_boxes_cpu_s'] / max(r['labels_track_cpu_s'], 1e-9):.1f}x without the plan)")
-        lines.append(f"| {kind} | {s['OA']:.3f} | {s['AJ']:.3f} | {s['delta_avg']:.3f} | {s['px_median']:.2f} | "
-                     f"{100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | {r[kind + '_track_cpu_s']:.2f} "
-                     f"({r[kind + '_track_jobs_cpu_s']:.2f}) | {refine} |")
+    for level in r["levels"]:
+        n = max(level["objects"], 1)
+        for kind in ("labels", *VARIANTS):
+            s = level[kind]
+            noise = f"{100 * level['noise_m']:.0f} cm / {level['noise_m'] / 0.05:g} deg" if kind == "labels" else ""
+            if kind == "labels":
+                refine, outcome = "-", "-"
+            else:
+                refine = (f"{s['refine_cpu_s']:.2f} = {s['refine_plan_cpu_s']:.2f} + {s['refine_gather_cpu_s']:.2f} + "
+                          f"{s['refine_solve_cpu_s']:.2f} ({s['refine_cpu_s'] / n:.2f}/object; "
+                          f"{s['refine_over_track_cpu']:.1f}x track stage)")
+                outcome = (", ".join(f"{k} {v}" for k, v in sorted(s["reasons"].items()))
+                           + f"; iterations {s['iterations']}")
+            lines.append(f"| {noise} | {names[kind]} | {s['OA']:.3f} | {s['AJ']:.3f} | {s['delta_avg']:.3f} | "
+                         f"{s['px_median']:.2f} | {100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | "
+                         f"{s['track_cpu_s']:.2f} ({s['track_jobs_cpu_s']:.2f}) | {refine} | {outcome} |")
     return head + "\n".join(lines) + "\n"
 
 
@@ -194,8 +220,9 @@ def _table(rows: list[dict]) -> str:
             "CPU s/object (segment): track stage | refinement | refinement outcome |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
+    names = {"baseline": "labels", "refined_4dof": "refined, 4 DOF", "refined": "refined, 6 DOF"}
     for r in rows:
-        for kind in ("baseline", "refined"):
+        for kind in ("baseline", *VARIANTS):
             s = r[kind]
             label = f"{100 * r['noise_m']:.0f} cm / {r['noise_deg']:g} deg" if kind == "baseline" else ""
             n = max(r["objects"], 1)
@@ -203,10 +230,10 @@ def _table(rows: list[dict]) -> str:
             if kind == "baseline":
                 tail = f"{track} | - | -"
             else:
-                outcome = ", ".join(f"{k} {v}" for k, v in sorted(r["reasons"].items()))
-                tail = (f"{track} | {r['refine_cpu_s_per_object']:.3f} ({r['refine_cpu_s_per_object'] * n:.2f}; "
-                        f"{r['refine_over_track_cpu']:.1f}x track) | {outcome}")
-            lines.append(f"| {label} | {'labels' if kind == 'baseline' else 'refined'} | {s['OA']:.3f} | "
+                outcome = ", ".join(f"{k} {v}" for k, v in sorted(s["reasons"].items()))
+                tail = (f"{track} | {s['refine_cpu_s_per_object']:.3f} ({s['refine_cpu_s_per_object'] * n:.2f}; "
+                        f"{s['refine_over_track_cpu']:.1f}x track) | {outcome}")
+            lines.append(f"| {label} | {names[kind]} | {s['OA']:.3f} | "
                          f"{s['AJ']:.3f} | {s['delta_avg']:.3f} | {s['px_median']:.2f} | "
                          f"{100 * s['purity']:.2f}% | {100 * s['recall']:.1f}% | {tail} |")
     return head + "\n".join(lines) + "\n"
@@ -224,12 +251,10 @@ def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = N
     if full is not None:
         block += (f"\nFull-size segment (`bench_refine.py --full`: `bench_tracks`' cached preset `full`, "
                   f"{full['frames']} frames, seed {full['seed']}, 1920x1280, {full['lidar_returns'] / 1e6:.1f} M "
-                  f"returns, {full['objects']} annotated objects), labels with {100 * full['noise_m']:.0f} cm / "
-                  f"{full['noise_m'] / 0.05:g} deg noise (`bench_tracks.noisy_scene`), default `AnnotateConfig`; "
-                  f"track stage = plan + prepare (maps given) + object jobs; refinement = `annotate.refine_scene` "
-                  f"(its plan + `refine_scene_boxes`); outcome "
-                  + ", ".join(f"{k} {v}" for k, v in sorted(full["reasons"].items()))
-                  + f", iterations {full['iterations']}:\n\n" + _full_table(full))
+                  f"returns, {full['levels'][0]['objects']} annotated objects), labels exact and with noise "
+                  f"(`bench_tracks.noisy_scene`), default `AnnotateConfig`; track stage = plan + prepare (maps "
+                  f"given) + object jobs; refinement = `annotate.refine_scene` (its plan + `refine_scene_boxes`):"
+                  f"\n\n" + _full_table(full))
     block += f"\n{DOC_END}"
     text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
     if DOC_START in text:

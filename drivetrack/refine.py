@@ -10,6 +10,9 @@ Model (one object, T frames, all vectorised; see docs/refinement.md):
 - State per frame ``s_t = (c_t, psi_t)``: box centre (metres) and heading (radians, yaw about +z)
   in the vehicle frame of frame t, exactly the parametrisation of a ``lidar_box`` label, so a
   refined box is again a label (``box_from_center_heading``) and a zero correction is the label.
+  With ``RefineConfig.pitch_roll_sigma_deg`` (the default) the state also holds the box's pitch
+  and roll (``Rz(psi) Ry(pitch) Rx(roll)``, 6 DOF), with a prior towards the labels' tilt and a
+  motion term on the box's tilt in the world (see docs/refinement.md, "Pitch and roll").
 - Body points: a return ``x`` (vehicle frame of its frame t) has body coordinates
   ``q = box_from_vehicle(s_t) x``; a rigid object's body points are fixed, so the body points of
   all frames form one *model* of the object. A return is used when it lies inside the current box
