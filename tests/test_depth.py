@@ -242,3 +242,65 @@ def test_lookup_errors():
         lookup_max4(np.zeros(3, np.float32), np.zeros((4, 2)))
     with pytest.raises(ValueError, match=r"batch of 2 depth maps expected shape \[2, \.\.\., 2\]"):
         lookup_max4(np.zeros((2, 3, 3), np.float32), np.zeros((3, 4, 2)))
+
+
+# ---------------------------------------------------------------- see_through_returns
+
+def test_see_through_returns_flags_leaks_not_edges_or_slopes():
+    from drivetrack.depth import see_through_returns
+
+    sparse = np.zeros((200, 300), np.float32)
+    sparse[::6, ::4] = 20.0                                # background scan pattern
+    sparse[60:140:3, 100:200:2] = 2.0                      # a near surface, densely sampled
+    leak = np.zeros(sparse.shape, bool)
+    leak[90:110:6, 120:180:4] = True                       # background returns inside it
+    sparse[leak] = 20.0
+    flagged = see_through_returns(sparse, 24, 0.95, 3)
+    assert flagged[leak].all()
+    assert not flagged[sparse == 2.0].any()
+    background = (sparse == 20.0) & ~leak
+    assert flagged[background].mean() < 0.01                # only returns at the square's corners
+    assert not flagged[sparse == 0].any()
+    # 4 of 4 quadrants: the leaks are still surrounded
+    assert see_through_returns(sparse, 24, 0.95, 4)[leak].all()
+    # a surface whose depth falls row by row (the ground): nearer returns below only, kept
+    ground = np.zeros((200, 300), np.float32)
+    rows = np.arange(200, dtype=np.float32)[:, None]
+    ground[::5, ::3] = np.broadcast_to(2000.0 / (rows + 20.0), (200, 300))[::5, ::3]
+    assert not see_through_returns(ground, 24).any()
+    # batches: same as one by one
+    both = see_through_returns(np.stack([sparse, ground]), 24)
+    np.testing.assert_array_equal(both[0], flagged)
+
+
+def test_see_through_returns_on_analytic_scene_removes_returns_the_camera_cannot_see():
+    """A LiDAR above the camera sees the ground behind a car right in front; those returns sit
+    inside the car in the image. The filter removes them and keeps what the camera sees."""
+    from drivetrack.depth import see_through_returns
+    from drivetrack.depth.analytic import AnalyticScene
+
+    base = default_scene()
+    near_car = np.array([[[3.5, -1.0, 0.0], [7.5, 1.0, 1.9]]])
+    scene = AnalyticScene(ground_z=0.0, boxes=np.concatenate([near_car, base.boxes]))
+    camera = front_camera(width=480, height=320)
+    truth = exact_depth(scene, camera)
+    sparse = sparse_depth_from_points(lidar_points(scene, origin=(0.0, 0.0, 2.6), beams=64, azimuths=1325), camera)
+    known = sparse > 0
+    behind = known & (sparse > 1.10 * np.maximum(truth, 1e-3)) & (truth > 0)  # past what the camera sees
+    assert behind.sum() > 30, behind.sum()
+    window = int(round(camera.f_u * np.tan(np.radians(1.0))))
+    flagged = see_through_returns(sparse, window, 0.95, 3)
+    assert flagged[behind].mean() > 0.9, flagged[behind].mean()
+    seen = known & ~behind
+    assert flagged[seen].mean() < 0.02, flagged[seen].mean()
+
+
+def test_see_through_returns_bad_arguments():
+    from drivetrack.depth import see_through_returns
+
+    with pytest.raises(ValueError, match="window_px"):
+        see_through_returns(np.zeros((4, 4), np.float32), 0)
+    with pytest.raises(ValueError, match="min_quadrants"):
+        see_through_returns(np.zeros((4, 4), np.float32), 3, min_quadrants=5)
+    with pytest.raises(ValueError, match=r"\[\.\.\., H, W\]"):
+        see_through_returns(np.zeros(4, np.float32), 3)

@@ -45,6 +45,13 @@ class TrackConfig:
         depth_returns: return indices that build the depth maps. Default first returns only:
             second returns at object edges put the surface *behind* an occluder into the map
             and make occluded points look visible (measured: docs/benchmarks.md).
+        see_through_window_deg: drop from the sparse maps, before completion, the returns the
+            camera cannot see because the LiDAR saw them past a nearer surface (over a car
+            beside the camera, round a pole): :func:`drivetrack.depth.see_through_returns` with
+            quadrant windows of this angle (``f_u * tan(angle)`` pixels) and ``occlusion_ratio``.
+            The default 0.5 degree (18 px at Waymo's 1920 px width) spans about two scan lines
+            of the TOP LiDAR (64 beams over ~20 degrees). None keeps every return.
+        see_through_min_quadrants: quadrants (of 4) that must hold a nearer return.
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
             (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
@@ -76,6 +83,8 @@ class TrackConfig:
     depth_batch: int = 16
     depth_lasers: tuple[str, ...] = ("TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR")
     depth_returns: tuple[int, ...] = (1,)
+    see_through_window_deg: float | None = 0.5
+    see_through_min_quadrants: int = 3
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
     max_speed_deviation_mps: float | None = None
@@ -101,6 +110,11 @@ class TrackConfig:
         if not set(self.depth_returns) <= {1, 2} or not self.depth_returns:
             raise ValueError(f"TrackConfig.depth_returns must be a non-empty subset of (1, 2), "
                              f"got {self.depth_returns}")
+        if self.see_through_window_deg is not None and not 0 < self.see_through_window_deg < 45:
+            raise ValueError(f"TrackConfig.see_through_window_deg must be None or in (0, 45) degrees, "
+                             f"got {self.see_through_window_deg}")
+        if self.see_through_min_quadrants not in (1, 2, 3, 4):
+            raise ValueError(f"TrackConfig.see_through_min_quadrants must be 1..4, got {self.see_through_min_quadrants}")
         object.__setattr__(self, "writers", tuple(self.writers))
         object.__setattr__(self, "depth_completer_options", dict(self.depth_completer_options))
         if not set(self.returns) <= {1, 2}:

@@ -99,9 +99,11 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
     returns of every lidar). Returns are moved from the frame's vehicle frame
     to the vehicle frame at the image's pose before projection, so that the maps agree with the
-    track projection (the ego vehicle moves between the LiDAR and the camera timestamps).
+    track projection (the ego vehicle moves between the LiDAR and the camera timestamps). With
+    ``config.see_through_window_deg``, returns the camera cannot see (the LiDAR saw them past a
+    nearer surface) are then removed (:func:`drivetrack.depth.see_through_returns`).
     """
-    from drivetrack.depth import sparse_depth_from_points
+    from drivetrack.depth import see_through_returns, sparse_depth_from_points
 
     frames = scene.cameras[job.camera]
     model = frames.model
@@ -119,6 +121,10 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
             points = transform_points(image_vehicle_from_vehicle, points)
         out[i] = sparse_depth_from_points(points, model)
+        if config.see_through_window_deg is not None:
+            window_px = max(1, int(round(model.f_u * np.tan(np.radians(config.see_through_window_deg)))))
+            out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
+                                       config.see_through_min_quadrants)] = 0.0
     return out
 
 
