@@ -6,8 +6,12 @@ takes many CPU-minutes, so it is cached under ``.bench-cache/``; ``--frames`` ke
 - speed: annotations (one track point in one frame, occlusion included) per CPU-second of the
   track stage (``run_object_job`` over every accepted clip; planning and depth excluded), target
   >= 10 million; if missed, a cProfile of the largest job names the hot spots;
-- memory: tracemalloc peak of the largest object job beyond the shared segment context (scene,
-  depth maps), measured at this clip length and extrapolated to a 200-frame clip (target < 1 GiB);
+- memory: peak of the largest object job, computed AND written (both files, to a temporary
+  folder), beyond the shared segment context (scene, depth maps): tracemalloc (numpy's buffers)
+  and RSS (everything, incl. OpenCV and numba), at N x T, N/2 x T and the first T/2 frames, fitted
+  as fixed + per point + per point-frame and evaluated for a 200-frame clip; ``--long-frames 210``
+  also measures the longest clips of a 210-frame small-preset segment directly (target < 1 GiB);
+  ``--memory-only`` runs just this;
 - accuracy against the exact truth (``drivetrack.evaluate``): OA, AJ, delta_avg (query mode
   ``first`` and ``strided``), pixel error, purity, recall, for each depth completer, without and
   with box noise (sigma ``--box-noise`` m on centres, 1 degree per 5 cm on headings, applied to the
@@ -111,41 +115,180 @@ def track_stage(ctx) -> tuple[list, float, float, int]:
     return results, cpu, wall, int(sum(r.num_tracks * r.num_frames for r in results))
 
 
-def _job_peak(ctx, job, max_tracks: int | None) -> tuple[int, int]:
-    """(tracemalloc peak bytes beyond what exists before the job, tracks kept) of one job."""
+class RssPeak:
+    """Peak resident set size of this process above its size at entry, sampled in a thread.
+
+    tracemalloc sees numpy's buffers but not OpenCV's or numba's own allocations; RSS sees all.
+    Sampled every ``interval_s`` (numba kernels and numpy release the GIL); ``peak_bytes`` is
+    set on exit.
+    """
+
+    def __init__(self, interval_s: float = 0.002):
+        self.interval_s = interval_s
+        self.peak_bytes = 0
+
+    @staticmethod
+    def rss() -> int:
+        try:
+            import psutil
+
+            return int(psutil.Process().memory_info().rss)
+        except ImportError:
+            import os
+
+            with open("/proc/self/statm") as handle:
+                return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+    def _sample(self):
+        while not self._stop.is_set():
+            self._max = max(self._max, self.rss())
+            self._stop.wait(self.interval_s)
+
+    @staticmethod
+    def trim() -> None:
+        """Return the heap's free pages to the system (glibc ``malloc_trim``), so that RSS growth
+        shows what a job needs rather than being absorbed by pages freed earlier (no-op elsewhere)."""
+        import ctypes
+        import gc
+
+        gc.collect()
+        try:
+            ctypes.CDLL("libc.so.6").malloc_trim(0)
+        except (OSError, AttributeError):
+            pass
+
+    def __enter__(self):
+        import threading
+
+        self.trim()
+        self._base = self._max = self.rss()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak_bytes = max(self._max, self.rss()) - self._base
+        return False
+
+
+def _job_peak(ctx, job, max_tracks: int | None, out_dir: str, rss_base: int) -> dict:
+    """Peak memory of one job computed AND written (both files) beyond what exists before it.
+
+    tracemalloc peaks of the job alone and of job + writing (the result stays alive while it is
+    written), and the RSS peak above ``rss_base`` (the process after loading the shared context
+    and a warm-up on the smallest job: freed heap pages stay mapped, so RSS is taken against one
+    base and the runs go from small to large); plus the job's N and T.
+    """
+    import shutil
+
+    from drivetrack.tracks import write_object_outputs
     from drivetrack.tracks.depth_stage import SegmentContext
 
     plan = replace(ctx.plan, config=replace(ctx.plan.config, max_tracks_per_object=max_tracks))
     sub = SegmentContext(plan, ctx.depth)
-    tracemalloc.start()
-    base = tracemalloc.get_traced_memory()[0]
-    tracemalloc.reset_peak()
-    result = run_object_job(sub, job)
-    peak = tracemalloc.get_traced_memory()[1] - base
-    tracemalloc.stop()
-    return int(peak), result.num_tracks
+    with RssPeak() as rss:
+        tracemalloc.start()
+        base = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        result = run_object_job(sub, job)
+        job_peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.reset_peak()
+        if result.rejection is None:
+            write_object_outputs(out_dir, SPLIT, result)
+        total_peak = max(job_peak, tracemalloc.get_traced_memory()[1] - base)
+        tracemalloc.stop()
+        del result
+    shutil.rmtree(out_dir, ignore_errors=True)
+    return {"candidates": min(job.num_points, max_tracks or job.num_points), "frames": int(job.frames.size),
+            "job_peak_bytes": int(job_peak), "peak_bytes": int(total_peak),
+            "rss_peak_bytes": int(rss.peak_bytes + max(rss._base - rss_base, 0))}
 
 
-def job_memory(ctx) -> dict:
-    """Peak memory of the largest job (by candidate points x frames), beyond the shared context.
+def _first_frames(plan, job, count: int):
+    """The job restricted to its first ``count`` frames (candidates: the returns of those frames)."""
+    rows = job.box_rows[:count]
+    return replace(job, frames=job.frames[:count], box_rows=rows, num_points=int(plan.box_points(rows)[0].size))
 
-    Measured with tracemalloc (numpy reports its buffers to it) at all N candidate points and at
-    N/2 (a seeded subset): peak = fixed(T) + per_point_frame * N * T, solved from the two runs.
-    Extrapolated to a 200-frame clip of the same object with N growing in proportion to T.
+
+#: Point-frames per output chunk while fitting the marginal costs: small enough that every run's
+#: chunks are full, so the chunk buffers are the same in all three runs.
+FIT_CHUNK_POINT_FRAMES = 1 << 16
+
+
+def job_memory(ctx, label: str = "") -> dict:
+    """Peak memory of the largest job (by candidate points x frames), computed and written.
+
+    Measured (tracemalloc and RSS, beyond the shared segment context) at all N candidates x T
+    frames with the default chunks (the headline). The marginal costs are measured with small
+    chunks (:data:`FIT_CHUNK_POINT_FRAMES`, full in every run) at N x T, N/2 x T (a seeded subset)
+    and the first T/2 frames, fitted as peak = chunks + per_point * N + per_point_frame * N * T
+    (three runs, three unknowns); a longer clip then costs the headline plus the marginal costs of
+    its extra points and point-frames (the chunk buffers do not grow with N x T).
     """
+    import tempfile
+
+    from drivetrack.tracks import core
+
     job = max(ctx.plan.jobs, key=lambda j: j.num_points * j.frames.size)
     n, t = job.num_points, int(job.frames.size)
-    peak_full, kept = _job_peak(ctx, job, None)
-    peak_half, _ = _job_peak(ctx, job, max(n // 2, 1))
-    per_point_frame = (peak_full - peak_half) / max((n - max(n // 2, 1)) * t, 1)
-    fixed = max(peak_full - per_point_frame * n * t, 0.0)
-    points_per_frame = n / t
-    n200 = points_per_frame * 200
-    return {"camera": job.camera_name, "object_id": job.object_id, "frames": t, "candidates": n,
-            "tracks": kept, "peak_bytes": peak_full, "peak_bytes_half": peak_half,
-            "bytes_per_point_frame": per_point_frame, "fixed_bytes": fixed,
-            "extrapolated_200_frames_bytes": int(fixed * 200 / t + per_point_frame * n200 * 200),
-            "points_per_frame": points_per_frame}
+    half_t = _first_frames(ctx.plan, job, max(t // 2, 1))
+    smallest = min(ctx.plan.jobs, key=lambda j: j.num_points * j.frames.size)
+    with tempfile.TemporaryDirectory() as tmp:
+        _job_peak(ctx, smallest, None, f"{tmp}/out", 0)       # warm: numba's code, imports, writers
+        RssPeak.trim()
+        rss_base = RssPeak.rss()
+        default_chunks = core.CHUNK_POINT_FRAMES
+        core.CHUNK_POINT_FRAMES = FIT_CHUNK_POINT_FRAMES
+        try:
+            fit_runs = [_job_peak(ctx, variant, cap, f"{tmp}/out", rss_base)
+                        for variant, cap in ((half_t, None), (job, max(n // 2, 1)), (job, None))]
+        finally:
+            core.CHUNK_POINT_FRAMES = default_chunks
+        headline = _job_peak(ctx, job, None, f"{tmp}/out", rss_base)
+    for r in fit_runs + [headline]:
+        print("   ", label, r, flush=True)
+    a = np.array([[1.0, r["candidates"], r["candidates"] * r["frames"]] for r in fit_runs])
+    fits = {}
+    for key in ("peak_bytes", "rss_peak_bytes"):
+        fits[key] = [float(v) for v in np.linalg.solve(a, np.array([r[key] for r in fit_runs], dtype=float))]
+    return {"label": label, "camera": job.camera_name, "object_id": job.object_id, "frames": t, "candidates": n,
+            "points_per_frame": n / t, "headline": headline, "fit_runs": fit_runs, "fit": fits}
+
+
+def bound_200(memory: dict, frames: int = 200) -> dict:
+    """Peaks for a ``frames``-frame clip of the same object (N grows with T): the measured headline
+    plus the fitted marginal cost of the extra points and point-frames (negative slopes count 0)."""
+    n = memory["points_per_frame"] * frames
+    h = memory["headline"]
+    extra_n, extra_nt = n - h["candidates"], n * frames - h["candidates"] * h["frames"]
+    return {"frames": frames, "candidates": int(n),
+            **{key: h[key] + max(per_point, 0.0) * extra_n + max(per_point_frame, 0.0) * extra_nt
+               for key, (_, per_point, per_point_frame) in memory["fit"].items()}}
+
+
+def memory_markdown(memories: list[dict]) -> list[str]:
+    """The memory paragraph(s) of the docs block."""
+    lines = []
+    for m in memories:
+        h = m["headline"]
+        _, per_point, per_pf = m["fit"]["peak_bytes"]
+        text = (f"Object-job memory, {m['label']}: the largest job ({m['camera']}, {m['candidates']:,} candidate "
+                f"points x {m['frames']} frames) computed and both files written: peak **{h['peak_bytes'] / 2**20:.0f} MiB** "
+                f"tracemalloc ({h['job_peak_bytes'] / 2**20:.0f} MiB during the job), **{h['rss_peak_bytes'] / 2**20:.0f} MiB** "
+                f"RSS growth (after ``malloc_trim``), beyond the shared segment context (measured). Marginal costs, fitted on "
+                f"three runs with {FIT_CHUNK_POINT_FRAMES:,}-point-frame chunks (N x T: tracemalloc MiB: "
+                + "; ".join(f"{r['candidates']:,} x {r['frames']}: {r['peak_bytes'] / 2**20:.1f}" for r in m["fit_runs"])
+                + f"): {per_point:.0f} B per candidate + {per_pf:.2f} B per candidate-frame (`visibles` is 1).")
+        if m.get("bound_200"):
+            b = m["bound_200"]
+            text += (f" A 200-frame clip of the same object ({m['points_per_frame']:.0f} points per frame, "
+                     f"{b['candidates']:,} x 200) then peaks at **{b['peak_bytes'] / 2**20:.0f} MiB** tracemalloc "
+                     f"(measured headline + marginal costs; target < 1024 MiB).")
+        lines += ["", text]
+    return lines
 
 
 def profile_job(ctx, top: int = 8) -> list[str]:
@@ -175,8 +318,40 @@ def accuracy_row(label: str, evaluation, extra: dict) -> dict:
     return row
 
 
+def long_clip_memory(cache: Path, seed: int, frames: int) -> dict:
+    """:func:`job_memory` on a ``--preset small`` segment of ``frames`` frames (its longest clips
+    are measured, not extrapolated; generating it takes ~1 CPU-s per frame, cached)."""
+    root, segment = ensure_source(cache, "small", seed, frames)
+    scene = load_scene_for(root, SPLIT, segment, AnnotateConfig(), refine=False)
+    model = scene.cameras[min(scene.cameras)].model
+    track = TrackConfig()
+    plan = plan_segment(scene, track)
+    ctx = prepare_segment(scene, track, depth=depth_for(scene, track, [plan])[0], plan=plan)
+    longest = max(j.frames.size for j in plan.jobs)
+    print(f"  long clip: {len(plan.jobs)} clips, the longest {longest} frames", flush=True)
+    return job_memory(ctx, f"`--preset small --frames {frames}` ({model.width}x{model.height}, longest clip "
+                           f"{longest} frames)")
+
+
+def memory_only(preset: str, frames: int, seed: int, cache: Path, long_frames: int | None) -> dict:
+    """Only the object-job memory (``--memory-only``): the cached scene and the long clip."""
+    root, segment = ensure_source(cache, preset, seed, frames)
+    scene = load_scene_for(root, SPLIT, segment, AnnotateConfig(), refine=False)
+    model = scene.cameras[min(scene.cameras)].model
+    track = TrackConfig()
+    plan = plan_segment(scene, track)
+    ctx = prepare_segment(scene, track, depth=depth_for(scene, track, [plan])[0], plan=plan)
+    memory = job_memory(ctx, f"`--preset {preset} --frames {frames}` ({model.width}x{model.height})")
+    memory["bound_200"] = bound_200(memory)
+    del ctx, scene
+    out = [memory]
+    if long_frames:
+        out.append(long_clip_memory(cache, seed, long_frames))
+    return {"machine": machine_description(), "memory": out}
+
+
 def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], box_noise: float,
-        baseline: bool, top_first_variant: bool = True) -> dict:
+        baseline: bool, top_first_variant: bool = True, long_frames: int | None = None) -> dict:
     root, segment = ensure_source(cache, preset, seed, frames)
     base_config = AnnotateConfig()
     # labels as read (refinement is measured separately below, on exact and on noisy labels)
@@ -208,7 +383,11 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
             print("   ", {k: (round(v, 4) if isinstance(v, float) else v)
                           for k, v in results["accuracy"][-1].items()}, flush=True)
             if method == methods[0] and noise == 0.0:
-                results["memory"] = job_memory(ctx)
+                memory = job_memory(ctx, f"`--preset {preset} --frames {frames}` ({results['image']})")
+                memory["bound_200"] = bound_200(memory)
+                results["memory"] = [memory]
+                if long_frames:
+                    results["memory"].append(long_clip_memory(cache, seed, long_frames))
                 print("  memory:", results["memory"], flush=True)
                 if rate < TARGET_ANNOTATIONS_PER_CPU_S:
                     results["profile"] = profile_job(ctx)
@@ -269,15 +448,9 @@ def markdown(r: dict) -> str:
     for s in r["speed"]:
         lines.append(f"| {s['method']} | {s['box_noise_m']} m | {s['jobs']} | {s['annotations']:,} | "
                      f"{s['track_cpu_s']:.1f} | {s['annotations_per_cpu_s'] / 1e6:.2f} M | {s['depth_cpu_s_per_map']:.2f} |")
-    m = r.get("memory")
-    if m:
-        lines += ["", f"Largest object job ({m['camera']}, {m['candidates']:,} candidate points x {m['frames']} frames, "
-                      f"{m['tracks']:,} tracks kept): tracemalloc peak **{m['peak_bytes'] / 2**20:.0f} MiB** beyond the "
-                      f"shared segment context (measured; {m['peak_bytes_half'] / 2**20:.0f} MiB with half the points), "
-                      f"i.e. {m['fixed_bytes'] / 2**20:.0f} MiB of chunk temporaries + {m['bytes_per_point_frame']:.0f} "
-                      f"bytes per candidate point and frame. Extrapolated to a 200-frame clip of the same object ({m['points_per_frame']:.0f} "
-                      f"points per frame, so N x T grows with T^2): **{m['extrapolated_200_frames_bytes'] / 2**30:.1f} GiB** "
-                      f"(extrapolation, not a measurement)."]
+    memory = r.get("memory")
+    if memory:
+        lines += memory_markdown(memory if isinstance(memory, list) else [memory])
     if r.get("profile"):
         lines += ["", "Hot spots of the largest job (cProfile, self time):", ""]
         lines += [f"- {p}" for p in r["profile"]]
@@ -292,6 +465,25 @@ def markdown(r: dict) -> str:
                      f"{_f(a['strided_delta'])} | {_f(a['px_median'], 2)} | {_f(a['px_mean'], 2)} | "
                      f"{_f(a['purity'], 4)} | {_f(a['recall'])} |")
     return "\n".join(lines)
+
+
+MEMORY_PARAGRAPH = re.compile(r"\n\nObject-job memory, .*?(?=\n\n(?!Object-job memory))", flags=re.DOTALL)
+
+
+def update_docs_memory(lines: list[str], machine: str) -> None:
+    """Replace only the memory paragraphs of the docs block (``--memory-only``)."""
+    doc = DOC.read_text()
+    start, end = doc.index(DOC_START), doc.index(DOC_END)
+    block = doc[start:end]
+    text = "\n" + "\n".join(lines) + f" Machine: {machine}."       # lines[0] == "": a blank line first
+    if MEMORY_PARAGRAPH.search(block):
+        block = MEMORY_PARAGRAPH.sub(lambda _: text, block, count=1)
+    elif re.search(r"\n\nLargest object job ", block):   # the former single paragraph
+        block = re.sub(r"\n\nLargest object job .*?(?=\n\n)", lambda _: text, block, count=1, flags=re.S)
+    else:   # after the speed table
+        at = block.find("\n\nHot spots") if "\n\nHot spots" in block else block.find("\n\nAccuracy against")
+        block = block[:at] + text + block[at:]
+    DOC.write_text(doc[:start] + block + doc[end:])
 
 
 def update_docs(text: str) -> None:
@@ -320,6 +512,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="small preset (smoke run)")
     parser.add_argument("--no-docs", action="store_true", help="do not rewrite docs/benchmarks.md")
     parser.add_argument("--json", default=None, help="also write the raw results to this file")
+    parser.add_argument("--long-frames", type=int, default=None,
+                        help="also measure the object-job memory on a --preset small segment of this many "
+                             "frames (e.g. 210: clips of ~200 frames, measured rather than extrapolated)")
+    parser.add_argument("--memory-only", action="store_true",
+                        help="measure only the object-job memory and rewrite only its paragraphs in the docs")
     parser.add_argument("--render", nargs="+", default=None, metavar="JSON",
                         help="no run: merge the --json results of runs (e.g. one per depth method, run in "
                              "parallel) and print / write the section")
@@ -341,8 +538,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     preset = "small" if args.quick else args.preset
     load = os.getloadavg()[0]
+    if args.memory_only:
+        results = memory_only(preset, args.frames, args.seed, Path(args.cache), args.long_frames)
+        lines = memory_markdown(results["memory"])
+        print("\n".join(lines))
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+        if not args.no_docs and not args.quick:
+            update_docs_memory(lines, f"{results['machine']}; load average at start {load:.1f}")
+        return 0
     results = run(preset, args.frames, args.seed, Path(args.cache), [m for m in args.methods.split(",") if m],
-                  args.box_noise, not args.no_baseline)
+                  args.box_noise, not args.no_baseline, long_frames=args.long_frames)
     results["load"] = f"{load:.1f}"
     text = markdown(results)
     print(text)

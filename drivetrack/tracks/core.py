@@ -40,9 +40,10 @@ from drivetrack.waymo.schema import BoxType, CameraName
 __all__ = ["ObjectTracks", "TrackSource", "run_object_job", "track_speeds", "rolling_shutter_projector",
            "image_time_offsets", "fill_invalid_positions", "points_per_chunk", "frames_per_chunk"]
 
-#: Elements (point-frames) per chunk of the streamed outputs: [k, T, 2 + 3] float32 and the
-#: job's scratch are ~20 MiB; the time-major [F, N, 3] temporaries of the TAPVid-3D writer ~40 MiB.
-CHUNK_POINT_FRAMES = 1 << 20
+#: Point-frames per chunk of the streamed outputs: a chunk's [k, T, 2 + 3] float32 (and the
+#: job's scratch) is 5 MiB; the time-major [F, N, 3] float32 + float64 temporaries of the
+#: TAPVid-3D writer ~15 MiB (measured in docs/benchmarks.md, "Object-job memory").
+CHUNK_POINT_FRAMES = 1 << 18
 
 
 def points_per_chunk(num_frames: int) -> int:
@@ -475,21 +476,21 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         query_source = source_clip[keep]
         visibles = np.empty((kept, t_count), dtype=bool)
         query_pixels = np.empty((kept, 2), dtype=np.float32)
-        # tracks and points3d a chunk of points at a time, kept only for visibles and the query
-        # pixels: the writers recompute them without the depth maps (TrackSource)
+        # tracks a chunk of points at a time, kept only for visibles, the query pixels and the
+        # sanity counts: the writers recompute tracks and points3d without the depth maps (TrackSource)
         step = points_per_chunk(t_count)
         scratch_tracks = np.empty((min(step, kept), t_count, 2), dtype=np.float32)
-        scratch_points = np.empty((min(step, kept), t_count, 3), dtype=np.float32)
+        no_points3d = np.empty((0, t_count, 3), dtype=np.float32)          # not needed here
         checks = np.zeros(2, dtype=np.int64)
         for start in range(0, kept, step):
             stop = min(start + step, kept)
-            tracks, points3d = scratch_tracks[:stop - start], scratch_points[:stop - start]
+            tracks = scratch_tracks[:stop - start]
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
-                               float(config.occlusion_ratio), tracks, visibles[start:stop], points3d)
+                               float(config.occlusion_ratio), tracks, visibles[start:stop], no_points3d, False)
             checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
                                               float(model.width), float(model.height), query_pixels[start:stop])
-        del scratch_tracks, scratch_points
+        del scratch_tracks
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())

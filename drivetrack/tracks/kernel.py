@@ -165,7 +165,7 @@ _BLOCK = 256
 
 @njit(cache=True, nogil=True)
 def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
-                occlusion_ratio, tracks, visibles, points3d):
+                occlusion_ratio, tracks, visibles, points3d, with_points3d=True):
     """Tracks of the points ``points_box`` float64 [K, 3] (box frame), written in [K, T] order.
 
     Outputs (filled in place): ``tracks`` float32 [K, T, 2] pixels (invalid projections hold the
@@ -175,7 +175,8 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
     ``range(K)``; output rows stay those of ``points_box``): points close in the image in turn
     read the depth maps' memory in turn. LiDAR order is already coherent (measured: sorting by
     image strips gained ~2% and cost more than that), so the track stage passes ``arange(K)``.
-    Other arguments as :func:`screen_points`.
+    Other arguments as :func:`screen_points`. ``with_points3d=False`` leaves ``points3d`` untouched
+    (the job needs only ``visibles``; the writers recompute ``points3d``).
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
@@ -216,7 +217,7 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
         for j in range(block, stop):
             _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)
     # points3d in point order: streaming writes (scattered ones cost more than the arithmetic)
-    for i in range(n):
+    for i in range(n if with_points3d else 0):
         px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
         for tau in range(t_count):
             m = vehicle_from_box[tau]
@@ -305,8 +306,7 @@ def summarise_tracks(tracks, visibles, source_frames, width, height, query_pixel
                     counts[0] += 1
                 elif not (x >= 0 and x < width and y >= 0 and y < height):
                     counts[1] += 1
-        if frame < 0:
-            frame = 0
+        frame = max(frame, 0)
         query_pixels[i, 0] = tracks[i, frame, 0]
         query_pixels[i, 1] = tracks[i, frame, 1]
     return counts
