@@ -345,12 +345,14 @@ class _Selection:
     """
 
     def __init__(self, points: np.ndarray, frame: np.ndarray, priority: np.ndarray, half: np.ndarray,
-                 cap: int, t_count: int):
+                 cap: int, t_count: int, kernel: bool = False):
         order = np.lexsort((priority, frame))
         self.points, self.frame = points[order], frame[order]
+        self.half_frame = np.ascontiguousarray(half, dtype=np.float64)        # [T, 3]
         self.half = half[self.frame]
-        self.cap, self.t_count = cap, t_count
+        self.cap, self.t_count, self.kernel = cap, t_count, kernel
         counts = np.bincount(self.frame, minlength=t_count)
+        self.counts = counts.astype(np.int64)
         self.start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
         self.rank = np.arange(self.frame.size) - self.start[self.frame]
         self.screen = 3 * cap
@@ -361,7 +363,13 @@ class _Selection:
                tilt: np.ndarray | None = None):
         """(body points float64 [P, 3], frames int64 [P], rows int64 [P] into ``self.points``) of
         the capped returns inside the boxes (center [T, 3], heading [T], tilt [T, 2] or None)
-        grown by ``margin``, in (frame, priority) order."""
+        grown by ``margin``, in (frame, priority) order. With ``kernel``: one pass per frame in
+        priority order that stops at the cap (``refine_kernel.select``), the same subset."""
+        if self.kernel:
+            from drivetrack import refine_kernel
+
+            return refine_kernel.select(self.points, self.start, self.counts, self.half_frame, self.cap,
+                                        center, heading, tilt, margin, clearance)
         idx = self.screened
         f = self.frame[idx]
         q = _body_points(center, heading, self.points[idx], f, tilt)
@@ -432,19 +440,20 @@ class _Data:
 
 @dataclass
 class _Pairs:
-    """Correspondences of one association, held fixed over the Gauss-Newton steps that follow.
+    """Correspondences of one association, at the state they were found at.
 
     A pair joins a used return ``a`` (row ``src`` of the selection, frame ``fa``) with its
-    nearest model point ``b`` of another frame (row ``dst``, frame ``fb``). The model normal at
-    ``b`` is stored in the *vehicle frame of b's frame* (``normal_vehicle``): a rigid frame's
-    local surface only rotates with that frame's pose, so the body-frame normal at any later state
-    is ``R(-psi_fb) normal_vehicle``, with no new neighbour search or PCA.
+    nearest model point ``b`` of another frame (row ``dst``, frame ``fb``); ``qa``, ``qb`` are
+    their body points and ``normal`` the model normal at ``b`` (body frame), all at the state of
+    the association (the terms are always evaluated there: nothing is transformed twice).
     """
     src: np.ndarray             # int64 [C] rows into the selection's points
     dst: np.ndarray             # int64 [C]
     fa: np.ndarray              # int64 [C]
     fb: np.ndarray              # int64 [C]
-    normal_vehicle: np.ndarray  # float64 [C, 3]
+    qa: np.ndarray              # float64 [C, 3] body points of a
+    qb: np.ndarray              # float64 [C, 3] body points of b
+    normal: np.ndarray          # float64 [C, 3] unit body normal at b
     planarity_weight: np.ndarray    # float64 [C] in [0, 1]
     num_points: np.ndarray      # int64 [T]
 
@@ -490,7 +499,7 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     q, f, rows = selection.select(center, heading, config.inlier_margin_m, config.ground_clearance_m, tilt)
     num_points = np.bincount(f, minlength=t_count).astype(np.int64)
     if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
-        return _Pairs(*(np.zeros(0, np.int64),) * 4, np.zeros((0, 3)), np.zeros(0), num_points)
+        return _Pairs(*(np.zeros(0, np.int64),) * 4, *(np.zeros((0, 3)),) * 3, np.zeros(0), num_points)
     k = int(min(max(config.association_neighbours, config.normal_neighbours), q.shape[0]))
     use_kernel = _use_kernel(config)
     if use_kernel:                                                       # one query serves both uses
@@ -509,17 +518,15 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     targets, target_of = np.unique(dst, return_inverse=True)
     neighbours = nbr[targets, :min(config.normal_neighbours, k)]
     normal_t, planarity_t = (refine_kernel.normals(q, neighbours) if use_kernel else _normals(q, neighbours))
-    fb = f[dst]
-    n_body = normal_t[target_of]
-    normal_vehicle = _from_body(n_body, heading[fb], None if tilt is None else tilt[fb])   # body -> vehicle of fb
     weight = np.clip(planarity_t[target_of] / config.min_planarity, 0.0, 1.0)
-    return _Pairs(rows[src], rows[dst], f[src], fb, normal_vehicle, weight, num_points)
+    return _Pairs(rows[src], rows[dst], f[src], f[dst], q[src], q[dst], normal_t[target_of], weight, num_points)
 
 
 def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray, heading: np.ndarray,
                 config: RefineConfig, t_count: int, normal_equations: bool = True,
                 tilt: np.ndarray | None = None) -> _Data:
-    """Point-to-plane normal equations of fixed correspondences at state (center, heading[, tilt]).
+    """Point-to-plane normal equations of the correspondences ``pairs``, found at state
+    (center, heading[, tilt]) (their body points and normals are at that state).
 
     The residual ``n . (q_a - q_b)`` depends on both poses, so both move (2 x 4 Jacobian non-zeros
     per row, 2 x 6 with tilt, accumulated straight into the dense [DT, DT] normal equations, D = 4
@@ -533,10 +540,7 @@ def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray,
         return _Data(np.zeros((n_state, n_state)), np.zeros(n_state), np.zeros(0), np.zeros(0, np.int64),
                      float("nan"), num_points)
     fa, fb = pairs.fa, pairs.fb
-    qa = _body_points(center, heading, selection.points[pairs.src], fa, tilt)
-    qb = _body_points(center, heading, selection.points[pairs.dst], fb, tilt)
-    tilt_a, tilt_b = (None, None) if tilt is None else (tilt[fa], tilt[fb])
-    n = _to_body(pairs.normal_vehicle, heading[fb], tilt_b)             # vehicle of fb -> body
+    qa, qb, n = pairs.qa, pairs.qb, pairs.normal
     r = np.einsum("ni,ni->n", n, qa - qb)
     scale = max(1.4826 * float(np.median(np.abs(r))), config.point_sigma_floor_m)
     if not normal_equations:
@@ -546,9 +550,9 @@ def _pair_terms(selection: _Selection, pairs: _Pairs | None, center: np.ndarray,
     if _use_kernel(config):
         from drivetrack import refine_kernel
 
-        hessian, gradient = refine_kernel.normal_equations(n, qa, qb, heading[fa], heading[fb], fa, fb, w, r,
-                                                           t_count, tilt_a, tilt_b)
+        hessian, gradient = refine_kernel.normal_equations(n, qa, qb, fa, fb, w, r, heading, tilt)
         return _Data(hessian, gradient, r, fa, scale, num_points)
+    tilt_a, tilt_b = (None, None) if tilt is None else (tilt[fa], tilt[fb])
     jac = np.concatenate([_point_jacobian(n, qa, heading[fa], tilt_a),
                           -_point_jacobian(n, qb, heading[fb], tilt_b)], axis=1)                  # [C, 2D]
     cols = np.concatenate([dof * fa[:, None] + np.arange(dof), dof * fb[:, None] + np.arange(dof)], axis=1)
@@ -757,18 +761,21 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{config.min_points_per_frame} (need {config.min_frames_with_points})",
                       num_points=per_frame)
 
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
     S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config, label_heading if six else None)
     prior = [1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2]
     if six:
         prior += [1.0 / np.deg2rad(config.pitch_roll_sigma_deg) ** 2] * 2
     prior_w = np.tile(prior, t_count)
-    H_fixed = sp.diags(prior_w) + (S.T @ S if S is not None else 0.0)         # prior + motion, [DT, DT]
+    # prior + motion, dense [DT, DT] (the data term couples most pairs of frames: dense anyway),
+    # and the motion gradient's constant part S^T e0
+    H_fixed = np.diag(prior_w)
+    if S is not None:
+        H_fixed += (S.T @ S).toarray()
+        motion_g0 = S.T @ e0
+    use_kernel = _use_kernel(config)
     label_state = np.concatenate([label_center, label_heading[:, None]] + ([label_tilt] if six else []),
                                  axis=1).reshape(-1)
-    selection = _Selection(points, frame, priority, half, config.max_points_per_frame, t_count)
+    selection = _Selection(points, frame, priority, half, config.max_points_per_frame, t_count, kernel=use_kernel)
 
     center, heading = label_center.copy(), label_heading.copy()
     tilt = label_tilt.copy() if six else None
@@ -805,10 +812,22 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         # Normal equations of 1/2 (data + prior + motion) in the increment dx.
         g = data.gradient + prior_w * (state - label_state)
         if S is not None:
-            g = g + S.T @ (S @ state + e0)
-        # SuperLU on the block-sparse system (the motion model is sparse; LAPACK's threaded dense
-        # solve of these small matrices was 10-25x slower on the loaded machine, measured)
-        dx = spla.spsolve((sp.csc_matrix(data.hessian) + H_fixed).tocsc(), -g)
+            g = g + S.T @ (S @ state) + motion_g0
+        # Cholesky of the dense normal equations: single-threaded kernel on the envelope (LAPACK's
+        # threaded solve of these small matrices cost 10-25x more CPU on the loaded 2-core machine;
+        # SuperLU 5-10x), scipy's as the reference
+        hessian = data.hessian + H_fixed
+        if use_kernel:
+            from drivetrack import refine_kernel
+
+            dx = refine_kernel.cholesky_solve(hessian, -g)
+        else:
+            import scipy.linalg
+
+            try:
+                dx = scipy.linalg.cho_solve(scipy.linalg.cho_factor(hessian, lower=True), -g)
+            except np.linalg.LinAlgError:
+                dx = np.full(g.shape, np.nan)
         iterations = it + 1
         if not np.all(np.isfinite(dx)):
             return labels("not_finite", f"non-finite update at iteration {iterations}",
@@ -867,9 +886,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         # holds that model. Without this the refined boxes share one small offset (the mean label
         # error, the gauge) and, with point selection at the box faces, lose whole faces in every
         # frame where noisy labels lost them in about half the frames.
-        src = final_pairs.src[inlier]
         fa = final_pairs.fa[inlier]
-        q = _body_points(center, heading, selection.points[src], fa, tilt)
+        q = final_pairs.qa[inlier]                        # body points at the final state
         half_f = half[fa]
         grow_hi = np.clip(np.max(q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
         grow_lo = np.clip(np.max(-q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)

@@ -1,6 +1,6 @@
 """Fused numba kernels of the pose refinement's inner loop (``drivetrack.refine``).
 
-Three pieces of a Gauss-Newton iteration that numpy/scipy do with large temporaries or a general
+Pieces of a Gauss-Newton iteration that numpy/scipy do with large temporaries or a general
 tree, each with the numpy/scipy reference it must reproduce:
 
 - :func:`knn`: exact k nearest neighbours of every point among the same points (itself
@@ -12,6 +12,11 @@ tree, each with the numpy/scipy reference it must reproduce:
 - :func:`normal_equations`: the dense [DT, DT] normal equations and gradient of weighted
   point-to-plane pairs (2 x D Jacobian non-zeros per pair; D = 4: centre and heading, D = 6: and
   pitch, roll), as ``drivetrack.refine._pair_terms`` assembles them with ``np.bincount``.
+- :func:`select`: the capped per-frame point selection with the body points, in one pass per
+  frame (reference: ``drivetrack.refine._Selection.select``).
+- :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
+  envelope (reference: ``scipy.linalg.cho_solve``).
+- :func:`gather`: the candidate returns of every box (reference: ``drivetrack.refine._gather_numpy``).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather"]
+__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve"]
 
 try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
     from numba import njit
@@ -223,15 +228,15 @@ def normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 @njit(cache=True, nogil=True)
-def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, tilt_a, tilt_b, dof, fa, fb, w, r, hessian, gradient):
+def _normal_equations_kernel(n, qa, qb, fa, fb, trig, dof, w, r, hessian, gradient):
     jac = np.empty(2 * dof)
     col = np.empty(2 * dof, np.int64)
     for i in range(n.shape[0]):
         for side in range(2):
             q = qa if side == 0 else qb
-            psi = heading_a[i] if side == 0 else heading_b[i]
+            f = fa[i] if side == 0 else fb[i]
             sign = 1.0 if side == 0 else -1.0
-            c, s = np.cos(psi), np.sin(psi)
+            c, s = trig[f, 0], trig[f, 1]
             o = dof * side
             if dof == 4:
                 jac[o + 0] = -sign * (c * n[i, 0] - s * n[i, 1])
@@ -239,8 +244,7 @@ def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, tilt_a, tilt_b, do
                 jac[o + 2] = -sign * n[i, 2]
                 jac[o + 3] = sign * (n[i, 0] * q[i, 1] - n[i, 1] * q[i, 0])
             else:                               # same formulas as refine._point_jacobian
-                tilt = tilt_a if side == 0 else tilt_b
-                ct, st, cr, sr = np.cos(tilt[i, 0]), np.sin(tilt[i, 0]), np.cos(tilt[i, 1]), np.sin(tilt[i, 1])
+                ct, st, cr, sr = trig[f, 2], trig[f, 3], trig[f, 4], trig[f, 5]
                 vy, vz = cr * q[i, 1] - sr * q[i, 2], sr * q[i, 1] + cr * q[i, 2]
                 ux, uy = ct * q[i, 0] + st * vz, vy
                 ky, kz = cr * n[i, 1] - sr * n[i, 2], sr * n[i, 1] + cr * n[i, 2]
@@ -251,7 +255,6 @@ def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, tilt_a, tilt_b, do
                 jac[o + 3] = sign * (mx * uy - ky * ux)
                 jac[o + 4] = sign * (-n[i, 0] * vz + kz * q[i, 0])
                 jac[o + 5] = sign * (n[i, 1] * q[i, 2] - n[i, 2] * q[i, 1])
-            f = fa[i] if side == 0 else fb[i]
             for m in range(dof):
                 col[o + m] = dof * f + m
         wi, wr = w[i], w[i] * r[i]
@@ -262,24 +265,27 @@ def _normal_equations_kernel(n, qa, qb, heading_a, heading_b, tilt_a, tilt_b, do
                 hessian[col[a], col[b]] += wa * jac[b]
 
 
-def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, heading_a: np.ndarray,
-                     heading_b: np.ndarray, fa: np.ndarray, fb: np.ndarray, w: np.ndarray, r: np.ndarray,
-                     t_count: int, tilt_a: np.ndarray | None = None,
-                     tilt_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(hessian float64 [DT, DT], gradient float64 [DT]) of pairs with body normals n [C, 3],
-    body points qa, qb [C, 3] of frames fa, fb [C] at headings heading_a, heading_b [C] (radians),
-    weights w [C] and residuals r [C]; D = 4 (centre, heading) when ``tilt_a`` / ``tilt_b`` are
-    None, else D = 6 with tilt_a, tilt_b [C, 2] = (pitch, roll) radians of the two frames; see
-    ``drivetrack.refine._pair_terms`` (the reference)."""
-    dof = 4 if tilt_a is None else 6
+def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, fa: np.ndarray, fb: np.ndarray,
+                     w: np.ndarray, r: np.ndarray, heading: np.ndarray,
+                     tilt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(hessian float64 [DT, DT], gradient float64 [DT]) of pairs with body normals n [C, 3] and
+    body points qa, qb [C, 3] of frames fa, fb [C], weights w [C] and residuals r [C], at the
+    per-frame headings ``heading`` [T] (radians) and, for D = 6, tilts ``tilt`` [T, 2] = (pitch,
+    roll) radians (None: D = 4, centre and heading); see ``drivetrack.refine._pair_terms`` (the
+    reference). Sines and cosines are taken once per frame."""
+    dof = 4 if tilt is None else 6
+    t_count = heading.shape[0]
+    trig = np.zeros((t_count, 6))
+    trig[:, 0], trig[:, 1] = np.cos(heading), np.sin(heading)
+    if tilt is not None:
+        trig[:, 2], trig[:, 3] = np.cos(tilt[:, 0]), np.sin(tilt[:, 0])
+        trig[:, 4], trig[:, 5] = np.cos(tilt[:, 1]), np.sin(tilt[:, 1])
     hessian = np.zeros((dof * t_count, dof * t_count))
     gradient = np.zeros(dof * t_count)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
-    no_tilt = np.zeros((0, 2))
-    _normal_equations_kernel(f64(n), f64(qa), f64(qb), f64(heading_a), f64(heading_b),
-                             no_tilt if tilt_a is None else f64(tilt_a), no_tilt if tilt_b is None else f64(tilt_b),
-                             dof, np.ascontiguousarray(fa, dtype=np.int64), np.ascontiguousarray(fb, dtype=np.int64),
-                             f64(w), f64(r), hessian, gradient)
+    i64 = lambda a: np.ascontiguousarray(a, dtype=np.int64)     # noqa: E731
+    _normal_equations_kernel(f64(n), f64(qa), f64(qb), i64(fa), i64(fb), trig, dof, f64(w), f64(r), hessian,
+                             gradient)
     return hessian, gradient
 
 
@@ -348,3 +354,107 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     index, owner = np.empty(int(counts.sum()), np.int64), np.empty(int(counts.sum()), np.int64)
     _gather_kernel(*args, False, counts, index, owner)
     return index, owner
+
+
+@njit(cache=True, nogil=True)
+def _select_kernel(points, start, counts, half, cap, center, heading, tilt, has_tilt, margin, clearance,
+                   q, frame, rows):
+    m = 0
+    for t in range(start.shape[0]):
+        c, s = np.cos(heading[t]), np.sin(heading[t])
+        ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
+        if has_tilt:
+            ct, st, cr, sr = np.cos(tilt[t, 0]), np.sin(tilt[t, 0]), np.cos(tilt[t, 1]), np.sin(tilt[t, 1])
+        hx, hy, hz = half[t, 0] + margin, half[t, 1] + margin, half[t, 2]
+        kept = 0
+        for i in range(start[t], start[t] + counts[t]):
+            if kept == cap:
+                break
+            x, y, z = points[i, 0] - center[t, 0], points[i, 1] - center[t, 1], points[i, 2] - center[t, 2]
+            ux, uy, uz = c * x + s * y, -s * x + c * y, z                 # Rz^T
+            if has_tilt:
+                vx, vz = ct * ux - st * uz, st * ux + ct * uz             # Ry^T
+                ux, uy, uz = vx, cr * uy + sr * vz, -sr * uy + cr * vz    # Rx^T
+            if abs(ux) <= hx and abs(uy) <= hy and uz <= hz + margin and uz >= -hz + clearance:
+                q[m, 0], q[m, 1], q[m, 2] = ux, uy, uz
+                frame[m] = t
+                rows[m] = i
+                m += 1
+                kept += 1
+    return m
+
+
+def select(points: np.ndarray, start: np.ndarray, counts: np.ndarray, half: np.ndarray, cap: int,
+           center: np.ndarray, heading: np.ndarray, tilt: np.ndarray | None, margin: float,
+           clearance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(body points float64 [P, 3], frames int64 [P], rows int64 [P]): per frame t the first
+    ``cap`` of its rows ``[start[t], start[t] + counts[t])`` of ``points`` [N, 3] (vehicle frame,
+    metres; each frame's rows in priority order) that lie inside the box (centre [T, 3], heading
+    [T], tilt [T, 2] = (pitch, roll) or None, half-size ``half`` [T, 3]) grown by ``margin`` and at
+    least ``clearance`` above its bottom, in row order. Reference:
+    ``drivetrack.refine._Selection.select`` (the same subset and body points)."""
+    t_count = start.shape[0]
+    size = int(min(points.shape[0], cap * t_count))
+    q = np.empty((size, 3))
+    frame = np.empty(size, np.int64)
+    rows = np.empty(size, np.int64)
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
+    m = _select_kernel(f64(points), np.ascontiguousarray(start, dtype=np.int64),
+                       np.ascontiguousarray(counts, dtype=np.int64), f64(half), int(cap), f64(center), f64(heading),
+                       np.zeros((0, 2)) if tilt is None else f64(tilt), tilt is not None, float(margin),
+                       float(clearance), q, frame, rows)
+    return q[:m], frame[:m], rows[:m]
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _cholesky_solve_kernel(a, b):
+    n = a.shape[0]
+    first = np.empty(n, np.int64)          # envelope: row i of L is zero left of first[i]
+    for i in range(n):
+        f = i
+        for j in range(i):
+            if a[i, j] != 0.0:
+                f = j
+                break
+        first[i] = f
+    for i in range(n):
+        fi = first[i]
+        row_i = a[i]
+        for j in range(fi, i + 1):
+            row_j = a[j]
+            s = 0.0
+            for k in range(max(fi, first[j]), j):
+                s += row_i[k] * row_j[k]
+            s = row_i[j] - s
+            if j < i:
+                a[i, j] = s / a[j, j]
+            elif s > 0.0:
+                a[i, i] = np.sqrt(s)
+            else:
+                return False
+    for i in range(n):                     # L y = b
+        s = b[i]
+        for k in range(first[i], i):
+            s -= a[i, k] * b[k]
+        b[i] = s / a[i, i]
+    for i in range(n - 1, -1, -1):         # L^T x = y
+        b[i] /= a[i, i]
+        xi = b[i]
+        for k in range(first[i], i):
+            b[k] -= a[i, k] * xi
+    return True
+
+
+def cholesky_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """float64 [n]: ``a^-1 b`` for a symmetric positive definite a [n, n] (its lower triangle is
+    read) and b [n], by a single-threaded Cholesky factorisation on the envelope of ``a`` (rows
+    are zero left of their first non-zero, fill-in stays inside): dense for the normal equations
+    of short clips, where every frame pairs with every other, and banded-like on long clips.
+    All NaN when ``a`` is not positive definite. Reference: ``scipy.linalg.cho_solve``."""
+    a = np.array(a, dtype=np.float64, order="C")
+    x = np.array(b, dtype=np.float64)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or x.shape != (a.shape[0],):
+        raise ValueError(f"cholesky_solve: a must be [n, n] and b [n], got {a.shape} and {x.shape}")
+    if not _cholesky_solve_kernel(a, x):
+        x[:] = np.nan
+    return x

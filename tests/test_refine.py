@@ -305,13 +305,25 @@ def test_capped_selection_equals_the_cap_over_all_candidates():
     priority = rng.uniform(size=frame.size)
     half = np.repeat(np.array([[1.0, 1.0, 1.0]]), t_count, axis=0)
     center, heading = np.zeros((t_count, 3)), np.zeros(t_count)
-    q, f, _ = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2)
+    q, f, rows = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2)
     inside = np.all(np.abs(points[:, :2]) <= 1.1, axis=1) & (points[:, 2] <= 1.1) & (points[:, 2] >= -0.8)
     for t in range(t_count):
         idx = np.flatnonzero(inside & (frame == t))
         want = points[idx[np.argsort(priority[idx])][:cap]]
         np.testing.assert_array_equal(q[f == t], want)
     assert (f == 2).sum() == cap and (f == 3).sum() == cap and (f == 0).sum() < cap
+    # the numba kernel (one pass per frame in priority order, stopping at the cap) selects the
+    # same rows, also for turned and tilted boxes
+    center = rng.normal(0.0, 0.3, (t_count, 3))
+    heading = rng.uniform(-3.0, 3.0, t_count)
+    tilt = rng.normal(0.0, 0.05, (t_count, 2))
+    for tilt_arg in (None, tilt):
+        ref = _Selection(points, frame, priority, half, cap, t_count).select(center, heading, 0.1, 0.2, tilt_arg)
+        out = _Selection(points, frame, priority, half, cap, t_count, kernel=True).select(center, heading, 0.1, 0.2,
+                                                                                          tilt_arg)
+        np.testing.assert_array_equal(out[1], ref[1])
+        np.testing.assert_array_equal(out[2], ref[2])
+        np.testing.assert_allclose(out[0], ref[0], atol=1e-12)
 
 
 def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
@@ -367,6 +379,32 @@ def test_numba_kernels_match_the_numpy_reference(noisy):
         RefineConfig(kernel="cuda")
     with pytest.raises(ValueError, match="k must be"):
         refine_kernel.knn(q[:5], 6)
+
+
+def test_cholesky_kernel_matches_scipy_on_dense_and_envelope_matrices():
+    """The normal equations are dense on short clips and have an envelope (rows zero left of their
+    first coupled frame) on long ones; the kernel's solve equals scipy's on both, NaN when not
+    positive definite."""
+    import scipy.linalg
+
+    from drivetrack import refine_kernel
+    rng = np.random.default_rng(6)
+    n = 60
+    a = rng.normal(size=(n, n))
+    dense = a @ a.T + n * np.eye(n)
+    envelope = dense.copy()
+    first = np.minimum(np.arange(n), rng.integers(0, n, n))              # row i is zero left of first[i]
+    for i in range(n):
+        envelope[i, :first[i]] = 0.0
+        envelope[:first[i], i] = 0.0
+    envelope += n * np.eye(n)                                             # still positive definite
+    b = rng.normal(size=n)
+    for m in (dense, envelope, dense[:1, :1]):
+        expect = scipy.linalg.cho_solve(scipy.linalg.cho_factor(m), b[:m.shape[0]])
+        np.testing.assert_allclose(refine_kernel.cholesky_solve(m, b[:m.shape[0]]), expect, rtol=1e-10, atol=1e-14)
+    assert np.all(np.isnan(refine_kernel.cholesky_solve(-dense, b)))
+    with pytest.raises(ValueError, match="cholesky_solve"):
+        refine_kernel.cholesky_solve(dense, b[:5])
 
 
 @pytest.mark.parametrize("cell_m", [0.05, 0.15, 1.0])
