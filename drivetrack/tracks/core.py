@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, box_from_center_heading, invert_rigid, transform_points
+from drivetrack.geometry import CameraModel, invert_rigid, transform_points
 from drivetrack.tracks.depth_stage import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
@@ -404,7 +404,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     t_count = frames.size
     timestamps = scene.timestamps_micros[frames].astype(np.int64)
 
-    vehicle_from_box = box_from_center_heading(boxes.center[rows], boxes.heading[rows])      # [T,4,4]
+    # full pose: refined boxes may carry pitch and roll (drivetrack.refine); labels are yaw-only
+    vehicle_from_box = boxes.vehicle_from_box(rows)                                          # [T,4,4]
     world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
     camera_from_box = geometry.camera_from_vehicle[frames] @ vehicle_from_box
     velocity_world = _box_velocity_world(world_from_box, timestamps)
@@ -430,7 +431,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], velocity_world)
         p_box = points_box_at_capture(lidar.points_vehicle[lidar_rows], lidar.capture_offset_s[lidar_rows],
                                       boxes.center[rows][source_clip], boxes.heading[rows][source_clip],
-                                      velocity_vehicle[source_clip], yaw_rate[source_clip])
+                                      velocity_vehicle[source_clip], yaw_rate[source_clip],
+                                      *(None if a is None else a[source_clip] for a in boxes.tilt(rows)))
     else:
         p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
             + box_from_vehicle[source_clip, :3, 3]
