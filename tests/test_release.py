@@ -416,3 +416,31 @@ def test_cli_publish_versions_diff_verify_gc(output, tmp_path, capsys):
     assert cli(["diff", store, "1.0.0", "1.0.0"]) == 0
     assert "0 added, 0 removed, 0 changed" in capsys.readouterr().out
     assert cli(["gc", store, "--older-than", "0"]) == 0
+
+
+def test_local_cas_lock_is_stale_by_its_age_not_by_the_wait(tmp_path):
+    """A lock left by a killed writer (old mtime) is named; a live one delays the writer only."""
+    import os
+    import threading
+    import time as _time
+
+    from drivetrack.release import LockTimeoutError
+    from drivetrack.release.store import open_store
+
+    store = open_store(str(tmp_path / "store"))
+    store.compare_and_swap("d/versions.json", b"1", None)
+    _, token = store.read_with_token("d/versions.json")
+    lock = store.path("d/versions.json") + ".lock"
+    # a live holder for 0.3 s: the writer waits, then succeeds
+    open(lock, "w").close()
+    threading.Timer(0.3, os.unlink, args=(lock,)).start()
+    start = _time.monotonic()
+    store.compare_and_swap("d/versions.json", b"2", token)
+    assert _time.monotonic() - start >= 0.25
+    assert store.read_with_token("d/versions.json")[0] == b"2"
+    # a stale lock (an hour old): a clear error naming it and the way out
+    open(lock, "w").close()
+    old = _time.time() - 3600
+    os.utime(lock, (old, old))
+    with pytest.raises(LockTimeoutError, match=r"versions\.json\.lock.*held for 3600 s.*drivetrack gc"):
+        store.compare_and_swap("d/versions.json", b"3", store.read_with_token("d/versions.json")[1])

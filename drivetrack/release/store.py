@@ -289,7 +289,6 @@ class LocalConditional:
         p = store.path(rel)
         lock = f"{p}.lock"
         os.makedirs(os.path.dirname(p), exist_ok=True)
-        deadline = time.monotonic() + self.lock_timeout_s
         while True:
             try:
                 fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -297,11 +296,14 @@ class LocalConditional:
                 os.close(fd)
                 break
             except FileExistsError:
-                if time.monotonic() > deadline:
-                    try:
-                        age = time.time() - os.stat(lock).st_mtime
-                    except FileNotFoundError:
-                        continue
+                # Stale means one lock held too long (a killed writer), not a long wait: under
+                # contention and slow fsync, many short-lived locks can keep a writer waiting
+                # longer than lock_timeout_s while every holder makes progress.
+                try:
+                    age = time.time() - os.stat(lock).st_mtime
+                except FileNotFoundError:
+                    continue
+                if age > self.lock_timeout_s:
                     raise LockTimeoutError(
                         f"lock file {lock} has been held for {age:.0f} s; if no publish is running "
                         f"it was left by a killed process: run `drivetrack gc {store.url}` or delete it")
