@@ -26,20 +26,21 @@ import numpy as np
 
 __all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve"]
 
-try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
-    from numba import njit
-    NUMBA_AVAILABLE = True
-except ImportError:  # pragma: no cover - exercised only in environments without numba
-    NUMBA_AVAILABLE = False
-
-    def njit(*args, **kwargs):
-        def wrap(fn):
-            return fn
-        return wrap
+from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
 #: at most this many grid cells; the cell grows beyond ``cell_m`` to respect it
 _MAX_CELLS = 1 << 22
 
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gap2(v, cell_lo, cell):
+    """Squared distance from coordinate ``v`` to the interval [cell_lo, cell_lo + cell] (0 inside)."""
+    if v < cell_lo:
+        return (cell_lo - v) ** 2
+    if v > cell_lo + cell:
+        return (v - cell_lo - cell) ** 2
+    return 0.0
 
 @njit(cache=True, nogil=True)
 def _knn_grid(points, k, cell, dist, index):
@@ -80,20 +81,10 @@ def _knn_grid(points, k, cell, dist, index):
         while True:
             for gi in range(max(c0 - r, 0), min(c0 + r + 1, dims[0])):
                 edge_i = gi == c0 - r or gi == c0 + r
-                gx = 0.0
-                cl = lo[0] + gi * cell
-                if x < cl:
-                    gx = (cl - x) ** 2
-                elif x > cl + cell:
-                    gx = (x - cl - cell) ** 2
+                gx = _gap2(x, lo[0] + gi * cell, cell)
                 for gj in range(max(c1 - r, 0), min(c1 + r + 1, d1)):
                     edge_j = edge_i or gj == c1 - r or gj == c1 + r
-                    gy = gx
-                    cl = lo[1] + gj * cell
-                    if y < cl:
-                        gy += (cl - y) ** 2
-                    elif y > cl + cell:
-                        gy += (y - cl - cell) ** 2
+                    gy = gx + _gap2(y, lo[1] + gj * cell, cell)
                     if found == k and gy > best_d[k - 1]:
                         continue                            # the whole row is farther than the k-th
                     base = (gi * d1 + gj) * d2
@@ -110,13 +101,7 @@ def _knn_grid(points, k, cell, dist, index):
                         if start[c] != start[c + 1]:
                             ok = True
                             if found == k:
-                                gap = gy
-                                cl = lo[2] + gk * cell
-                                if z < cl:
-                                    gap += (cl - z) ** 2
-                                elif z > cl + cell:
-                                    gap += (z - cl - cell) ** 2
-                                ok = gap <= best_d[k - 1]
+                                ok = gy + _gap2(z, lo[2] + gk * cell, cell) <= best_d[k - 1]
                             if ok:
                                 for s in range(start[c], start[c + 1]):
                                     d = (sp[s, 0] - x) ** 2 + (sp[s, 1] - y) ** 2 + (sp[s, 2] - z) ** 2

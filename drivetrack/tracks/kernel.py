@@ -31,16 +31,7 @@ from drivetrack.geometry import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
 __all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
            "fill_points3d_frames", "summarise_tracks"]
 
-try:  # numba is a declared dependency; the numpy path remains when it cannot be imported
-    from numba import njit
-    NUMBA_AVAILABLE = True
-except ImportError:  # pragma: no cover - exercised only in environments without numba
-    NUMBA_AVAILABLE = False
-
-    def njit(*args, **kwargs):
-        def wrap(function):
-            return function
-        return wrap
+from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
 #: Status codes of :func:`screen_points`.
 KEPT, DROPPED_INVISIBLE, DROPPED_SPEED = 0, 1, 2
