@@ -8,8 +8,8 @@ see-through filter (``TrackConfig.see_through_window_deg`` / ``see_through_min_q
     .venv/bin/python bench/common_clips.py                 # the default TrackConfig
     .venv/bin/python bench/common_clips.py none,3 0.5,3 1.0,3 0.5,3,top
 
-Each argument is ``WINDOW_DEG|none,MIN_QUADRANTS[,top]`` (``top``: depth maps from the TOP LiDAR
-only). Uses bench_tracks' cached full-size segment (``.bench-cache/``; generated on first use).
+Each argument is ``WINDOW_DEG|none,MIN_QUADRANTS[,top][,noblind]`` (``top``: depth maps from the
+TOP LiDAR only; ``noblind``: no blind-zone bound, ``TrackConfig.blind_zone_laser=None``). Uses bench_tracks' cached full-size segment (``.bench-cache/``; generated on first use).
 Pose refinement is off (exact labels).
 """
 from __future__ import annotations
@@ -51,7 +51,8 @@ def main(argv: list[str]) -> int:
             window, quadrants, *rest = setting.split(",")
             track = TrackConfig(see_through_window_deg=None if window == "none" else float(window),
                                 see_through_min_quadrants=int(quadrants),
-                                **({"depth_lasers": ("TOP",)} if "top" in rest else {}))
+                                **({"depth_lasers": ("TOP",)} if "top" in rest else {}),
+                                **({"blind_zone_laser": None} if "noblind" in rest else {}))
         config = replace(base, track=track)
         plan = plan_segment(scene, track)
         dense = [complete_depth_batch(b, config) for b in sparse_depth_batches(scene, config, plan)]

@@ -125,7 +125,8 @@ class DepthBatch:
         segment: segment name (for error messages and routing).
         camera: ``CameraName`` value.
         frames: int64 [B], frame indices.
-        maps: float32 [B, H, W], z-depth in metres from the camera, 0 = unknown.
+        maps: float32 [B, H, W], z-depth in metres from the camera, 0 = unknown; sparse maps
+            also hold blind-zone bounds as negative values (``drivetrack.depth.bound_blind_zone``).
         dense: False for sparse LiDAR maps, True once completed.
         method: the completer that produced dense maps ("" for sparse).
     """

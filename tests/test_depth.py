@@ -304,3 +304,95 @@ def test_see_through_returns_bad_arguments():
         see_through_returns(np.zeros((4, 4), np.float32), 3, min_quadrants=5)
     with pytest.raises(ValueError, match=r"\[\.\.\., H, W\]"):
         see_through_returns(np.zeros(4, np.float32), 3)
+
+
+# ---------------------------------------------------------------- bound_blind_zone
+
+def test_bound_blind_zone_bounds_below_the_reference_lidars_lowest_scan_line():
+    from drivetrack.depth import bound_blind_zone
+
+    sparse = np.zeros((100, 40), np.float32)
+    reference = np.zeros_like(sparse)
+    reference[10:41:10, 0:20:2] = 8.0                      # the roof lidar's far lines
+    reference[60, 0:20:2] = 3.0                            # its lowest line hits a near car at 3 m
+    reference[56, 0:20:2] = 2.5                            # the line above, still within the cell
+    sparse[:] = reference
+    sparse[70, 4] = 9.0                                    # a bumper lidar seen under the car: farther
+    sparse[80, 6] = 1.0                                    # a bumper lidar's return nearer than the car
+    sparse[30, 30] = 12.0                                  # a column with no reference return at all
+    out = bound_blind_zone(sparse, reference, cell_px=10, ratio=0.95)
+    # above and on the lowest line: untouched; below it, in columns 0..19: bounded by 3 m (the
+    # farthest return of the lowest line), encoded -3; the far return dropped, the nearer one kept
+    np.testing.assert_array_equal(out[:61], sparse[:61])
+    assert (out[61:, :20][out[61:, :20] != 1.0] == -3.0).all()
+    assert out[70, 4] == -3.0 and out[80, 6] == 1.0
+    # columns 20..39 have no reference return: unchanged
+    np.testing.assert_array_equal(out[:, 20:], sparse[:, 20:])
+    # a return within the ratio of the bound is kept
+    sparse[75, 8] = 3.1
+    assert bound_blind_zone(sparse, reference, 10, 0.95)[75, 8] == np.float32(3.1)
+    # no reference return anywhere: nothing changes
+    np.testing.assert_array_equal(bound_blind_zone(sparse, np.zeros_like(sparse), 10), sparse)
+
+
+def test_apply_depth_bounds_after_completion():
+    from drivetrack.depth import apply_depth_bounds
+
+    sparse = np.array([[5.0, 0.0, -3.0, -3.0, -3.0]], np.float32)
+    dense = np.array([[5.0, 5.0, 5.0, 2.0, 0.0]], np.float32)   # completion of max(sparse, 0)
+    np.testing.assert_array_equal(apply_depth_bounds(dense, sparse), [[5.0, 5.0, 3.0, 2.0, 3.0]])
+    np.testing.assert_array_equal(dense, [[5.0, 5.0, 5.0, 2.0, 0.0]])           # not modified
+    unbounded = np.maximum(sparse, 0)
+    assert apply_depth_bounds(dense, unbounded) is dense
+    batch = apply_depth_bounds(np.stack([dense, dense]), np.stack([sparse, unbounded]))
+    np.testing.assert_array_equal(batch[1], dense)
+    np.testing.assert_array_equal(batch[0], [[5.0, 5.0, 3.0, 2.0, 3.0]])
+
+
+def test_horizontal_depth_scale_gives_z_depth_from_horizontal_distance():
+    from drivetrack.depth import horizontal_depth_scale
+    from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+
+    camera = CameraModel(f_u=500.0, f_v=500.0, c_u=240.0, c_v=160.0, k1=0.04, k2=-0.02, p1=0.0005, p2=-0.0003,
+                         k3=0.0, width=480, height=320, vehicle_from_camera=rigid_from_rotation_translation(
+                             rotation_from_rpy(0.0, np.radians(12.0), np.radians(-30.0)), np.array([1.5, -0.9, 2.1])))
+    scale = horizontal_depth_scale(camera)
+    assert scale.shape == (320, 480) and scale.dtype == np.float32
+    rng = np.random.default_rng(3)
+    pixels = rng.uniform([2, 2], [478, 318], size=(200, 2))
+    rays = camera.rays_from_pixels(pixels)
+    points_camera = rays * rng.uniform(2, 40, size=(200, 1))
+    horizontal = np.linalg.norm((points_camera @ camera.vehicle_from_camera[:3, :3].T)[:, :2], axis=-1)
+    z = points_camera[:, 0]
+    at = scale[np.floor(pixels[:, 1]).astype(int), np.floor(pixels[:, 0]).astype(int)]
+    np.testing.assert_allclose(horizontal * at, z, rtol=2e-3)
+
+
+def test_bound_blind_zone_on_analytic_scene_never_brings_surfaces_nearer():
+    """A camera pitched down sees the ground and a car inside the roof LiDAR's blind zone: the
+    bound fills that region, and nowhere puts a surface nearer than the truth (no false occlusion),
+    while far returns of a bumper lidar seen round the car there are replaced."""
+    from drivetrack.depth import bound_blind_zone, horizontal_depth_scale
+    from drivetrack.depth.analytic import AnalyticScene
+    from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+
+    near_car = np.array([[[3.2, -1.2, 0.0], [7.2, 1.2, 1.6]]])
+    scene = AnalyticScene(ground_z=0.0, boxes=np.concatenate([near_car, default_scene().boxes]))
+    camera = CameraModel(f_u=514.0, f_v=514.0, c_u=240.0, c_v=160.0, k1=0.04, k2=-0.02, p1=0.0, p2=0.0, k3=0.0,
+                         width=480, height=320, vehicle_from_camera=rigid_from_rotation_translation(
+                             rotation_from_rpy(0.0, np.radians(15.0), 0.0), np.array([1.5, 0.0, 2.1])))
+    truth = exact_depth(scene, camera)
+    top = lidar_points(scene, origin=(0.0, 0.0, 2.2), azimuths=1325)
+    side = lidar_points(scene, origin=(2.6, 1.1, 0.5), beams=32, azimuths=600, inclination_deg=(-60.0, 30.0),
+                        max_range=20.0)
+    sparse, reference = sparse_depth_from_points(np.concatenate([top, side]), camera,
+                                                 subset=np.arange(len(top) + len(side)) < len(top))
+    out = bound_blind_zone(sparse, reference, 4, 0.95, horizontal_depth_scale(camera))
+    bounded = out < 0
+    assert (bounded & (sparse == 0)).sum() > 5000            # the blind zone is bounded
+    seen = bounded & (truth > 0)
+    assert (-out[seen] >= 0.95 * truth[seen]).mean() > 0.999  # and never nearer than what is there
+    np.testing.assert_array_equal(out[~bounded], sparse[~bounded])
+    leaked = (sparse > 1.1 * np.maximum(truth, 1e-3)) & (truth > 0) & bounded
+    assert leaked.sum() >= 10, leaked.sum()
+    assert (-out[leaked] <= 1.05 * truth[leaked]).all()      # far returns seen round the car: replaced

@@ -327,6 +327,8 @@ def test_bad_config_names_the_field():
         TrackConfig(cameras=("BACK",))
     with pytest.raises(ValueError, match="fov_runs"):
         TrackConfig(fov_runs="maybe")
+    with pytest.raises(ValueError, match="blind_zone_laser.*depth_lasers.*'FRONT'"):
+        TrackConfig(blind_zone_laser="FRONT", depth_lasers=("TOP",))
     assert TrackConfig.from_dict(TrackConfig().to_dict()) == TrackConfig()
 
 

@@ -5,21 +5,26 @@ import numpy as np
 
 from drivetrack.geometry import CameraModel, transform_points
 
-__all__ = ["sparse_depth_from_points"]
+__all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
+           "horizontal_depth_scale"]
 
 
-def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel) -> np.ndarray:
+def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
+                             subset: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Project LiDAR points into a camera and keep the minimum z-depth per pixel.
 
     Args:
         points_vehicle: float [M, 3], metres, vehicle frame (x forward, y left, z up).
         camera: the camera; its distortion is applied (:meth:`CameraModel.pixels_from_camera`),
             points behind it, with untrusted distortion, or outside the image are dropped.
+        subset: optional bool [M]: also return the map of these points alone (e.g. one lidar's
+            returns, for :func:`bound_blind_zone`), from the same projection.
     Returns:
         float32 [camera.height, camera.width], metres of z-depth (camera-frame x, distance along
         the optical axis from the camera centre), ``0`` where no point projects. A point at pixel
         position (x, y) lands in pixel (floor(x), floor(y)) (pixel ``i`` covers ``[i, i + 1)``).
         Where several points share a pixel the nearest wins (it occludes the others).
+        With ``subset``, a pair (map of all points, map of the subset).
     """
     points_vehicle = np.asarray(points_vehicle)
     if points_vehicle.ndim != 2 or points_vehicle.shape[-1] != 3:
@@ -29,7 +34,12 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel) ->
     height, width = int(camera.height), int(camera.width)
     if height <= 0 or width <= 0:
         raise ValueError(f"camera: expected a positive image size, found {width}x{height}")
+    if subset is not None:
+        subset = np.asarray(subset, dtype=bool)
+        if subset.shape != points_vehicle.shape[:1]:
+            raise ValueError(f"subset: expected bool [{points_vehicle.shape[0]}], found shape {subset.shape}")
     flat = np.full(height * width, np.inf, dtype=np.float64)
+    flat_subset = np.full(height * width, np.inf, dtype=np.float64) if subset is not None else None
     if len(points_vehicle):
         points_camera = transform_points(camera.camera_from_vehicle, points_vehicle)
         pixels, valid = camera.pixels_from_camera(points_camera)
@@ -37,8 +47,15 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel) ->
         cols = np.floor(pixels[keep, 0]).astype(np.int64)
         rows = np.floor(pixels[keep, 1]).astype(np.int64)
         np.minimum.at(flat, rows * width + cols, points_camera[keep, 0])
-    flat[np.isinf(flat)] = 0.0
-    return flat.astype(np.float32).reshape(height, width)
+        if subset is not None:
+            chosen = subset[keep]
+            np.minimum.at(flat_subset, rows[chosen] * width + cols[chosen], points_camera[keep, 0][chosen])
+
+    def as_map(values: np.ndarray) -> np.ndarray:
+        values[np.isinf(values)] = 0.0
+        return values.astype(np.float32).reshape(height, width)
+
+    return as_map(flat) if subset is None else (as_map(flat), as_map(flat_subset))
 
 
 def see_through_returns(sparse: np.ndarray, window_px: int, ratio: float = 0.95, min_quadrants: int = 3,
@@ -99,3 +116,125 @@ def see_through_returns(sparse: np.ndarray, window_px: int, ratio: float = 0.95,
     out = np.zeros(sparse.size, dtype=bool)
     out[flat] = nearer >= int(min_quadrants)
     return out.reshape(sparse.shape)
+
+
+def horizontal_depth_scale(camera: CameraModel, step_px: int = 8) -> np.ndarray:
+    """float32 [H, W]: z-depth per metre of horizontal distance along each pixel's viewing ray.
+
+    A point seen at pixel p at horizontal distance ``d`` (metres in the vehicle's x-y plane, from
+    the camera centre) has z-depth ``d * scale[p]``. For a level camera ``scale`` is the cosine of
+    the ray's azimuth off the optical axis; a camera pitched down sees lower points at larger
+    z-depth for the same horizontal distance, which this accounts for. Computed on a grid of
+    ``step_px`` and interpolated bilinearly (it varies smoothly over the image).
+    """
+    import cv2
+
+    height, width = int(camera.height), int(camera.width)
+    step = max(1, int(step_px))
+    xs = np.append(np.arange(0.5, width, step), width - 0.5)
+    ys = np.append(np.arange(0.5, height, step), height - 0.5)
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    rays = camera.rays_from_pixels(grid)                                          # camera frame
+    horizontal = np.linalg.norm((rays @ camera.vehicle_from_camera[:3, :3].T)[:, :2], axis=-1)
+    coarse = (rays[:, 0] / np.maximum(horizontal, 1e-9)).reshape(ys.size, xs.size)
+    # grid nodes at pixel centres 0.5, 0.5 + step, ..., last centre: resample onto every centre
+    map_x = np.interp(np.arange(width) + 0.5, xs, np.arange(xs.size)).astype(np.float32)
+    map_y = np.interp(np.arange(height) + 0.5, ys, np.arange(ys.size)).astype(np.float32)
+    grid_x, grid_y = np.meshgrid(map_x, map_y)
+    return cv2.remap(coarse.astype(np.float32), grid_x, grid_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ratio: float = 0.95,
+                     scale: np.ndarray | None = None) -> np.ndarray:
+    """float32 [H, W]: ``sparse`` with the image region below the reference lidar's field of view bounded.
+
+    A roof LiDAR next to the cameras (Waymo's TOP: beams down to about -17.6 degrees) leaves a
+    blind zone round the vehicle that the bottom rows of a camera image often look into: the
+    lowest scan line of that LiDAR in a camera image is the edge of what it can see. Below it,
+    a camera ray points further down than any of the reference's beams, so it meets the ground
+    nearer than that scan line, or a surface standing in front of it: its horizontal distance is
+    at most about that of the lowest scan line there (the prior used here). Two things go wrong
+    there without it: a car right beside the camera below the reference's beams has no return at
+    all, so the map is unknown (completion does not reach that far) and points behind the car
+    look visible; and lidars mounted elsewhere (bumpers, sides) see *under or round* that car and
+    put far returns into the image region it covers.
+
+    Per column cell of ``cell_px`` pixels, the lowest reference return (row ``r``) and the
+    farthest reference return of that lowest scan line (within ``cell_px`` rows above ``r``, in
+    horizontal distance) give the bound ``b``; at a pixel below row ``r`` it is the z-depth
+    ``b * scale``. There, returns deeper than ``bound / ratio`` are dropped (seen past a nearer
+    surface, by the occlusion test's own ``ratio``), returns nearer than that (an object in the
+    blind zone seen by a bumper lidar) are kept, and every pixel without a return gets the bound
+    encoded as a **negative** value ``-bound``: "no return here; the surface is at most this
+    deep". :func:`apply_depth_bounds` applies it to the completed map (``min(completed, bound)``,
+    the bound where completion left the pixel unknown), so that completion still spreads nearer
+    returns into the region and completers only ever see returns (``max(sparse, 0)``). Column
+    cells without any reference return are left as they are.
+
+    Args:
+        sparse: float32 [H, W] sparse z-depth of every lidar used for the map, 0 = no return.
+        reference: float32 [H, W] sparse z-depth of the reference lidar alone (a subset of
+            ``sparse``'s returns), 0 = no return.
+        cell_px: width of a column cell and height of the lowest scan line, pixels (about twice
+            the reference's column spacing in the image).
+        ratio: a return is deeper than the bound when ``ratio * depth > bound``.
+        scale: float32 [H, W], :func:`horizontal_depth_scale` of the camera; None takes z-depth
+            as the horizontal distance (a level camera, pixels near the optical axis).
+    Returns:
+        float32 [H, W], a new map: returns > 0, no return 0, bounded pixel without a return < 0.
+    """
+    sparse = np.asarray(sparse, dtype=np.float32)
+    reference = np.asarray(reference, dtype=np.float32)
+    if sparse.ndim != 2 or reference.shape != sparse.shape:
+        raise ValueError(f"bound_blind_zone: expected sparse and reference float32 [H, W] of one shape, "
+                         f"found {sparse.shape} and {reference.shape}")
+    if scale is not None and np.shape(scale) != sparse.shape:
+        raise ValueError(f"bound_blind_zone: scale must be float32 {sparse.shape}, found {np.shape(scale)}")
+    if int(cell_px) < 1 or not 0 < ratio <= 1:
+        raise ValueError(f"bound_blind_zone: cell_px must be >= 1 (got {cell_px}), ratio in (0, 1] (got {ratio})")
+    cell = int(cell_px)
+    height, width = sparse.shape
+    cells = -(-width // cell)
+    ys, xs = np.nonzero(reference > 0)
+    out = sparse.copy()
+    if ys.size == 0:
+        return out
+    horizontal = reference[ys, xs] / (scale[ys, xs] if scale is not None else 1.0)   # metres
+    cx = xs // cell
+    lowest = np.full(cells, -1, dtype=np.int64)
+    np.maximum.at(lowest, cx, ys)                                       # lowest reference row per cell
+    line = ys >= lowest[cx] - cell                                      # the lowest scan line
+    bound = np.zeros(cells, dtype=np.float32)
+    np.maximum.at(bound, cx[line], horizontal[line])
+    row_of = np.repeat(lowest, cell)[:width]                           # [W]
+    bound_of = np.repeat(bound, cell)[:width]
+    below = (np.arange(height)[:, None] > row_of[None, :]) & (row_of[None, :] >= 0)   # [H, W]
+    if not below.any():
+        return out
+    region = out[below]
+    bounded = np.broadcast_to(bound_of[None, :], out.shape)[below]
+    if scale is not None:
+        bounded = bounded * np.asarray(scale, dtype=np.float32)[below]
+    out[below] = np.where((region <= 0) | (ratio * region > bounded), -bounded, region)
+    return out
+
+
+def apply_depth_bounds(dense: np.ndarray, sparse: np.ndarray) -> np.ndarray:
+    """float32 [..., H, W]: completed maps with the bounds of :func:`bound_blind_zone` applied.
+
+    Args:
+        dense: float32 [..., H, W] completed z-depth, 0 = unknown (completed from
+            ``max(sparse, 0)``).
+        sparse: float32 [..., H, W] the sparse maps it was completed from; a negative value
+            ``-b`` bounds the depth of that pixel to at most ``b`` (and sets it where unknown).
+    Returns:
+        float32 [..., H, W]; ``dense`` itself when ``sparse`` holds no bound.
+    """
+    bounded = sparse < 0
+    if not bounded.any():
+        return dense
+    bound = -sparse[bounded]
+    known = dense[bounded]
+    out = np.array(dense, dtype=np.float32, copy=True)
+    out[bounded] = np.where(known > 0, np.minimum(known, bound), bound)
+    return out

@@ -52,6 +52,13 @@ class TrackConfig:
             The default 0.5 degree (18 px at Waymo's 1920 px width) spans about two scan lines
             of the TOP LiDAR (64 beams over ~20 degrees). None keeps every return.
         see_through_min_quadrants: quadrants (of 4) that must hold a nearer return.
+        blind_zone_laser: ``LaserName`` of the roof LiDAR beside the cameras (one of
+            ``depth_lasers``), or None. Below its lowest scan line in an image (its blind zone round
+            the vehicle), the sparse maps are bounded by that line's depth
+            (:func:`drivetrack.depth.bound_blind_zone`, column cells of
+            ``see_through_window_deg``, 0.5 degree when that is None): a car beside the camera
+            that no LiDAR sees there occludes instead of being unknown, and what other lidars
+            saw under or round it is dropped.
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
             (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
@@ -85,6 +92,7 @@ class TrackConfig:
     depth_returns: tuple[int, ...] = (1,)
     see_through_window_deg: float | None = 0.5
     see_through_min_quadrants: int = 3
+    blind_zone_laser: str | None = "TOP"
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
     max_speed_deviation_mps: float | None = None
@@ -115,6 +123,9 @@ class TrackConfig:
                              f"got {self.see_through_window_deg}")
         if self.see_through_min_quadrants not in (1, 2, 3, 4):
             raise ValueError(f"TrackConfig.see_through_min_quadrants must be 1..4, got {self.see_through_min_quadrants}")
+        if self.blind_zone_laser is not None and self.blind_zone_laser not in self.depth_lasers:
+            raise ValueError(f"TrackConfig.blind_zone_laser must be None or one of depth_lasers "
+                             f"{self.depth_lasers}, got {self.blind_zone_laser!r}")
         object.__setattr__(self, "writers", tuple(self.writers))
         object.__setattr__(self, "depth_completer_options", dict(self.depth_completer_options))
         if not set(self.returns) <= {1, 2}:

@@ -94,48 +94,68 @@ def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = Non
 
 
 def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray:
-    """float32 [B, H, W] sparse z-depth maps of ``job`` (0 = no return), from the LiDAR.
+    """float32 [B, H, W] sparse z-depth maps of ``job`` (> 0 a return, 0 = no return, < 0 a bound), from the LiDAR.
 
     Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
     returns of every lidar). Returns are moved from the frame's vehicle frame
     to the vehicle frame at the image's pose before projection, so that the maps agree with the
     track projection (the ego vehicle moves between the LiDAR and the camera timestamps). With
     ``config.see_through_window_deg``, returns the camera cannot see (the LiDAR saw them past a
-    nearer surface) are then removed (:func:`drivetrack.depth.see_through_returns`).
+    nearer surface) are then removed (:func:`drivetrack.depth.see_through_returns`). With
+    ``config.blind_zone_laser``, the region below that lidar's lowest scan line is bounded by
+    its depth (:func:`drivetrack.depth.bound_blind_zone`): pixels there without a return hold
+    ``-bound`` (:func:`complete_depth` applies it after completion).
     """
-    from drivetrack.depth import see_through_returns, sparse_depth_from_points
+    from drivetrack.depth import (bound_blind_zone, horizontal_depth_scale, see_through_returns,
+                                  sparse_depth_from_points)
+    from drivetrack.waymo.schema import LaserName
 
     frames = scene.cameras[job.camera]
     model = frames.model
     lidar = scene.lidar
     out = np.zeros((job.frames.size, model.height, model.width), dtype=np.float32)
+    window_px = max(1, int(round(model.f_u * np.tan(np.radians(config.see_through_window_deg or 0.5)))))
+    scale = horizontal_depth_scale(model) if config.blind_zone_laser is not None else None
     for i, t in enumerate(job.frames.tolist()):
         part = lidar.of_frame(t)
         points = lidar.points_vehicle[part]
-        keep = (np.isin(lidar.laser[part], config.depth_laser_values)
-                & np.isin(lidar.return_index[part], config.depth_returns))
+        lasers = lidar.laser[part]
+        keep = np.isin(lasers, config.depth_laser_values) & np.isin(lidar.return_index[part], config.depth_returns)
         if not keep.all():
-            points = points[keep]
+            points, lasers = points[keep], lasers[keep]
         image_world_from_vehicle = frames.world_from_vehicle[t]
         if np.all(np.isfinite(image_world_from_vehicle)):
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
             points = transform_points(image_vehicle_from_vehicle, points)
-        out[i] = sparse_depth_from_points(points, model)
+        if config.blind_zone_laser is None:
+            out[i] = sparse_depth_from_points(points, model)
+        else:
+            out[i], reference = sparse_depth_from_points(
+                points, model, subset=lasers == int(LaserName[config.blind_zone_laser]))
         if config.see_through_window_deg is not None:
-            window_px = max(1, int(round(model.f_u * np.tan(np.radians(config.see_through_window_deg)))))
             out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
                                        config.see_through_min_quadrants)] = 0.0
+        if config.blind_zone_laser is not None:
+            reference[reference > out[i]] = 0.0            # hidden: seen through, or behind another return
+            out[i] = bound_blind_zone(out[i], reference, window_px, config.occlusion_ratio, scale)
     return out
 
 
 def complete_depth(sparse: np.ndarray, config: TrackConfig) -> np.ndarray:
-    """float32 [B, H, W] dense maps from sparse float32 [B, H, W] with ``config.depth_completer``."""
-    from drivetrack.depth import get_completer
+    """float32 [B, H, W] dense maps from sparse float32 [B, H, W] with ``config.depth_completer``.
+
+    The completer sees the returns only (``max(sparse, 0)``); the blind-zone bounds that
+    :func:`sparse_depth` encodes as negative values are applied to its result
+    (:func:`drivetrack.depth.apply_depth_bounds`).
+    """
+    from drivetrack.depth import apply_depth_bounds, get_completer
 
     sparse = np.asarray(sparse, dtype=np.float32)
     if sparse.ndim != 3:
         raise ValueError(f"complete_depth expects sparse maps [B, H, W], got shape {sparse.shape}")
-    return np.asarray(get_completer(config.depth_completer, **config.depth_completer_options)(sparse), dtype=np.float32)
+    completer = get_completer(config.depth_completer, **config.depth_completer_options)
+    dense = np.asarray(completer(np.maximum(sparse, 0.0)), dtype=np.float32)
+    return apply_depth_bounds(dense, sparse)
 
 
 def _stack(scene: Scene, camera: int, frames: np.ndarray, maps: np.ndarray) -> DepthStack:
