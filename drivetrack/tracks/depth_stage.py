@@ -102,9 +102,10 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     track projection (the ego vehicle moves between the LiDAR and the camera timestamps). With
     ``config.see_through_window_deg``, returns the camera cannot see (the LiDAR saw them past a
     nearer surface) are then removed (:func:`drivetrack.depth.see_through_returns`). With
-    ``config.blind_zone_laser``, the region below that lidar's lowest scan line is bounded by
-    its depth (:func:`drivetrack.depth.bound_blind_zone`): pixels there without a return hold
-    ``-bound`` (:func:`complete_depth` applies it after completion).
+    ``config.blind_zone_laser``, the region below that lidar's lowest scan line (its first
+    returns: second returns lie behind an edge) is bounded by the line's depth
+    (:func:`drivetrack.depth.bound_blind_zone`): pixels there without a return hold ``-bound``
+    (:func:`complete_depth` applies it after completion).
     """
     from drivetrack.depth import (bound_blind_zone, horizontal_depth_scale, see_through_returns,
                                   sparse_depth_from_points)
@@ -119,10 +120,10 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     for i, t in enumerate(job.frames.tolist()):
         part = lidar.of_frame(t)
         points = lidar.points_vehicle[part]
-        lasers = lidar.laser[part]
-        keep = np.isin(lasers, config.depth_laser_values) & np.isin(lidar.return_index[part], config.depth_returns)
+        lasers, returns = lidar.laser[part], lidar.return_index[part]
+        keep = np.isin(lasers, config.depth_laser_values) & np.isin(returns, config.depth_returns)
         if not keep.all():
-            points, lasers = points[keep], lasers[keep]
+            points, lasers, returns = points[keep], lasers[keep], returns[keep]
         image_world_from_vehicle = frames.world_from_vehicle[t]
         if np.all(np.isfinite(image_world_from_vehicle)):
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
@@ -131,7 +132,7 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
             out[i] = sparse_depth_from_points(points, model)
         else:
             out[i], reference = sparse_depth_from_points(
-                points, model, subset=lasers == int(LaserName[config.blind_zone_laser]))
+                points, model, subset=(lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1))
         if config.see_through_window_deg is not None:
             out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
                                        config.see_through_min_quadrants)] = 0.0
