@@ -333,6 +333,12 @@ def test_bound_blind_zone_bounds_below_the_reference_lidars_lowest_scan_line():
     assert bound_blind_zone(sparse, reference, 10, 0.95)[75, 8] == np.float32(3.1)
     # no reference return anywhere: nothing changes
     np.testing.assert_array_equal(bound_blind_zone(sparse, np.zeros_like(sparse), 10), sparse)
+    # reference returns the map no longer holds (removed as seen through) do not count: the line
+    # above becomes the lowest
+    hidden = sparse.copy()
+    hidden[60, 0:20:2] = 0.0
+    out = bound_blind_zone(hidden, reference, 10)
+    assert out[58, 1] == -2.5 and out[60, 0] == -2.5 and out[56, 0] == 2.5
 
 
 def test_apply_depth_bounds_after_completion():

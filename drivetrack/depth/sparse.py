@@ -39,7 +39,9 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
         if subset.shape != points_vehicle.shape[:1]:
             raise ValueError(f"subset: expected bool [{points_vehicle.shape[0]}], found shape {subset.shape}")
     flat = np.full(height * width, np.inf, dtype=np.float64)
-    flat_subset = np.full(height * width, np.inf, dtype=np.float64) if subset is not None else None
+    # the subset's map in float32 directly: the minimum of float32-rounded depths equals the
+    # float32-rounded minimum, so its values match the full map's where the same return wins
+    flat_subset = np.full(height * width, np.inf, dtype=np.float32) if subset is not None else None
     if len(points_vehicle):
         points_camera = transform_points(camera.camera_from_vehicle, points_vehicle)
         pixels, valid = camera.pixels_from_camera(points_camera)
@@ -49,7 +51,8 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
         np.minimum.at(flat, rows * width + cols, points_camera[keep, 0])
         if subset is not None:
             chosen = subset[keep]
-            np.minimum.at(flat_subset, rows[chosen] * width + cols[chosen], points_camera[keep, 0][chosen])
+            np.minimum.at(flat_subset, rows[chosen] * width + cols[chosen],
+                          points_camera[keep, 0][chosen].astype(np.float32))
 
     def as_map(values: np.ndarray) -> np.ndarray:
         values[np.isinf(values)] = 0.0
@@ -172,9 +175,11 @@ def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ra
     cells without any reference return are left as they are.
 
     Args:
-        sparse: float32 [H, W] sparse z-depth of every lidar used for the map, 0 = no return.
+        sparse: float32 [H, W] sparse z-depth of every lidar used for the map, 0 = no return
+            (returns already removed, e.g. by :func:`see_through_returns`, are 0).
         reference: float32 [H, W] sparse z-depth of the reference lidar alone (a subset of
-            ``sparse``'s returns), 0 = no return.
+            ``sparse``'s returns), 0 = no return. A reference return counts only where it is the
+            return ``sparse`` kept at its pixel (not removed, not behind another lidar's).
         cell_px: width of a column cell and height of the lowest scan line, pixels (about twice
             the reference's column spacing in the image).
         ratio: a return is deeper than the bound when ``ratio * depth > bound``.
@@ -195,11 +200,14 @@ def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ra
     cell = int(cell_px)
     height, width = sparse.shape
     cells = -(-width // cell)
-    ys, xs = np.nonzero(reference > 0)
     out = sparse.copy()
+    ys, xs = np.nonzero(reference > 0)
+    depth = reference[ys, xs]
+    seen = depth <= sparse[ys, xs]                        # the visible return of its pixel
+    ys, xs, depth = ys[seen], xs[seen], depth[seen]
     if ys.size == 0:
         return out
-    horizontal = reference[ys, xs] / (scale[ys, xs] if scale is not None else 1.0)   # metres
+    horizontal = depth / (scale[ys, xs] if scale is not None else 1.0)   # metres
     cx = xs // cell
     lowest = np.full(cells, -1, dtype=np.int64)
     np.maximum.at(lowest, cx, ys)                                       # lowest reference row per cell
@@ -208,14 +216,17 @@ def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ra
     np.maximum.at(bound, cx[line], horizontal[line])
     row_of = np.repeat(lowest, cell)[:width]                           # [W]
     bound_of = np.repeat(bound, cell)[:width]
-    below = (np.arange(height)[:, None] > row_of[None, :]) & (row_of[None, :] >= 0)   # [H, W]
-    if not below.any():
+    has = row_of >= 0
+    top = int(row_of[has].min()) + 1                                    # first row that can be below
+    if top >= height:
         return out
-    region = out[below]
-    bounded = np.broadcast_to(bound_of[None, :], out.shape)[below]
+    band = out[top:]                                                    # a view: rows top..H-1
+    below = (np.arange(top, height)[:, None] > row_of[None, :]) & has[None, :]
+    region = band[below]
+    bounded = np.broadcast_to(bound_of[None, :], band.shape)[below]
     if scale is not None:
-        bounded = bounded * np.asarray(scale, dtype=np.float32)[below]
-    out[below] = np.where((region <= 0) | (ratio * region > bounded), -bounded, region)
+        bounded = bounded * np.asarray(scale, dtype=np.float32)[top:][below]
+    band[below] = np.where((region <= 0) | (ratio * region > bounded), -bounded, region)
     return out
 
 

@@ -137,7 +137,6 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
             out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
                                        config.see_through_min_quadrants)] = 0.0
         if config.blind_zone_laser is not None:
-            reference[reference > out[i]] = 0.0            # hidden: seen through, or behind another return
             out[i] = bound_blind_zone(out[i], reference, window_px, config.occlusion_ratio, scale)
     return out
 
