@@ -330,3 +330,16 @@ def test_preview_renders(segment):
     assert img.shape == (640, 1440, 3) and img.dtype == np.uint8
     with pytest.raises(IndexError, match="frame 99"):
         render_preview(root, "training", summary["segment"], frame=99)
+
+
+def test_presets_scale_the_cameras_and_keep_waymo_lidars_from_medium_up():
+    from drivetrack.synth import PRESETS
+    from drivetrack.synth.sensors import camera_models
+
+    full = camera_models(PRESETS["full"], ("FRONT", "SIDE_LEFT"))
+    medium = camera_models(PRESETS["medium"], ("FRONT", "SIDE_LEFT"))
+    for name, model in medium.items():
+        assert (model.width, model.height) == (full[name].width // 2, full[name].height // 2)
+        assert model.f_u == full[name].f_u / 2
+    assert PRESETS["medium"].top_shape == PRESETS["full"].top_shape == (64, 2650)
+    assert PRESETS["medium"].short_shape == PRESETS["full"].short_shape

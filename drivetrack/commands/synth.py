@@ -16,8 +16,9 @@ def add_parser(sub) -> None:
     p.add_argument("--segments", type=int, default=1, help="number of segments (default 1)")
     p.add_argument("--seed", type=int, default=7, help="world seed (default 7)")
     p.add_argument("--frames", type=int, default=40, help="frames per segment at 10 Hz (default 40)")
-    p.add_argument("--preset", choices=["small", "full"], default="small",
-                   help="small: 480x320 cameras, TOP 32x650 (tests); full: Waymo sizes")
+    p.add_argument("--preset", choices=["small", "medium", "full"], default="small",
+                   help="small: 480x320 cameras, TOP 32x650 (tests); medium: 960x640 cameras, Waymo's "
+                        "lidars; full: Waymo sizes")
     p.add_argument("--split", default="training", choices=["training", "validation", "testing"])
     p.add_argument("--cameras", default="FRONT,FRONT_LEFT,FRONT_RIGHT",
                    help="comma-separated camera names (FRONT, FRONT_LEFT, FRONT_RIGHT, SIDE_LEFT, "

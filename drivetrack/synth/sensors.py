@@ -43,6 +43,7 @@ class Preset:
 
 PRESETS: dict[str, Preset] = {
     "full": Preset("full", 1.0, (64, 2650), (200, 600)),
+    "medium": Preset("medium", 0.5, (64, 2650), (200, 600)),
     "small": Preset("small", 0.25, (32, 650), (40, 120)),
 }
 
