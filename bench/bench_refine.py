@@ -13,11 +13,14 @@ plan without point selection to pick the objects, the candidate gather and the s
 and of the track stage (plan with point selection + object jobs, depth excluded) per object for
 comparison, both in the same process.
 
-    .venv/bin/python -m bench.run refine          # rewrites its block of docs/benchmarks.md
+    .venv/bin/python -m bench.run refine          # all three tables; rewrites its block of docs/benchmarks.md
     .venv/bin/python bench/bench_refine.py --quick  # 2 noise levels, 24 frames, docs untouched
-    .venv/bin/python bench/bench_refine.py --full   # and the full-size segment (second table)
+    .venv/bin/python bench/bench_refine.py --small-only   # the small-preset table only
+    .venv/bin/python bench/bench_refine.py --full-only    # the full-size segment only, docs untouched
 
-Generated segments are cached under ``$DRIVETRACK_BENCH_DIR`` (default ``/tmp/drivetrack-bench``).
+The small-preset segments are cached under ``$DRIVETRACK_BENCH_DIR`` (default
+``/tmp/drivetrack-bench``); the full-size (1920x1280) and ``medium`` (960x640, the same lidars)
+segments under ``.bench-cache/`` (several CPU-minutes each the first time).
 """
 from __future__ import annotations
 
@@ -137,9 +140,11 @@ def measure(levels=LEVELS, frames: int = 40, work: Path | None = None) -> list[d
     return rows
 
 
-def measure_full(noises=(0.0, 0.05), frames: int = 30, seed: int = SEED, cache: Path | None = None) -> dict:
-    """The full-size segment of ``bench/bench_tracks.py`` (preset ``full``, 1920x1280, cached by
-    ``ensure_source``), its labels with ``noisy_scene``'s noise (each of ``noises``, metres; 1 deg
+def measure_full(noises=(0.0, 0.05), frames: int = 30, seed: int = SEED, cache: Path | None = None,
+                 preset: str = "full") -> dict:
+    """The full-size segment of ``bench/bench_tracks.py`` (preset ``full``, 1920x1280, or
+    ``medium``, 960x640 with the same lidars; cached by ``ensure_source``), its labels with
+    ``noisy_scene``'s noise (each of ``noises``, metres; 1 deg
     per 5 cm), tracked with the labels and with the boxes of every refinement variant
     (:data:`VARIANTS`); the track stage and the refinement timed in this process.
 
@@ -155,11 +160,13 @@ def measure_full(noises=(0.0, 0.05), frames: int = 30, seed: int = SEED, cache: 
     from drivetrack.tracks import plan_segment, prepare_segment
 
     cache = cache or ROOT / ".bench-cache"
-    root, segment = ensure_source(cache, "full", seed, frames)
+    root, segment = ensure_source(cache, preset, seed, frames)
     config = AnnotateConfig()
     track = config.track
     scene = load_scene_for(root, SPLIT, segment, config, refine=False)
-    out = {"preset": "full", "frames": frames, "seed": seed, "lidar_returns": len(scene.lidar), "levels": []}
+    model = next(iter(scene.cameras.values())).model
+    out = {"preset": preset, "frames": frames, "seed": seed, "lidar_returns": len(scene.lidar), "levels": [],
+           "image": f"{model.width}x{model.height}"}
     truths: dict = {}
     depth = None
     for noise_m in noises:
@@ -255,7 +262,8 @@ def _table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
-def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = None) -> None:
+def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = None,
+              medium: dict | None = None) -> None:
     block = (f"{DOC_START}\n## Pose refinement\n\n"
              f"`bench/bench_refine.py`: one synthetic segment per label-noise level (preset `small`, "
              f"{frames} frames, seed {SEED}; 480x320 images), default `TrackConfig`, default `RefineConfig`; "
@@ -265,13 +273,18 @@ def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = N
              f"selection, the candidate gather, the solves), in the same process. Machine: {machine}; load average {os.getloadavg()[0]:.1f} at the end of the run (CPU "
              f"seconds, not wall time, are reported).\n\n" + _table(rows))
     if full is not None:
-        block += (f"\nFull-size segment (`bench_refine.py --full`: `bench_tracks`' cached preset `full`, "
+        block += (f"\nFull-size segment (`bench_tracks`' cached preset `full`, "
                   f"{full['frames']} frames, seed {full['seed']}, 1920x1280, {full['lidar_returns'] / 1e6:.1f} M "
                   f"returns, {full['levels'][0]['objects']} annotated objects), labels exact and with noise "
                   f"(`bench_tracks.noisy_scene`), default `AnnotateConfig`; track stage = plan + prepare (maps "
                   f"given) + object jobs; refinement = `annotate.refine_scene` timed whole (split: its plan without "
                   f"point selection, timed again on its own; the gather = the rest; the solves):"
                   f"\n\n" + _full_table(full))
+    if medium is not None:
+        block += (f"\nThe same at 960x640 (preset `medium`, the full-size lidars with "
+                  f"cameras at half Waymo's resolution, the resolution of the label-noise reference figures (released method, 5 cm / 1 deg labels: ~6 px median error, AJ 0.36); "
+                  f"{medium['frames']} frames, seed {medium['seed']}, {medium['lidar_returns'] / 1e6:.1f} M returns, "
+                  f"{medium['levels'][0]['objects']} annotated objects):\n\n" + _full_table(medium))
     block += f"\n{DOC_END}"
     _replace_block(block)
 
@@ -295,8 +308,8 @@ def _replace_block(block: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two noise levels, 24 frames, docs untouched")
-    parser.add_argument("--full", action="store_true",
-                        help="also the full-size segment of bench_tracks (5 cm / 1 deg labels; minutes, ~4 GiB)")
+    parser.add_argument("--small-only", action="store_true",
+                        help="only the small-preset table (the block of docs/benchmarks.md then lacks the others)")
     parser.add_argument("--full-only", action="store_true", help="only the full-size segment, docs untouched")
     args = parser.parse_args(argv if argv is not None else [])
     from bench.run import machine_description
@@ -308,8 +321,9 @@ def main(argv: list[str] | None = None) -> int:
         measure_full()
         return 0
     rows = measure()
-    full = measure_full() if args.full else None
-    write_doc(rows, machine_description(), 40, full)
+    full = None if args.small_only else measure_full()
+    medium = None if args.small_only else measure_full(preset="medium")
+    write_doc(rows, machine_description(), 40, full, medium)
     return 0
 
 
