@@ -55,6 +55,8 @@ from drivetrack.tracks import (TrackConfig, complete_depth, depth_jobs, plan_seg
 DOC = ROOT / "docs" / "benchmarks.md"
 DOC_START, DOC_END = "<!-- bench_tracks:start -->", "<!-- bench_tracks:end -->"
 TARGET_ANNOTATIONS_PER_CPU_S = 10e6
+#: the track stage is timed this many times per row and the best run reported
+SPEED_REPEATS = 3
 TARGET_JOB_BYTES = 1 << 30
 SPLIT = "training"
 
@@ -371,9 +373,15 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
         for noise, s in scenes.items():
             ctx = prepare_segment(s, track, depth=depth, plan=plans[noise])
             tracks, cpu, wall, annotations = track_stage(ctx)
+            first_cpu = cpu
+            for _ in range(SPEED_REPEATS - 1):      # best of N: CPU seconds on this shared VM vary by ~30%
+                _, again_cpu, again_wall, _ = track_stage(ctx)
+                if again_cpu < cpu:
+                    cpu, wall = again_cpu, again_wall
             rate = annotations / cpu if cpu > 0 else math.nan
             results["speed"].append({"method": method, "box_noise_m": noise, "jobs": len(ctx.plan.jobs),
                                      "annotations": annotations, "track_cpu_s": cpu, "track_wall_s": wall,
+                                     "first_run_cpu_s": first_cpu,
                                      "annotations_per_cpu_s": rate, "depth_maps": maps,
                                      "depth_cpu_s_per_map": depth_cpu / max(maps, 1)})
             print(f"  noise {noise}: {len(tracks)} clips, {annotations:,} annotations in {cpu:.1f} CPU s "
@@ -443,11 +451,15 @@ def markdown(r: dict) -> str:
     lines = [f"Machine: {r['machine']}; load average at start {r.get('load', '?')}.",
              f"Scene: `--preset {r['preset']} --frames {r['frames']} --seed {r['seed']}` ({r['image']} cameras, "
              f"{r['lidar_returns']:,} LiDAR returns), segment `{r['segment']}`.", "",
-             "| depth | box noise | clips | annotations | track CPU s | annotations / CPU-s | depth CPU s / map |",
+             f"Track stage timed {SPEED_REPEATS} times per row, best run reported (first run's CPU s beside it: "
+             f"the process's first includes loading numba's compiled code).", "",
+             "| depth | box noise | clips | annotations | track CPU s (first run) | annotations / CPU-s | depth CPU s / map |",
              "|---|---|---|---|---|---|---|"]
     for s in r["speed"]:
+        first = s.get("first_run_cpu_s", s["track_cpu_s"])
         lines.append(f"| {s['method']} | {s['box_noise_m']} m | {s['jobs']} | {s['annotations']:,} | "
-                     f"{s['track_cpu_s']:.1f} | {s['annotations_per_cpu_s'] / 1e6:.2f} M | {s['depth_cpu_s_per_map']:.2f} |")
+                     f"{s['track_cpu_s']:.2f} ({first:.2f}) | {s['annotations_per_cpu_s'] / 1e6:.2f} M | "
+                     f"{s['depth_cpu_s_per_map']:.2f} |")
     memory = r.get("memory")
     if memory:
         lines += memory_markdown(memory if isinstance(memory, list) else [memory])
@@ -500,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
     import os
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="full", choices=["small", "full"])
+    parser.add_argument("--preset", default="full", choices=["small", "medium", "full"])
     parser.add_argument("--frames", type=int, default=30,
                         help="segment length (>= 24 for a clip to pass the paper's filter; default 30: "
                              "a full-size segment of 200 frames takes hours to generate on 2 cores)")
