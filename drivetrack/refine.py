@@ -467,6 +467,48 @@ def _use_kernel(config: RefineConfig) -> bool:
     return NUMBA_AVAILABLE
 
 
+_BLAS_CONTROLLER = None
+
+
+def _single_threaded_blas():
+    """A context in which BLAS/LAPACK run on one thread (threadpoolctl; the controller, which
+    inspects the loaded libraries, is built once)."""
+    global _BLAS_CONTROLLER
+    from threadpoolctl import ThreadpoolController
+
+    if _BLAS_CONTROLLER is None:
+        _BLAS_CONTROLLER = ThreadpoolController()
+    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+
+
+def _solve_spd(hessian: np.ndarray, rhs: np.ndarray, use_kernel: bool) -> np.ndarray:
+    """float64 [n]: ``hessian^-1 rhs`` for the symmetric positive definite normal equations; all NaN
+    when the factorisation fails.
+
+    Short clips give dense matrices (every frame pairs with every other): LAPACK's Cholesky on
+    one thread (240 unknowns: 0.6 ms; threaded, its CPU cost was 10-25x that on the loaded 2-core
+    machine). Long clips give matrices whose rows are zero left of their first coupled frame:
+    with the numba kernels, the envelope Cholesky of ``refine_kernel.cholesky_solve`` when the
+    envelope holds less than half the lower triangle (1200 unknowns, band 160: 20 ms vs LAPACK's
+    39 ms)."""
+    n = hessian.shape[0]
+    if use_kernel and n > 1:
+        first = np.argmax(hessian != 0.0, axis=1)               # first non-zero of each row (<= i)
+        envelope = float(np.sum(np.arange(n) - first + 1))
+        if envelope < 0.5 * n * (n + 1) / 2:
+            from drivetrack import refine_kernel
+
+            return refine_kernel.cholesky_solve(hessian, rhs)
+    import scipy.linalg
+
+    with _single_threaded_blas():
+        try:
+            return scipy.linalg.cho_solve(scipy.linalg.cho_factor(hessian, lower=True, check_finite=False), rhs,
+                                          check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            return np.full(rhs.shape, np.nan)
+
+
 def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray, tilt: np.ndarray | None = None) -> np.ndarray:
     """float64 [C, 4] (yaw only: d (n . q) / d (c, psi) for body points q = Rz(-psi) (x - c)) or,
     with tilt [C, 2] = (pitch theta, roll phi), float64 [C, 6]: d (n . q) / d (c, psi, theta, phi)
@@ -813,21 +855,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         g = data.gradient + prior_w * (state - label_state)
         if S is not None:
             g = g + S.T @ (S @ state) + motion_g0
-        # Cholesky of the dense normal equations: single-threaded kernel on the envelope (LAPACK's
-        # threaded solve of these small matrices cost 10-25x more CPU on the loaded 2-core machine;
-        # SuperLU 5-10x), scipy's as the reference
-        hessian = data.hessian + H_fixed
-        if use_kernel:
-            from drivetrack import refine_kernel
-
-            dx = refine_kernel.cholesky_solve(hessian, -g)
-        else:
-            import scipy.linalg
-
-            try:
-                dx = scipy.linalg.cho_solve(scipy.linalg.cho_factor(hessian, lower=True), -g)
-            except np.linalg.LinAlgError:
-                dx = np.full(g.shape, np.nan)
+        dx = _solve_spd(data.hessian + H_fixed, -g, use_kernel)
         iterations = it + 1
         if not np.all(np.isfinite(dx)):
             return labels("not_finite", f"non-finite update at iteration {iterations}",

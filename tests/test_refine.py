@@ -407,6 +407,37 @@ def test_cholesky_kernel_matches_scipy_on_dense_and_envelope_matrices():
         refine_kernel.cholesky_solve(dense, b[:5])
 
 
+def test_solve_spd_picks_lapack_or_the_envelope_kernel_with_the_same_result():
+    """Dense normal equations go to LAPACK on one thread, those with a small envelope to the numba
+    kernel; either way the result is scipy's, and NaN when the matrix is not positive definite."""
+    import scipy.linalg
+
+    from drivetrack import refine_kernel
+    from drivetrack.refine import _solve_spd
+
+    rng = np.random.default_rng(8)
+    n = 120
+    a = rng.normal(size=(n, n))
+    dense = a @ a.T + n * np.eye(n)
+    i, j = np.indices((n, n))
+    banded = np.where(np.abs(i - j) <= 10, dense, 0.0) + n * np.eye(n)
+    b = rng.normal(size=n)
+    calls = []
+    original = refine_kernel.cholesky_solve
+    try:
+        refine_kernel.cholesky_solve = lambda m, r: calls.append(m.shape) or original(m, r)
+        for m, kernel_expected in ((dense, False), (banded, True)):
+            expect = scipy.linalg.cho_solve(scipy.linalg.cho_factor(m), b)
+            for use_kernel in (True, False):
+                calls.clear()
+                np.testing.assert_allclose(_solve_spd(m, b, use_kernel), expect, rtol=1e-9, atol=1e-14)
+                assert bool(calls) == (use_kernel and kernel_expected)
+    finally:
+        refine_kernel.cholesky_solve = original
+    assert np.all(np.isnan(_solve_spd(-dense, b, True))) and np.all(np.isnan(_solve_spd(-banded, b, True)))
+    assert np.all(np.isnan(_solve_spd(-dense, b, False)))
+
+
 @pytest.mark.parametrize("cell_m", [0.05, 0.15, 1.0])
 def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
     """Dense clusters, isolated far points (many empty shells) and any cell size: the same
