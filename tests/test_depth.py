@@ -353,6 +353,8 @@ def test_apply_depth_bounds_after_completion():
     batch = apply_depth_bounds(np.stack([dense, dense]), np.stack([sparse, unbounded]))
     np.testing.assert_array_equal(batch[1], dense)
     np.testing.assert_array_equal(batch[0], [[5.0, 5.0, 3.0, 2.0, 3.0]])
+    with pytest.raises(ValueError, match=r"apply_depth_bounds: completed maps \(1, 4\) and sparse maps \(1, 5\)"):
+        apply_depth_bounds(dense[:, :4], sparse)
 
 
 def test_horizontal_depth_scale_gives_z_depth_from_horizontal_distance():

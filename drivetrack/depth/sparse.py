@@ -241,6 +241,10 @@ def apply_depth_bounds(dense: np.ndarray, sparse: np.ndarray) -> np.ndarray:
     Returns:
         float32 [..., H, W]; ``dense`` itself when ``sparse`` holds no bound.
     """
+    sparse = np.asarray(sparse)
+    if np.shape(dense) != sparse.shape:
+        raise ValueError(f"apply_depth_bounds: completed maps {np.shape(dense)} and sparse maps {sparse.shape} "
+                         f"differ in shape")
     bounded = sparse < 0
     if not bounded.any():
         return dense
