@@ -83,6 +83,21 @@ class _FullServer:
         self.proc = None
 
 
+def _drain_api_logs(timeout_s: float = 10.0) -> None:
+    """Send the flow/task logs still queued for the API and stop the log worker, before the server
+    it talks to stops (otherwise the worker's late batch prints "Error logging to API ... All
+    connection attempts failed" after a successful run). Best effort: a failure here must not
+    hide the run's own result."""
+    try:
+        from prefect.logging.handlers import APILogWorker
+
+        result = APILogWorker.drain_all(timeout=timeout_s)
+        if hasattr(result, "close"):        # a coroutine: only when called inside an event loop
+            result.close()
+    except Exception as error:  # noqa: BLE001 - shutdown path
+        print(f"prefect: could not flush logs to the API before stopping the server: {error}", flush=True)
+
+
 @contextlib.contextmanager
 def prefect_api(timeout_s: float = 120.0, *, full: bool = False) -> Iterator[str]:
     """Yield the Prefect API URL to use: ``PREFECT_API_URL`` if set (a server or Prefect Cloud),
@@ -112,13 +127,8 @@ def prefect_api(timeout_s: float = 120.0, *, full: bool = False) -> Iterator[str
         if server is not None:
             from prefect.settings import PREFECT_LOGGING_TO_API_ENABLED
 
-            try:  # send buffered flow/task logs while the server still listens
-                from prefect.logging.handlers import APILogHandler
-
-                APILogHandler.flush()
-            except Exception:
-                pass
             with temporary_settings({PREFECT_LOGGING_TO_API_ENABLED: False}):
+                _drain_api_logs()       # send buffered flow/task logs while the server still listens
                 server.stop()
             if old is None:
                 os.environ.pop("PREFECT_API_URL", None)

@@ -154,3 +154,34 @@ def test_unknown_segment_fails_before_any_work(source, prefect_server, tmp_path)
     st = _status(str(tmp_path / "work" / "releases" / "0.2.0"))
     assert st["stages"]["list"]["state"] == "failed" and "no_such_segment" in st["stages"]["list"]["error"]
     shutil.rmtree(tmp_path / "work")
+
+
+def test_flow_logs_reach_the_api_before_the_server_stops(prefect_server):
+    """Logs queued for the API are sent when drained (what prefect_api does before stopping its
+    server), not left to a late batch that finds the server gone."""
+    import asyncio
+    import uuid
+
+    from prefect import flow, get_run_logger
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import LogFilter, LogFilterFlowRunId
+
+    from flows.runtime import _drain_api_logs
+
+    marker = f"drain-check-{uuid.uuid4().hex}"
+
+    @flow(name="log-drain-check")
+    def noisy():
+        get_run_logger().info(marker)
+        from prefect.runtime import flow_run
+        return flow_run.id
+
+    run_id = noisy()
+    _drain_api_logs()
+
+    async def messages():
+        async with get_client() as client:
+            logs = await client.read_logs(log_filter=LogFilter(flow_run_id=LogFilterFlowRunId(any_=[run_id])))
+            return [log.message for log in logs]
+
+    assert marker in asyncio.run(messages())
