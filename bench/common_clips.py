@@ -9,7 +9,8 @@ see-through filter (``TrackConfig.see_through_window_deg`` / ``see_through_min_q
     .venv/bin/python bench/common_clips.py none,3 0.5,3 1.0,3 0.5,3,top
 
 Each argument is ``WINDOW_DEG|none,MIN_QUADRANTS[,top][,noblind]`` (``top``: depth maps from the
-TOP LiDAR only; ``noblind``: no blind-zone bound, ``TrackConfig.blind_zone_laser=None``). Uses bench_tracks' cached full-size segment (``.bench-cache/``; generated on first use).
+TOP LiDAR only; ``noblind``: no blind-zone bound, ``TrackConfig.blind_zone_laser=None``). Uses
+bench_tracks' cached full-size segment (``.bench-cache/``; generated on first use).
 Pose refinement is off (exact labels).
 """
 from __future__ import annotations

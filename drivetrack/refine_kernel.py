@@ -32,7 +32,6 @@ from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 _MAX_CELLS = 1 << 22
 
 
-
 @njit(cache=True, nogil=True, inline="always")
 def _gap2(v, cell_lo, cell):
     """Squared distance from coordinate ``v`` to the interval [cell_lo, cell_lo + cell] (0 inside)."""
@@ -41,6 +40,7 @@ def _gap2(v, cell_lo, cell):
     if v > cell_lo + cell:
         return (v - cell_lo - cell) ** 2
     return 0.0
+
 
 @njit(cache=True, nogil=True)
 def _knn_grid(points, k, cell, dist, index):

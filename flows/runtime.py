@@ -92,7 +92,7 @@ def _drain_api_logs(timeout_s: float = 10.0) -> None:
         from prefect.logging.handlers import APILogWorker
 
         result = APILogWorker.drain_all(timeout=timeout_s)
-        if hasattr(result, "close"):        # a coroutine: only when called inside an event loop
+        if hasattr(result, "close"):        # inside an event loop: the drains have started, don't await
             result.close()
     except Exception as error:  # noqa: BLE001 - shutdown path
         print(f"prefect: could not flush logs to the API before stopping the server: {error}", flush=True)

@@ -94,7 +94,7 @@ def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = Non
 
 
 def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray:
-    """float32 [B, H, W] sparse z-depth maps of ``job`` (> 0 a return, 0 = no return, < 0 a bound), from the LiDAR.
+    """float32 [B, H, W] sparse z-depth maps of ``job`` from the LiDAR: > 0 a return, 0 none, < 0 a bound.
 
     Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
     returns of every lidar). Returns are moved from the frame's vehicle frame
