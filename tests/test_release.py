@@ -285,6 +285,51 @@ def test_concurrent_publishes_of_different_versions_all_indexed(output, tmp_path
     assert all(v["indexed"] for v in list_versions(store))
 
 
+
+def test_local_writes_survive_concurrent_pruning_of_shared_folders(tmp_path):
+    """The end of one publish removes ``_staging``/``_txn`` when empty while another publish is
+    creating its first file below them (CI once lost a publish to this). Writers re-create
+    vanished parents; a pruner spinning as fast as it can must not make one of them fail."""
+    store = open_store(tmp_path / "s")
+    errors, done = [], threading.Event()
+
+    def pruner():
+        while not done.is_set():
+            store.prune_empty("D/_staging")
+            store.prune_empty("D/_txn")
+
+    def writer(k):
+        try:
+            for i in range(300):
+                store.put_if_absent(f"D/_txn/{k}.json", b"claim")
+                store.write_bytes(f"D/_staging/v{k}/x/{i}.bin", b"1")
+                with store.open_write(f"D/_staging/v{k}/a.bin") as f:
+                    f.write(b"2")
+                store.move(f"D/_staging/v{k}/a.bin", f"D/v{k}/a.bin")
+                assert store.read_bytes(f"D/v{k}/a.bin") == b"2"
+                store.compare_and_swap(f"D/_txn/{k}.json", b"next", store.read_with_token(f"D/_txn/{k}.json")[1])
+                store.delete_tree(f"D/_staging/v{k}")
+                store.delete_tree(f"D/v{k}")
+                store.delete(f"D/_txn/{k}.json")
+                store.prune_empty("D/_staging")
+                store.prune_empty("D/_txn")
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    spinner = threading.Thread(target=pruner)
+    writers = [threading.Thread(target=writer, args=(k,)) for k in range(3)]
+    spinner.start()
+    [t.start() for t in writers]
+    [t.join() for t in writers]
+    done.set()
+    spinner.join()
+    assert not errors, errors
+    # Only empty folders are pruned, and only while empty: the dataset folder stays with its content.
+    assert not (tmp_path / "s" / "D" / "_staging").exists() and not (tmp_path / "s" / "D" / "_txn").exists()
+    store.write_bytes("D/keep.json", b"{}")
+    store.prune_empty("D")
+    assert store.read_bytes("D/keep.json") == b"{}"
+
 def test_compare_and_swap_local(tmp_path):
     store = open_store(tmp_path / "s")
     store.put_if_absent("d/x.json", b"1")

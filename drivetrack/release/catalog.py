@@ -294,6 +294,9 @@ def gc(store: Store | str, dataset: str | None = None, *, older_than_s: float = 
                         if not dry_run:
                             store.delete(f"{ds}/{rel}")
                             report.removed_objects += 1
+        if not dry_run:  # empty transaction folders (local stores; only while empty)
+            store.prune_empty(f"{ds}/_staging")
+            store.prune_empty(f"{ds}/_txn")
         index, _ = _read_json(store, f"{ds}/versions.json")
         indexed = {v["version"] for v in (index or {}).get("versions", [])}
         for version in _committed_versions(store, ds):

@@ -516,7 +516,9 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     try:
         store.delete_tree(spre)
         store.delete(claim)
-        store.delete_tree(f"{dataset}/_txn") if not store.find(f"{dataset}/_txn") else None
+        # Only while empty: concurrent publishes of other versions may be staging or hold claims.
+        store.prune_empty(f"{dataset}/_staging")
+        store.prune_empty(f"{dataset}/_txn")
     except Exception as e:  # noqa: BLE001
         warnings.append(f"version committed, but removing the staging prefix or claim failed ({e}); "
                         f"`drivetrack gc` removes them")

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import random
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -34,6 +35,38 @@ CHUNK_BYTES = 8 * 2**20
 
 S3_BLOCK_BYTES = 16 * 2**20
 """Multipart part size of S3 uploads (S3 needs at least 5 MiB per part)."""
+
+
+def _with_parents(p: str, create):
+    """Run ``create()`` (which makes the file ``p``) after creating ``p``'s parent folders.
+
+    Local stores remove folders that become empty (:meth:`Store.prune_empty`), and another
+    publish may do that between our ``makedirs`` and ``create``: the create then fails with
+    ``FileNotFoundError``. Re-creating the parents and trying again is safe because the
+    creates used here are either exclusive or replace whole files.
+    """
+    for attempt in range(_PARENT_RETRIES):
+        last = attempt == _PARENT_RETRIES - 1
+        if attempt >= 2:  # step out of the way of a pruner that keeps winning
+            time.sleep(random.uniform(0.0, 0.001 * attempt))
+        try:
+            os.makedirs(os.path.dirname(p), exist_ok=True)
+        except (FileNotFoundError, FileExistsError):
+            # makedirs races with a prune too: a parent vanished after its check (ENOENT), or
+            # a folder existed at mkdir and was gone at the isdir check (EEXIST).
+            if last:
+                raise
+            continue
+        try:
+            return create()
+        except FileNotFoundError:
+            # A missing source (``os.replace``) fails the same way: it is raised after the
+            # retries (about 0.2 s in all).
+            if last:
+                raise
+
+
+_PARENT_RETRIES = 20
 
 
 def iter_chunks(f, chunk_bytes: int = CHUNK_BYTES) -> Iterator[memoryview]:
@@ -168,8 +201,7 @@ class Store:
         """Open for streaming writes, creating parents (multipart upload on S3)."""
         p = self.path(rel)
         if self.is_local:
-            os.makedirs(os.path.dirname(p), exist_ok=True)
-            return open(p, "wb")
+            return _with_parents(p, lambda: open(p, "wb"))
         if self.protocol == "s3":
             return self.fs.open(p, "wb", block_size=S3_BLOCK_BYTES)
         return self.fs.open(p, "wb")
@@ -178,11 +210,10 @@ class Store:
         """Unconditional write (staging only; committed objects go through the conditional writes)."""
         p = self.path(rel)
         if self.is_local:
-            os.makedirs(os.path.dirname(p), exist_ok=True)
             tmp = f"{p}.tmp-{uuid.uuid4().hex}"
-            with open(tmp, "wb") as f:
+            with _with_parents(tmp, lambda: open(tmp, "wb")) as f:
                 f.write(data)
-            os.replace(tmp, p)
+            _with_parents(p, lambda: os.replace(tmp, p))
             return
         self.fs.pipe_file(p, data)
 
@@ -204,14 +235,8 @@ class Store:
             import shutil
             if os.path.isdir(self.path(rel)):
                 shutil.rmtree(self.path(rel))
-            # Empty parents (``_staging``, ``_txn``) too; object stores have no empty folders.
-            parent = os.path.dirname(self.path(rel))
-            while parent.startswith(self.root + os.sep):
-                try:
-                    os.rmdir(parent)
-                except OSError:
-                    break
-                parent = os.path.dirname(parent)
+            # Parents stay even when empty: ``_staging`` is shared by concurrent publishes of
+            # other versions, and removing it under them is a race. Callers prune explicitly.
             return len(files)
         if not files:
             return 0
@@ -219,12 +244,28 @@ class Store:
             self.fs.rm([self.path(f"{rel}/{f}") for f in files])
         return len(files)
 
+    def prune_empty(self, rel: str) -> None:
+        """Remove the local folder ``rel`` and then its parents, each only while it is empty.
+
+        Object stores have no empty folders, so this is a no-op there. ``rmdir(2)`` fails on a
+        folder that is not empty, so a folder another publish has just written into stays; the
+        writers re-create parents that vanish between their ``makedirs`` and their create.
+        """
+        if not self.is_local or not rel:
+            return
+        folder = self.path(rel)
+        while folder.startswith(self.root + os.sep):
+            try:
+                os.rmdir(folder)
+            except OSError:  # not empty, absent or not ours to remove: stop
+                break
+            folder = os.path.dirname(folder)
+
     def move(self, src: str, dst: str) -> None:
         """Move one object: ``rename(2)`` locally, server-side copy then delete on object stores."""
         ps, pd = self.path(src), self.path(dst)
         if self.is_local:
-            os.makedirs(os.path.dirname(pd), exist_ok=True)
-            os.replace(ps, pd)
+            _with_parents(pd, lambda: os.replace(ps, pd))
             return
         self.fs.cp_file(ps, pd)  # server-side copy, no listing
         self.fs.rm_file(ps)
@@ -261,9 +302,8 @@ class LocalConditional:
 
     @staticmethod
     def _write_tmp(p: str, data: bytes) -> str:
-        os.makedirs(os.path.dirname(p), exist_ok=True)
         tmp = f"{p}.tmp-{uuid.uuid4().hex}"
-        with open(tmp, "wb") as f:
+        with _with_parents(tmp, lambda: open(tmp, "wb")) as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -273,7 +313,8 @@ class LocalConditional:
         p = store.path(rel)
         tmp = self._write_tmp(p, data)
         try:
-            os.link(tmp, p)  # atomic and exclusive: fails with FileExistsError if p exists
+            # atomic and exclusive: fails with FileExistsError if p exists
+            _with_parents(p, lambda: os.link(tmp, p))
         finally:
             os.unlink(tmp)
 
@@ -288,10 +329,9 @@ class LocalConditional:
     def compare_and_swap(self, store: Store, rel: str, data: bytes, expected_token: str | None) -> None:
         p = store.path(rel)
         lock = f"{p}.lock"
-        os.makedirs(os.path.dirname(p), exist_ok=True)
         while True:
             try:
-                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                fd = _with_parents(lock, lambda: os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
                 os.write(fd, f"{os.getpid()} {time.time():.3f}\n".encode())
                 os.close(fd)
                 break
@@ -315,7 +355,7 @@ class LocalConditional:
                     f"{store.url_of(rel)} changed underneath (expected token {expected_token}, "
                     f"found {token})")
             tmp = self._write_tmp(p, data)
-            os.replace(tmp, p)
+            _with_parents(p, lambda: os.replace(tmp, p))
         finally:
             os.unlink(lock)
 
