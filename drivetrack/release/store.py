@@ -37,13 +37,17 @@ S3_BLOCK_BYTES = 16 * 2**20
 """Multipart part size of S3 uploads (S3 needs at least 5 MiB per part)."""
 
 
+_PARENT_RETRIES = 20
+
+
 def _with_parents(p: str, create):
     """Run ``create()`` (which makes the file ``p``) after creating ``p``'s parent folders.
 
     Local stores remove folders that become empty (:meth:`Store.prune_empty`), and another
     publish may do that between our ``makedirs`` and ``create``: the create then fails with
     ``FileNotFoundError``. Re-creating the parents and trying again is safe because the
-    creates used here are either exclusive or replace whole files.
+    creates used here are either exclusive or replace whole files. Not needed for a rename or
+    link from a temporary file in the same folder: that file keeps the folder non-empty.
     """
     for attempt in range(_PARENT_RETRIES):
         last = attempt == _PARENT_RETRIES - 1
@@ -64,9 +68,6 @@ def _with_parents(p: str, create):
             # retries (about 0.2 s in all).
             if last:
                 raise
-
-
-_PARENT_RETRIES = 20
 
 
 def iter_chunks(f, chunk_bytes: int = CHUNK_BYTES) -> Iterator[memoryview]:
@@ -213,7 +214,7 @@ class Store:
             tmp = f"{p}.tmp-{uuid.uuid4().hex}"
             with _with_parents(tmp, lambda: open(tmp, "wb")) as f:
                 f.write(data)
-            _with_parents(p, lambda: os.replace(tmp, p))
+            os.replace(tmp, p)  # tmp keeps the folder non-empty, so no prune removes it
             return
         self.fs.pipe_file(p, data)
 
@@ -313,8 +314,7 @@ class LocalConditional:
         p = store.path(rel)
         tmp = self._write_tmp(p, data)
         try:
-            # atomic and exclusive: fails with FileExistsError if p exists
-            _with_parents(p, lambda: os.link(tmp, p))
+            os.link(tmp, p)  # atomic and exclusive: fails with FileExistsError if p exists
         finally:
             os.unlink(tmp)
 
@@ -355,7 +355,7 @@ class LocalConditional:
                     f"{store.url_of(rel)} changed underneath (expected token {expected_token}, "
                     f"found {token})")
             tmp = self._write_tmp(p, data)
-            _with_parents(p, lambda: os.replace(tmp, p))
+            os.replace(tmp, p)
         finally:
             os.unlink(lock)
 
