@@ -112,8 +112,9 @@ def test_transform_that_is_not_rigid_is_an_error(tmp_path, component, column, ro
     _expect(e, component, column, "transform is not rigid", "det(R)", "1e-06")
 
 
-def test_rotation_rounded_to_float32_is_rigid_enough(tmp_path):
-    """Real data writes float32 rotations as doubles (|R^T R - I| ~ 1e-7): not an error."""
+def test_rigid_tolerance_accepts_float32_rotations_and_refuses_1e_5(tmp_path):
+    """Real data writes float32 rotations as doubles (|R^T R - I| ~ 1e-7): not an error; a
+    rotation scaled by 1 + 1e-5 is."""
     tiny_segment(tmp_path)
     rounded = rigid(0.37, [1.5, 0.0, 2.0]).astype(np.float32).astype(np.float64)
 
@@ -123,8 +124,17 @@ def test_rotation_rounded_to_float32_is_rigid_enough(tmp_path):
     scene = _load(tmp_path)
     np.testing.assert_array_equal(scene.cameras[1].model.vehicle_from_camera, rounded)
 
+    def scale(cols):
+        m = rounded.copy()
+        m[:3, :3] *= 1.0 + 1e-5
+        cols[CC + "extrinsic.transform"][0] = flat(m)
+    _rewrite(tmp_path, "camera_calibration", scale)
+    with pytest.raises(WaymoFormatError) as e:
+        _load(tmp_path)
+    _expect(e, "camera_calibration", CC + "extrinsic.transform", "transform is not rigid")
 
-@pytest.mark.parametrize("column, value", [("intrinsic.f_u", math.inf), ("intrinsic.f_v", math.nan),
+
+@pytest.mark.parametrize("column, value", [("intrinsic.f_u", math.inf), ("intrinsic.p1", math.nan),
                                            ("intrinsic.c_u", math.nan), ("intrinsic.k1", math.inf)])
 def test_non_finite_intrinsic_is_an_error(tmp_path, column, value):
     tiny_segment(tmp_path)
@@ -170,7 +180,17 @@ def _pixel_index(row: int, col: int, channel: int, width: int = 8, channels: int
 
 @pytest.mark.parametrize("value", [math.nan, math.inf])
 def test_non_finite_per_pixel_pose_at_a_return_is_an_error(tmp_path, value):
+    """Decision (docs/waymo-v2.md): a pose is checked where a return uses it. NaN/inf at a pixel
+    without a return is never read (accepted, points unchanged); at a return it is an error."""
     tiny_segment(tmp_path)
+    clean = _load(tmp_path)
+
+    def unused(cols):   # pixel (0, 0) of frame 0 has no return in either return (range -1 / 0)
+        cols[LP][0][_pixel_index(0, 0, 0)] = value
+    _rewrite(tmp_path, "lidar_pose", unused)
+    scene = _load(tmp_path)
+    np.testing.assert_array_equal(scene.lidar.points_vehicle, clean.lidar.points_vehicle)
+    assert np.isfinite(scene.lidar.points_vehicle).all()
 
     def edit(cols):   # pixel (0, 1) of frame 0 has a return (tests/_waymo_parquet.top_range)
         cols[LP][0][_pixel_index(0, 1, 3)] = value
@@ -178,18 +198,6 @@ def test_non_finite_per_pixel_pose_at_a_return_is_an_error(tmp_path, value):
     with pytest.raises(WaymoFormatError) as e:
         _load(tmp_path)
     _expect(e, "lidar_pose", LP, "per-pixel pose", "row 0", "col 1", f"{TIMESTAMPS[0]}")
-
-
-def test_non_finite_per_pixel_pose_without_a_return_is_not_used(tmp_path):
-    """Decision (docs/waymo-v2.md): a pose is checked where a return uses it, nowhere else."""
-    tiny_segment(tmp_path)
-    clean = _load(tmp_path)
-
-    def edit(cols):   # pixel (0, 0) of frame 0 has no return in either return (range -1 / 0)
-        cols[LP][0][_pixel_index(0, 0, 0)] = math.nan
-    _rewrite(tmp_path, "lidar_pose", edit)
-    scene = _load(tmp_path)
-    np.testing.assert_array_equal(scene.lidar.points_vehicle, clean.lidar.points_vehicle)
 
 
 def test_nan_and_inf_ranges_are_dropped_and_counted(tmp_path):
@@ -207,8 +215,7 @@ def test_nan_and_inf_ranges_are_dropped_and_counted(tmp_path):
     assert len(scene.lidar.points_vehicle) == len(clean.lidar.points_vehicle) - 3
     summary = reader.segment_summary(str(tmp_path), SPLIT, SEGMENT)
     assert summary["lasers"]["TOP"]["nonfinite_return1"] == 3
-    assert summary["lasers"]["TOP"]["valid_return1"] == \
-        reader.segment_summary(str(tmp_path), SPLIT, SEGMENT)["lasers"]["TOP"]["valid_return1"]
+    assert summary["lasers"]["TOP"]["nonfinite_return2"] == 0
 
     from drivetrack.cli import main
 
