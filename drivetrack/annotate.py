@@ -13,14 +13,26 @@ where it belongs (depth batches on GPU workers, object jobs fanned out on a clus
 
 ``annotate_segment`` runs them all for one segment and never raises for a bad segment: it returns
 a failed :class:`SegmentResult` naming the error, so one bad segment never stops the others.
+
+``annotate`` runs many segments; with ``workers >= 2`` each segment runs in its own worker process
+(at most ``workers`` at once). A worker process that dies (a crash, the OOM killer, ``kill -9``)
+fails only its own segment, after one retry in a fresh process. At the end of every run the
+temporary ``.partial-*`` files in the output folder are removed (also those an earlier killed run
+left), and so are the clip files of every segment recorded as failed.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
+import multiprocessing.connection
+import os
+import shutil
+import signal
+import tempfile
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -29,6 +41,9 @@ import numpy as np
 import pandas as pd
 
 import drivetrack
+from drivetrack import faults
+from drivetrack.layout import LAYOUTS, CLIP_PREFIX
+from drivetrack.names import check_name
 from drivetrack.scene import Scene
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
                                object_stats, plan_segment, prepare_segment, rejection_stats,
@@ -38,9 +53,18 @@ from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
            "complete_depth_batch", "refine_scene", "track_segment", "segment_tables", "write_segment_outputs", "write_tables",
-           "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version"]
+           "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version",
+           "remove_partial_files", "remove_segment_clips", "MAX_ATTEMPTS"]
 
 _HASH_CHUNK = 8 << 20
+
+#: A segment whose worker process dies is run again in a fresh process, at most this many times
+#: in all; a deterministic failure (an error the segment reports) is not retried.
+MAX_ATTEMPTS = 2
+
+#: Prefix of the temporary files :func:`drivetrack.storage.atomic_local_path` writes beside a
+#: local output file before moving it into place.
+PARTIAL_PREFIX = ".partial-"
 
 #: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
 #: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
@@ -143,7 +167,10 @@ class SegmentResult:
     """The outcome of one segment; tables are small pandas frames, files are URLs.
 
     ``status`` is ``done`` or ``failed``; ``error`` holds the message of a failure and
-    ``stage`` the stage it happened in (ingest, refine, plan, depth, tracks, write).
+    ``stage`` the stage it happened in (ingest, refine, plan, depth, tracks, write, or ``worker``
+    when its worker process died). ``attempts`` counts the processes the segment ran in and
+    ``worker_deaths`` says how each dead one ended; ``source_stats`` holds what the reader
+    dropped from the source as data (``Scene.source_stats``).
     """
     split: str
     segment: str
@@ -157,6 +184,9 @@ class SegmentResult:
     source_files: dict[str, str] = field(default_factory=dict)
     source_sha256: dict[str, str] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
+    source_stats: dict[str, int] = field(default_factory=dict)
+    attempts: int = 1
+    worker_deaths: list[str] = field(default_factory=list)
     tracks: list[ObjectTracks] = field(default_factory=list, repr=False)
 
     @property
@@ -170,6 +200,8 @@ class SegmentResult:
                 "num_objects": 0 if self.objects is None else int(len(self.objects)),
                 "source_files": {k: {"url": v, "sha256": self.source_sha256.get(k)}
                                  for k, v in sorted(self.source_files.items())},
+                "source_stats": dict(self.source_stats), "attempts": self.attempts,
+                "worker_deaths": list(self.worker_deaths),
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()}}
 
 
@@ -330,6 +362,7 @@ def annotate_segment(source: str, split: str, segment: str, out_url: str, config
         start = time.perf_counter()
         scene = load_scene_for(source, split, segment, config, storage_options, refine=False)
         result.source_files = dict(scene.source_files)
+        result.source_stats = dict(scene.source_stats)
         result.source_sha256 = source_checksums(scene.source_files, storage_options)
         result.timings_s["ingest"] = time.perf_counter() - start
 
@@ -455,37 +488,187 @@ def _annotate_one(args):
     return annotate_segment(*args)
 
 
+def _segment_worker(conn, args, tmp_dir: str) -> None:
+    """Body of one worker process: annotate one segment, send the result back, exit.
+
+    Temporary files of this process go to ``tmp_dir`` (removed by the parent at the end of the
+    run, also when this process is killed).
+    """
+    os.makedirs(tmp_dir, exist_ok=True)
+    os.environ["TMPDIR"] = tmp_dir
+    tempfile.tempdir = tmp_dir
+    faults.enter_worker()
+    result = annotate_segment(*args)
+    conn.send(result)
+    conn.close()
+
+
+def _describe_exit(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exited with code {exitcode} before sending its result"
+
+
+def _worker_failed(split: str, segment: str, deaths: list[str]) -> SegmentResult:
+    error = (f"the worker process of segment {segment!r} died in each of {len(deaths)} attempts: "
+             + "; ".join(f"attempt {i + 1} {d}" for i, d in enumerate(deaths)))
+    r = SegmentResult(split, segment, "failed", error=error, stage="worker", attempts=len(deaths),
+                      worker_deaths=list(deaths))
+    r.segment_row = segment_stats(split, segment, None, (), status="failed", error=f"[worker] {error}")
+    return r
+
+
+def _run_in_processes(jobs: list[tuple], workers: int, tmp_root: str,
+                      on_result: Callable[[SegmentResult], None] | None) -> dict[str, SegmentResult]:
+    """Run each job (``annotate_segment`` arguments) in its own process, ``workers`` at a time.
+
+    A process that ends without sending a result (killed, crashed) is attributed to its own
+    segment only; that segment runs again in a fresh process, up to :data:`MAX_ATTEMPTS` in all.
+    """
+    ctx = multiprocessing.get_context()
+    pending = deque(jobs)
+    deaths: dict[str, list[str]] = {}
+    running: dict = {}            # receiving connection -> (job, process)
+    out: dict[str, SegmentResult] = {}
+    try:
+        while pending or running:
+            while pending and len(running) < workers:
+                job = pending.popleft()
+                segment = job[2]
+                attempt = len(deaths.get(segment, ())) + 1
+                receive, send = ctx.Pipe(duplex=False)
+                process = ctx.Process(target=_segment_worker, name=f"drivetrack-annotate-{segment}",
+                                      args=(send, job, os.path.join(tmp_root, f"{segment}.{attempt}")))
+                process.start()
+                send.close()          # the child holds the only writing end: EOF when it dies
+                running[receive] = (job, process)
+            for receive in multiprocessing.connection.wait(list(running)):
+                job, process = running.pop(receive)
+                segment = job[2]
+                try:
+                    result = receive.recv()
+                except (EOFError, OSError):
+                    result = None
+                finally:
+                    receive.close()
+                process.join()
+                if result is None:
+                    deaths.setdefault(segment, []).append(_describe_exit(process.exitcode))
+                    if len(deaths[segment]) < MAX_ATTEMPTS:
+                        pending.appendleft(job)   # a fresh process; the others keep running
+                        continue
+                    result = _worker_failed(job[1], segment, deaths[segment])
+                else:
+                    result.attempts = len(deaths.get(segment, ())) + 1
+                    result.worker_deaths = list(deaths.get(segment, ()))
+                out[segment] = result
+                if on_result:
+                    on_result(result)
+    finally:
+        for job, process in running.values():   # interrupted: stop the workers this run started
+            process.terminate()
+        for job, process in running.values():
+            process.join()
+    return out
+
+
+def _ls(fs, path: str) -> list[str]:
+    try:
+        return [p.rstrip("/") for p in fs.ls(path, detail=False)] if fs.isdir(path) else []
+    except FileNotFoundError:
+        return []
+
+
+def remove_partial_files(out_url: str, storage_options: dict | None = None) -> list[str]:
+    """Remove every temporary ``.partial-*`` file from an output folder; returns their URLs.
+
+    Looks where writers put them: the folder itself, ``stats/`` and every split folder of each
+    clip layout (so files left by an earlier killed run go too). Run it only when no other run
+    writes into the same folder.
+    """
+    fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
+    base = base.rstrip("/")
+    folders = [base, f"{base}/stats"]
+    for folder in LAYOUTS.values():
+        folders += [p for p in _ls(fs, f"{base}/{folder}") if fs.isdir(p)]
+    removed = []
+    for folder in folders:
+        for path in _ls(fs, folder):
+            if path.rsplit("/", 1)[-1].startswith(PARTIAL_PREFIX):
+                fs.rm(path)
+                removed.append(fs.unstrip_protocol(path))
+    return removed
+
+
+def remove_segment_clips(out_url: str, split: str, segments: Iterable[str], keep: Iterable[str] = (),
+                         storage_options: dict | None = None) -> list[str]:
+    """Remove the clip files of ``segments`` of ``split`` (every layout); returns their URLs.
+
+    A clip file of segment S is ``waymo_{S}_{CAMERA}_{object_id}.npz`` with CAMERA a Waymo camera
+    name; paths relative to ``out_url`` in ``keep`` (files of segments that succeeded) stay.
+    """
+    fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
+    base = base.rstrip("/")
+    keep = set(keep)
+    prefixes = tuple(f"{CLIP_PREFIX}{segment}_{camera.name}_" for segment in segments
+                     for camera in CameraName if camera != CameraName.UNKNOWN)
+    removed = []
+    if not prefixes:
+        return removed
+    for folder in LAYOUTS.values():
+        for path in _ls(fs, f"{base}/{folder}/{split}"):
+            leaf = path.rsplit("/", 1)[-1]
+            if leaf.startswith(prefixes) and leaf.endswith(".npz") and f"{folder}/{split}/{leaf}" not in keep:
+                fs.rm(path)
+                removed.append(fs.unstrip_protocol(path))
+    return removed
+
+
 def annotate(source: str, split: str, segments: list[str], out_url: str, config: AnnotateConfig,
              workers: int = 1, storage_options: dict | None = None,
              on_result: Callable[[SegmentResult], None] | None = None) -> list[SegmentResult]:
     """Annotate ``segments`` (in ``workers`` processes), then write the tables and ``run.json``.
 
     A failed segment is reported through its result and ``on_result`` and does not stop the
-    others. Results come back in the order of ``segments``.
+    others. Results come back in the order of ``segments``. With ``workers >= 2`` every segment
+    runs in its own process; a segment whose process dies is retried once in a fresh process and
+    is then recorded failed (stage ``worker``, the error naming the signal or exit code), the
+    other segments' results are kept. At the end (also when interrupted) the ``.partial-*``
+    files in ``out_url`` are removed (:func:`remove_partial_files`), and the clip files of the
+    failed segments are removed from ``out_url`` before the tables are written
+    (:func:`remove_segment_clips`). ``storage_options`` apply to the source; the output folder
+    is reached with fsspec's defaults. One run per output folder at a time.
+
+    Raises :class:`drivetrack.names.InvalidNameError` before any work when the split or a
+    segment id cannot be part of a path.
     """
-    jobs = [(source, split, s, out_url, config, storage_options) for s in segments]
+    check_name("split", split, "the split to annotate")
+    for segment in segments:
+        check_name("segment", segment, f"the segments to annotate of split {split!r}")
+    jobs = [(source, split, s, out_url, config, storage_options) for s in dict.fromkeys(segments)]
     by_segment: dict[str, SegmentResult] = {}
-    if workers <= 1 or len(jobs) <= 1:
-        for job in jobs:
-            by_segment[job[2]] = r = _annotate_one(job)
-            if on_result:
-                on_result(r)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(_annotate_one, job): job[2] for job in jobs}
-            for future in as_completed(futures):
-                segment = futures[future]
-                try:
-                    r = future.result()
-                except Exception as error:  # the worker process itself died
-                    r = SegmentResult(split, segment, "failed", error=f"{type(error).__name__}: {error}",
-                                      stage="worker")
-                    r.segment_row = segment_stats(split, segment, None, (), status="failed",
-                                                  error=f"[worker] {r.error}")
-                by_segment[segment] = r
+    tmp_root = tempfile.mkdtemp(prefix="drivetrack-annotate-")
+    try:
+        if workers <= 1:
+            for job in jobs:
+                by_segment[job[2]] = r = _annotate_one(job)
                 if on_result:
                     on_result(r)
-    results = [by_segment[s] for s in segments]
+        else:
+            by_segment = _run_in_processes(jobs, workers, tmp_root, on_result)
+        results = [by_segment[s] for s in segments]
+        failed = [r.segment for r in results if r.status != "done"]
+        keep = [_relative(out_url, url) for r in results if r.status == "done" for url in r.files]
+        remove_segment_clips(out_url, split, failed, keep)
+        for r in results:
+            if r.status != "done":
+                r.files = []
+    finally:
+        remove_partial_files(out_url)
+        shutil.rmtree(tmp_root, ignore_errors=True)
     write_tables(out_url, results)
     write_run_json(out_url, source, config, results)
     return results

@@ -8,6 +8,8 @@ top-level ``validation/`` folder holds the gate reports. Paths here are relative
 """
 from __future__ import annotations
 
+from drivetrack.names import check_name
+
 __all__ = ["LAYOUTS", "DRIVETRACK", "TAPVID3D", "clip_path", "clip_glob", "parse_clip_path", "splits_of",
            "clips_of"]
 
@@ -24,8 +26,7 @@ def clip_path(layout: str, split: str, stem: str) -> str:
         folder = LAYOUTS[layout]
     except KeyError:
         raise ValueError(f"unknown clip layout {layout!r}; known: {sorted(LAYOUTS)}") from None
-    if not split or "/" in split:
-        raise ValueError(f"invalid split name {split!r}")
+    check_name("split", split, f"clip path of {stem!r}")
     return f"{folder}/{split}/{stem}.npz"
 
 

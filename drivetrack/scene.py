@@ -171,6 +171,8 @@ class Scene:
             (``drivetrack.refine.RefinedPoses.summary()``); empty when the labels are used as read.
         box_labels: the labelled boxes as read, when ``boxes`` holds refined poses; None when
             ``boxes`` are the labels themselves.
+        source_stats: counts of what the reader dropped from the source as data, e.g.
+            ``lidar_nonfinite_ranges`` (NaN / inf range values, no return).
     """
     segment: str
     split: str
@@ -182,6 +184,7 @@ class Scene:
     source_files: dict[str, str] = field(default_factory=dict)
     box_refinement: dict[str, dict] = field(default_factory=dict)
     box_labels: Boxes | None = None
+    source_stats: dict[str, int] = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:

@@ -10,7 +10,11 @@ def add_parser(sub) -> None:
         description="Ingest Waymo Open Dataset v2 segments, complete depth maps, compute per-object "
                     "point tracks with occlusion, and write DriveTrack/TAPVid-3D files plus statistics "
                     "tables (stats/*.parquet) and run.json under OUT. A failing segment is reported "
-                    "and does not stop the others; the exit code is 0 only if every segment succeeded.")
+                    "and does not stop the others; the exit code is 0 only if every segment succeeded. "
+                    "With --workers N each segment runs in its own process; a segment whose process "
+                    "dies (crash, OOM killer, kill -9) is retried once in a fresh process, then "
+                    "recorded failed. At the end of a run OUT holds no temporary .partial-* files "
+                    "and no clip files of failed segments. Run one annotate per OUT at a time.")
     p.add_argument("input", help="source root: local folder, file://, s3:// or gs:// URL "
                                  "holding {split}/{component}/{segment}.parquet")
     p.add_argument("--split", default="training", help="split to read (default: training)")
@@ -19,7 +23,9 @@ def add_parser(sub) -> None:
                    help="segment to annotate (repeatable; default: every segment of the split)")
     p.add_argument("--depth", default=None, metavar="METHOD",
                    help="depth completer (default: nearest; see the drivetrack.depth registry)")
-    p.add_argument("--workers", type=int, default=1, help="segments annotated in parallel processes")
+    p.add_argument("--workers", type=int, default=1,
+                   help="segments annotated in parallel, each in its own process (default 1: in "
+                        "this process, no retry)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="YAML/JSON annotation config ({track: {...}, refine_poses: bool, refine_options: {...}})")
     p.add_argument("--refine-poses", dest="refine_poses", action="store_true", default=None,
@@ -58,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
 
     from drivetrack.annotate import annotate
     from drivetrack.depth import list_completers
+    from drivetrack.names import check_name
     from drivetrack.waymo.reader import list_segments
 
     console = Console(stderr=True)
@@ -65,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
         config = load_config(args.config, args.depth, args.refine_poses)
         if config.depth_method not in list_completers():
             raise ValueError(f"unknown depth completer {config.depth_method!r}; known: {list_completers()}")
+        check_name("split", args.split, "--split")
+        for segment in args.segment or ():
+            check_name("segment", segment, "--segment")
         segments = args.segment or list_segments(args.input, args.split)
     except Exception as error:
         console.print(f"[red]error:[/red] {error}")
@@ -78,9 +88,13 @@ def run(args: argparse.Namespace) -> int:
         task = progress.add_task("", total=len(segments))
 
         def on_result(r):
+            notes = "".join(
+                [f", {r.source_stats['lidar_nonfinite_ranges']:,} NaN/inf lidar ranges dropped"
+                 if r.source_stats.get("lidar_nonfinite_ranges") else ""]
+                + [f", worker {death} (retried)" for death in (r.worker_deaths if r.status == "done" else ())])
             if r.status == "done":
                 progress.console.print(f"[green]done[/green]   {r.segment}: {len(r.files)} files, "
-                                       f"{r.num_tracks} tracks")
+                                       f"{r.num_tracks} tracks{notes}")
             else:
                 failed.append(r)
                 progress.console.print(f"[red]failed[/red] {r.segment} ({r.stage}): {r.error}")

@@ -9,7 +9,8 @@ def add_parser(sub) -> None:
     p = sub.add_parser(
         "info", help="summarise Waymo v2 segments: frames, cameras, lidars, objects",
         description="Per segment: frame count and time span, cameras with image sizes, lasers with "
-                    "the number of valid returns per return, labelled objects by type. Reads "
+                    "the number of valid returns per return and of NaN/inf ranges (dropped by "
+                    "annotate), labelled objects by type. Reads "
                     "ROOT/SPLIT/COMPONENT/SEGMENT.parquet (local path, file://, s3://, gs://).")
     p.add_argument("root", help="dataset root URL or path (the folder that holds the splits)")
     p.add_argument("--split", default="training", help="training, validation or testing")
@@ -37,6 +38,7 @@ def parse_storage_options(pairs: list[str]) -> dict:
 
 
 def run(args) -> int:
+    from drivetrack.names import InvalidNameError
     from drivetrack.waymo.reader import WaymoFormatError, list_segments, segment_summary
 
     try:
@@ -49,7 +51,7 @@ def run(args) -> int:
     for segment in segments:
         try:
             summaries.append(segment_summary(args.root, args.split, segment, storage_options=options))
-        except (WaymoFormatError, OSError) as exc:
+        except (WaymoFormatError, InvalidNameError, OSError) as exc:
             failed += 1
             summaries.append({"segment": segment, "split": args.split, "error": str(exc)})
     if args.json:
@@ -77,11 +79,12 @@ def _print_tables(root: str, split: str, summaries: list[dict]) -> None:
         for name, c in s["cameras"].items():
             cams.add_row(name, str(c["width"]), str(c["height"]), str(c["images"]))
         lasers = Table("laser", "range image", "frames", "valid return 1", "valid return 2",
-                       title="lasers", title_justify="left")
+                       "NaN/inf ranges", title="lasers", title_justify="left")
         for name, l in s["lasers"].items():
             shape = "x".join(str(d) for d in l["shape"]) if l["shape"] else "-"
             lasers.add_row(name, shape, str(l["frames"]), f"{l['valid_return1']:,}",
-                           f"{l['valid_return2']:,}")
+                           f"{l['valid_return2']:,}",
+                           f"{l['nonfinite_return1'] + l['nonfinite_return2']:,}")
         objects = Table("type", "objects", "boxes", title="objects (lidar_box)", title_justify="left")
         for name, o in s["objects"].items():
             objects.add_row(name, str(o["objects"]), str(o["boxes"]))

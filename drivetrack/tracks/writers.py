@@ -12,13 +12,12 @@ Nothing of size N x T beyond ``visibles`` is held: the video is decoded one fram
 """
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
-from drivetrack import storage
+from drivetrack import faults, storage
 from drivetrack.geometry import invert_rigid
 from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_path
+from drivetrack.names import check_name
 from drivetrack.storage import StreamedArray
 from drivetrack.tracks.core import ObjectTracks, frames_per_chunk
 
@@ -27,8 +26,6 @@ __all__ = ["WRITERS", "clip_stem", "drivetrack_arrays", "tapvid3d_arrays", "writ
 
 #: Deflate level of the npz members (1 = fastest; numpy's savez_compressed uses 6).
 NPZ_COMPRESSLEVEL = 1
-
-_SAFE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 #: Waymo camera frame (x forward, y left, z up) -> OpenCV camera frame (X right, Y down, Z forward):
 #: X = -y, Y = -z, Z = x.
@@ -39,11 +36,15 @@ OPENCV_FROM_WAYMO_CAMERA = np.array([[0.0, -1.0, 0.0, 0.0],
 
 
 def clip_stem(tracks: ObjectTracks) -> str:
-    """``waymo_{segment}_{CAMERA}_{object_id}`` (camera as its Waymo enum name)."""
-    for what, value in (("segment", tracks.segment), ("object_id", tracks.object_id)):
-        if not _SAFE.match(value):
-            raise ValueError(f"{what} {value!r} (segment {tracks.segment!r}) has characters that cannot "
-                             f"appear in an output file name; allowed: letters, digits, '_', '-', '.'")
+    """``waymo_{segment}_{CAMERA}_{object_id}`` (camera as its Waymo enum name).
+
+    Each part is checked with :func:`drivetrack.names.check_name` (full match) first; an
+    :class:`~drivetrack.names.InvalidNameError` names the part, its value and the segment.
+    """
+    where = f"segment {tracks.segment!r} camera {tracks.camera!r} object {tracks.object_id!r}"
+    check_name("segment", tracks.segment, where)
+    check_name("camera", tracks.camera_name, where)
+    check_name("object_id", tracks.object_id, where)
     return f"waymo_{tracks.segment}_{tracks.camera_name}_{tracks.object_id}"
 
 
@@ -63,6 +64,8 @@ def _video_chunks(tracks: ObjectTracks):
             raise ValueError(f"{where}: image is {bgr.shape[1]}x{bgr.shape[0]}, calibration says "
                              f"{model.width}x{model.height}")
         yield np.ascontiguousarray(bgr[None, ..., ::-1])
+        if i == 0:
+            faults.kill_point(tracks.segment)   # test-only: a worker killed mid-write
 
 
 def video_stream(tracks: ObjectTracks) -> StreamedArray:

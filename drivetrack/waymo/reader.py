@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 
 from drivetrack.geometry import (CameraModel, invert_rigid, matrix_from_flat, rotation_from_rpy,
                                  transform_points)
+from drivetrack.names import InvalidNameError, check_name
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
 from drivetrack.waymo import sweep
@@ -41,6 +42,11 @@ __all__ = [
     "transforms_from_column", "range_images_from_columns", "lidar_points", "camera_projection_at",
     "load_scene", "segment_summary",
 ]
+
+#: A transform is rigid when max |R^T R - I| <= RIGID_TOLERANCE, det(R) > 0 and its last row is
+#: [0, 0, 0, 1] within RIGID_TOLERANCE. Transforms written as float64 from a float32 rotation are
+#: orthonormal to ~1e-7; a scaled or sheared rotation is off by far more.
+RIGID_TOLERANCE = 1e-6
 
 #: Rows decoded at once when streaming range-image components (bounds memory: one TOP row of
 #: both returns is about 5 MB of float32).
@@ -80,9 +86,17 @@ def _url(fs, path: str) -> str:
     return fs.unstrip_protocol(path) if "://" not in path else path
 
 
+def _check_names(split: str, segment: str | None = None) -> None:
+    """Refuse split and segment names that cannot be part of a path (before any path is built)."""
+    check_name("split", split, "the split argument")
+    if segment is not None:
+        check_name("segment", segment, f"split {split!r}")
+
+
 def component_url(root: str, split: str, component: str, segment: str,
                   storage_options: dict | None = None) -> str:
     """Full URL of ``{root}/{split}/{component}/{segment}.parquet``."""
+    _check_names(split, segment)
     fs, base = _filesystem(root, storage_options)
     return _url(fs, f"{base}/{split}/{component}/{segment}.parquet")
 
@@ -90,8 +104,11 @@ def component_url(root: str, split: str, component: str, segment: str,
 def list_segments(root: str, split: str, storage_options: dict | None = None) -> list[str]:
     """Sorted segment names present in any known component directory of ``split``.
 
-    Raises FileNotFoundError naming the URL when the split directory does not exist.
+    Raises FileNotFoundError naming the URL when the split directory does not exist, and
+    :class:`drivetrack.names.InvalidNameError` naming the file when a file name is no valid
+    segment id (it would become part of output paths). Files starting with ``.`` are skipped.
     """
+    _check_names(split)
     fs, base = _filesystem(root, storage_options)
     split_path = f"{base}/{split}"
     if not fs.isdir(split_path):
@@ -104,7 +121,8 @@ def list_segments(root: str, split: str, storage_options: dict | None = None) ->
         for entry in fs.ls(comp_path, detail=False):
             leaf = entry.rstrip("/").rsplit("/", 1)[-1]
             if leaf.endswith(".parquet") and not leaf.startswith("."):
-                segments.add(leaf[: -len(".parquet")])
+                segments.add(check_name("segment", leaf[: -len(".parquet")],
+                                        f"file {_url(fs, comp_path + '/' + leaf)}"))
     return sorted(segments)
 
 
@@ -112,6 +130,7 @@ class _ComponentFile:
     """One opened, schema-checked component file of one segment."""
 
     def __init__(self, fs, base: str, split: str, component: str, segment: str):
+        _check_names(split, segment)
         self.comp = get_component(component)
         self.segment = segment
         self.path = f"{base}/{split}/{component}/{segment}.parquet"
@@ -237,21 +256,73 @@ class _ComponentFile:
         return {n: table[n][i].as_py() for n in self.comp.keys if n != KEY_SEGMENT}
 
     def check_content(self, table: pa.Table) -> None:
-        """NaN in a transform, empty range images and shape/values mismatches."""
+        """Bad numbers in the columns read: NaN or inf in a transform, a transform that is not
+        rigid (:data:`RIGID_TOLERANCE`), inf in a number column, NaN or inf in a list of numbers
+        that is no range image, and empty range images or shape/values mismatches.
+
+        NaN in a number column is a missing value (like null): the code that uses the column
+        decides. Range-image values are data (a non-finite range is no return, dropped and
+        counted by the lidar reader); per-pixel poses are checked where they are used.
+        """
         for name in table.column_names:
             col_type = self.comp.by_name[name].type
             if name.endswith(".transform"):
-                flat, valid = _fixed_numpy(table[name], 16)
-                bad = np.flatnonzero(np.isnan(flat).any(axis=1) & valid)
-                if bad.size:
-                    i = int(bad[0])
-                    raise self.error("NaN in a transform", column=name,
-                                     expected="16 finite values",
-                                     found=f"{flat[i].tolist()} at {self.row_keys(table, i)}")
-            elif name.endswith(".values") and pa.types.is_list(col_type):
+                self._check_transforms(table, name)
+            elif name.endswith(".values") and pa.types.is_list(col_type) \
+                    and name[: -len(".values")] + ".shape" in self.comp.by_name:
                 shape_name = name[: -len(".values")] + ".shape"
                 if shape_name in table.column_names:
                     self._check_range_image(table, name, shape_name)
+            elif pa.types.is_floating(col_type):
+                values = _scalar_numpy(table[name], np.float64, np.nan)
+                bad = np.flatnonzero(np.isinf(values))
+                if bad.size:
+                    i = int(bad[0])
+                    raise self.error("infinite value", column=name, expected="a finite number or null",
+                                     found=f"{values[i]} at {self.row_keys(table, i)}")
+            elif (pa.types.is_list(col_type) or pa.types.is_large_list(col_type)) \
+                    and pa.types.is_floating(col_type.value_type):
+                offsets, flat, valid = _list_parts(table[name])
+                bad = np.flatnonzero(~np.isfinite(np.asarray(flat, np.float64)))
+                if bad.size:
+                    i = int(np.searchsorted(offsets, bad[0], "right") - 1)
+                    raise self.error("NaN or infinite value in a list of numbers", column=name,
+                                     expected="finite numbers",
+                                     found=f"{flat[bad[0]]} at {self.row_keys(table, i)}")
+
+    def _check_transforms(self, table: pa.Table, name: str) -> None:
+        """Every non-null row of a 4x4 transform column is finite and rigid (vectorised)."""
+        flat, valid = _fixed_numpy(table[name], 16)
+        nan = np.isnan(flat).any(axis=1) & valid
+        if nan.any():
+            i = int(np.flatnonzero(nan)[0])
+            raise self.error("NaN in a transform", column=name, expected="16 finite values",
+                             found=f"{flat[i].tolist()} at {self.row_keys(table, i)}")
+        inf = np.isinf(flat).any(axis=1) & valid
+        if inf.any():
+            i = int(np.flatnonzero(inf)[0])
+            raise self.error("infinite value in a transform", column=name,
+                             expected="16 finite values",
+                             found=f"{flat[i].tolist()} at {self.row_keys(table, i)}")
+        rows = np.flatnonzero(valid)
+        if not rows.size:
+            return
+        dst_from_src = matrix_from_flat(flat[rows])                              # [N, 4, 4]
+        rotation = dst_from_src[:, :3, :3]
+        orthonormal_error = np.abs(np.einsum("nji,njk->nik", rotation, rotation)
+                                   - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(rotation)
+        last_row_error = np.abs(dst_from_src[:, 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+        bad = (orthonormal_error > RIGID_TOLERANCE) | (det <= 0) | (last_row_error > RIGID_TOLERANCE)
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            i = int(rows[j])
+            raise self.error(
+                "transform is not rigid", column=name,
+                expected=f"a rotation with max |R^T R - I| <= {RIGID_TOLERANCE:g}, det(R) > 0 and "
+                         f"last row [0, 0, 0, 1]",
+                found=f"max |R^T R - I| = {orthonormal_error[j]:.3g}, det(R) = {det[j]:.6g}, last "
+                      f"row {dst_from_src[j, 3].tolist()} at {self.row_keys(table, i)}")
 
     def _check_range_image(self, table: pa.Table, values_name: str, shape_name: str) -> None:
         values = table[values_name]
@@ -387,7 +458,7 @@ def lidar_points(range_image: np.ndarray, vehicle_from_lidar: np.ndarray,
 
     Args:
         range_image: float [H, W, C] (channels range, intensity, elongation, no-label-zone);
-            a pixel is a return where range > 0.
+            a pixel is a return where range > 0 and finite (NaN / inf ranges are no return).
         vehicle_from_lidar: float64 [4, 4], ``lidar_calibration.extrinsic``.
         inclinations: float64 [H], radians, row 0 = highest beam (:func:`lidar.beam_inclinations`).
         pixel_pose: optional float [H, W, 6] (``lidar_pose``: roll, pitch, yaw, x, y, z =
@@ -410,7 +481,7 @@ def _points_from_directions(range_image, directions_vehicle, origin_vehicle, pix
                             world_from_vehicle=None):
     rng = range_image[..., 0]
     with np.errstate(invalid="ignore"):
-        rows, cols = np.nonzero(rng > 0)
+        rows, cols = np.nonzero(np.isfinite(rng) & (rng > 0))
     r = rng[rows, cols].astype(np.float64)
     points = r[:, None] * directions_vehicle[rows, cols] + np.asarray(origin_vehicle, np.float64)
     if range_image.shape[-1] > 1:
@@ -508,9 +579,9 @@ def _read_camera_calibration(f: _ComponentFile, cameras: Iterable[int]) -> dict[
         kw = {}
         for p in ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3"):
             v = table[c.col(f"intrinsic.{p}")][i].as_py()
-            if v is None or (p in ("f_u", "f_v") and not v > 0):
+            if v is None or not np.isfinite(v) or (p in ("f_u", "f_v") and not v > 0):
                 raise f.error("missing or invalid intrinsic", column=c.col(f"intrinsic.{p}"),
-                              expected="a number (f_u, f_v > 0)", found=f"{v} for camera {cam}")
+                              expected="a finite number (f_u, f_v > 0)", found=f"{v} for camera {cam}")
             kw[p] = float(v)
         for p in ("width", "height"):
             v = table[c.col(p)][i].as_py()
@@ -582,12 +653,28 @@ def _read_boxes(f: _ComponentFile, timestamps: np.ndarray) -> Boxes:
     heading = num("box.heading")
     for col, arr in ((names["box.center.x"], center), (names["box.size.x"], size),
                      (names["box.heading"], heading)):
-        bad = np.isnan(arr.reshape(len(arr), -1)).any(axis=1)
+        bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise f.error("null or NaN box geometry", column=col, expected="finite numbers",
+            raise f.error("null, NaN or infinite box geometry", column=col, expected="finite numbers",
                           found=f"{arr[i].tolist()} at {f.row_keys(table, i)}")
+    negative = (size < 0).any(axis=1)
+    if negative.any():
+        i = int(np.flatnonzero(negative)[0])
+        raise f.error("negative box size", column=names["box.size.x"],
+                      expected="sizes x, y, z >= 0 (metres)",
+                      found=f"{size[i].tolist()} at {f.row_keys(table, i)}")
     object_id = np.array(table["key.laser_object_id"].to_pylist(), dtype=object)
+    # object ids become part of clip file names: refuse any that cannot, before a path is built
+    for value in dict.fromkeys(object_id.tolist()):
+        try:
+            check_name("object_id", value)
+        except InvalidNameError as exc:
+            i = int(np.flatnonzero(object_id == value)[0]) if value is not None else \
+                int(np.flatnonzero(np.equal(object_id, None))[0])
+            raise f.error("object id cannot be part of a file name", column="key.laser_object_id",
+                          expected=str(exc).split(": use ", 1)[-1],
+                          found=f"{value!r} at {f.row_keys(table, i)}") from None
     frame = _frame_index(timestamps, _scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
     order = np.lexsort((object_id.astype(str), frame)) if len(frame) else np.zeros(0, np.int64)
     boxes = Boxes(
@@ -612,7 +699,11 @@ def _point_key(frame, laser, return_index) -> np.ndarray:
 
 def _read_lidar(f: _ComponentFile, calibrations: dict[int, _LidarCalibration], lasers: set[int],
                 returns: Sequence[int], timestamps: np.ndarray, cal_file: _ComponentFile):
-    """Phase 1: stream range images, keep valid returns (vehicle frame of the pixel's pose)."""
+    """Phase 1: stream range images, keep valid returns (vehicle frame of the pixel's pose).
+
+    Returns ``(returns, nonfinite)``: the :class:`LidarReturns` and the number of NaN / inf
+    ranges of the lasers and returns read (dropped: such a pixel is no return).
+    """
     c = f.comp
     cols = []
     for r in returns:
@@ -621,6 +712,7 @@ def _read_lidar(f: _ComponentFile, calibrations: dict[int, _LidarCalibration], l
     f.read_keys()
     geometry_cache: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
     chunks = []
+    nonfinite = 0
     for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
         laser_col = _scalar_numpy(table["key.laser_name"], np.int64, 0)
         frame_col = _frame_index(timestamps, _scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
@@ -644,12 +736,13 @@ def _read_lidar(f: _ComponentFile, calibrations: dict[int, _LidarCalibration], l
                     geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
                                            cal.vehicle_from_lidar[:3, 3].copy())
                 dirs, origin = geometry_cache[key]
+                nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
                 pts, rows, cols_, inten = _points_from_directions(image, dirs, origin)
                 n = len(rows)
                 chunks.append((pts, rows, cols_, inten, np.full(n, frame_col[i], np.int32),
                                np.full(n, laser, np.int8), np.full(n, r, np.int8)))
     if not chunks:
-        return _empty_returns(len(timestamps))
+        return _empty_returns(len(timestamps)), nonfinite
     pts, rows, cols_, inten, frame, laser, ret = (np.concatenate(x) for x in zip(*chunks))
     del chunks
     order = np.argsort(_point_key(frame, laser, ret), kind="stable")
@@ -657,7 +750,7 @@ def _read_lidar(f: _ComponentFile, calibrations: dict[int, _LidarCalibration], l
     offsets = np.searchsorted(frame, np.arange(len(timestamps) + 1)).astype(np.int64)
     return LidarReturns(points_vehicle=pts[order], frame=frame, laser=laser[order],
                         return_index=ret[order], row=rows[order], col=cols_[order],
-                        intensity=inten[order], frame_offsets=offsets)
+                        intensity=inten[order], frame_offsets=offsets), nonfinite
 
 
 def _empty_returns(n_frames: int) -> LidarReturns:
@@ -714,6 +807,14 @@ def _apply_lidar_pose(f: _ComponentFile, returns: LidarReturns, timestamps: np.n
                                   expected="[H, W, 6] like the TOP range image",
                                   found=f"{list(pose.shape)} at {f.row_keys(table, i)}")
                 pixel_pose = pose[rows, cols_]
+                bad = ~np.isfinite(pixel_pose).all(axis=1)
+                if bad.any():
+                    j = int(np.flatnonzero(bad)[0])
+                    raise f.error("NaN or infinite per-pixel pose at a lidar return", column=values,
+                                  expected="finite roll, pitch, yaw, x, y, z at every pixel with a "
+                                           "return",
+                                  found=f"{pixel_pose[j].tolist()} at pixel (row {int(rows[j])}, "
+                                        f"col {int(cols_[j])}) of {f.row_keys(table, i)}")
                 returns.points_vehicle[block] = _apply_pixel_pose(
                     returns.points_vehicle[block], pixel_pose, world_from_vehicle[t])
                 time_samples[block] = sweep.pixel_time_offsets(
@@ -771,7 +872,14 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
     (:mod:`drivetrack.waymo.sweep`: one ``a + b * col`` model per segment, 0 for other lasers).
     Frames are ``vehicle_pose``'s timestamps in increasing order; rows of other components whose
     timestamp is not among them raise :class:`WaymoFormatError`.
+
+    Bad numbers: NaN/inf in a transform, a transform that is not rigid, inf in a number column,
+    non-finite or non-positive focal lengths, non-finite or negative box geometry and NaN/inf
+    per-pixel poses at a return raise :class:`WaymoFormatError`; NaN/inf ranges are no return
+    (dropped) and counted in ``Scene.source_stats["lidar_nonfinite_ranges"]``. Split, segment
+    and object ids that cannot be part of a file name raise before any path is built.
     """
+    _check_names(split, segment)
     fs, base = _filesystem(root, storage_options)
     returns = tuple(sorted(set(int(r) for r in returns)))
     if not set(returns) <= {1, 2}:
@@ -784,6 +892,7 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
     present = [name for name in needed
                if fs.exists(f"{base}/{split}/{name}/{segment}.parquet")]
     files: dict[str, _ComponentFile] = {}
+    source_stats = {"lidar_nonfinite_ranges": 0}
 
     def open_component(name: str) -> _ComponentFile:
         try:
@@ -826,8 +935,8 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
             if missing:
                 raise cal_file.error("requested laser has no calibration", column="key.laser_name",
                                      expected=sorted(missing), found=sorted(calibrations))
-            lidar_returns = _read_lidar(open_component("lidar"), calibrations, wanted, returns,
-                                        timestamps, cal_file)
+            lidar_returns, source_stats["lidar_nonfinite_ranges"] = _read_lidar(
+                open_component("lidar"), calibrations, wanted, returns, timestamps, cal_file)
             timing = sweep.SweepTiming()
             if np.any(lidar_returns.laser == LaserName.TOP):
                 samples = _apply_lidar_pose(open_component("lidar_pose"), lidar_returns,
@@ -843,7 +952,8 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
         return Scene(segment=segment, split=split, timestamps_micros=timestamps,
                      world_from_vehicle=world_from_vehicle, cameras=camera_frames,
                      lidar=lidar_returns, boxes=boxes,
-                     source_files={name: f.url for name, f in files.items()})
+                     source_files={name: f.url for name, f in files.items()},
+                     source_stats=source_stats)
     finally:
         for f in files.values():
             f.close()
@@ -859,11 +969,13 @@ def segment_summary(root: str, split: str, segment: str,
 
     Returns a JSON-ready dict: ``segment``, ``split``, ``num_frames``, ``start_micros``,
     ``end_micros``, ``duration_s``, ``cameras`` (name -> width, height, images),
-    ``lasers`` (name -> range-image shape, frames, valid returns per return), ``objects``
+    ``lasers`` (name -> range-image shape, frames, valid returns per return, NaN/inf ranges
+    per return: ``nonfinite_return1/2``, dropped by :func:`load_scene`), ``objects``
     (type name -> distinct objects, boxes), ``files`` (component -> URL).
     """
     from drivetrack.waymo.schema import BoxType, CameraName
 
+    _check_names(split, segment)
     fs, base = _filesystem(root, storage_options)
     out: dict = {"segment": segment, "split": split, "files": {}}
 
@@ -904,13 +1016,16 @@ def segment_summary(root: str, split: str, segment: str,
                                                        table[c.col(f"range_image_return{r}.shape")])
                     for laser, image in zip(laser_col.tolist(), images):
                         entry = lasers.setdefault(_enum_name(LaserName, laser), {
-                            "shape": None, "frames": 0, "valid_return1": 0, "valid_return2": 0})
+                            "shape": None, "frames": 0, "valid_return1": 0, "valid_return2": 0,
+                            "nonfinite_return1": 0, "nonfinite_return2": 0})
                         if r == 1:
                             entry["frames"] += 1
                         if image is not None:
                             entry["shape"] = list(image.shape)
+                            finite = np.isfinite(image[..., 0])
                             with np.errstate(invalid="ignore"):
-                                entry[f"valid_return{r}"] += int(np.count_nonzero(image[..., 0] > 0))
+                                entry[f"valid_return{r}"] += int(np.count_nonzero(finite & (image[..., 0] > 0)))
+                            entry[f"nonfinite_return{r}"] += int(finite.size - np.count_nonzero(finite))
     out["lasers"] = dict(sorted(lasers.items()))
     objects: dict = {}
     if fs.exists(f"{base}/{split}/lidar_box/{segment}.parquet"):
