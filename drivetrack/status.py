@@ -392,6 +392,8 @@ def render_status_html(status: ReleaseStatus, *, refresh_s: int | None = None,
     runs. Everything taken from data is HTML-escaped; links are relative paths inside the
     release or dropped (:func:`safe_release_href`)."""
     e = html.escape
+    if quality is not None and not quality.segments and quality.gates_success is None:
+        quality = None  # no tables, no gate report (a build still running, or a bare status)
     counts = status.counts()
     chips = "".join(
         f'<span class="chip" data-count="{k}" style="background:{_COLOURS[k][0]};color:{_COLOURS[k][1]}">'
@@ -590,7 +592,7 @@ def _quality_cells(q: dict | None) -> str:
         for g in q["gates"]) or '<span class="ok">none</span>'
     bad = ' style="background:#f8d7da"' if q["gates"] else ""
     return (f'<td class="nw" data-q="clips">{n(q["clips"])}</td><td class="nw" data-q="tracks">{n(q["tracks"])}</td>'
-            f'<td class="nw" data-q="speed_err_p50">{n(q["speed_err_p50"], "{:.3f} m/s")}</td>'
+            f'<td class="nw" data-q="speed_err_p50">{n(q["speed_err_p50"], "{:.3g} m/s")}</td>'
             f'<td class="nw" data-q="refined">{n(None if q["refined_share"] is None else 100 * q["refined_share"], "{:.0f} %")}</td>'
             f'<td class="small" data-q="rejected">{rejected or "-"}</td><td data-q="gates"{bad}>{gates}</td>')
 
@@ -639,7 +641,7 @@ def segment_markdown(status: ReleaseStatus, seg: SegmentStatus, quality: Release
         refined = None if q["refined_share"] is None else 100 * q["refined_share"]
         rejected = ", ".join(f"{_md(k)} {int(v)}" for k, v in sorted(q["rejected"].items())) or "none"
         lines += ["- clips: " + f(q["clips"], "{:.0f}"), "- tracks: " + f(q["tracks"], "{:.0f}"),
-                  "- speed error p50 (median over clips): " + f(q["speed_err_p50"], "{:.3f} m/s"),
+                  "- speed error p50 (median over clips): " + f(q["speed_err_p50"], "{:.3g} m/s"),
                   "- refined objects: " + f(refined, "{:.0f} %"), "- rejected clips: " + rejected]
     if quality is not None and quality.gates_success is not None:
         failing = q["gates"] if q else []
