@@ -139,7 +139,7 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
         md = next(a for k, a in arts2.items() if k.startswith("release-0-1-0-segment-") and f"/{seg}:" in a)
         assert f"training/{seg}: done" in md and "Gates: release passed" in md
         assert re.search(r"- clips: [1-9]", md) and re.search(r"- tracks: [1-9]", md), md
-        assert re.search(r"- speed error p50 \(median over clips\): [0-9.]+ m/s", md), md
+        assert re.search(r"- speed error p50 \(median over clips\): [0-9.e+-]+ m/s", md), md
         assert ("reused" in md.splitlines()[0]) == (seg == good)
     # the page shows quality beside state
     assert 'data-q="speed_err_p50"' in page and 'data-q="gates"' in page
