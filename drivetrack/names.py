@@ -3,7 +3,7 @@
 Every name that ends up in a file or folder name goes through :func:`check_name` before any path is
 built from it: dataset names, release versions (see :mod:`drivetrack.release.manifest` for the
 semver grammar, checked with a full match too), split names, segment ids, camera names and object
-ids read from source data. Patterns are applied with :func:`re.fullmatch`, never ``re.match`` with
+ids read from source data, and the release files a status page links (``release_file``). Patterns are applied with :func:`re.fullmatch`, never ``re.match`` with
 ``$`` (which lets a trailing newline through), and no name may be ``.``, ``..``, start with a dot or
 an underscore (reserved for the store's own ``_staging``/``_txn`` folders), or hold a separator.
 """
@@ -29,6 +29,10 @@ NAME_KINDS: dict[str, tuple[re.Pattern, str]] = {
     "camera": (re.compile(r"[A-Z][A-Z0-9_]{0,31}"), "an upper-case camera name such as FRONT or SIDE_LEFT"),
     "object_id": (re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,255}"),
                   "letters, digits, '_', '.' and '-', not starting with '.'"),
+    # a file inside a release, as a page links it: relative, no scheme, no '..', no leading '/'
+    "release_file": (re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,255}(?:/[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,255}){0,15}"),
+                     "a relative path inside the release: '/'-separated parts of letters, digits, '_', '.' "
+                     "and '-', no part starting with '.'"),
 }
 
 

@@ -22,10 +22,12 @@ from pathlib import Path
 from flows import REPO  # sets Prefect/Dask environment defaults before Prefect is imported
 
 from prefect import flow, get_run_logger, task  # noqa: E402
-from prefect.artifacts import create_progress_artifact, create_table_artifact, update_progress_artifact  # noqa: E402
+from prefect.artifacts import (create_markdown_artifact, create_progress_artifact, create_table_artifact,  # noqa: E402
+                               update_progress_artifact)
 from prefect.futures import wait  # noqa: E402
 
-from drivetrack.status import SEGMENT_STAGES, ReleaseStatus, StageStatus, write_status  # noqa: E402
+from drivetrack.status import (SEGMENT_STAGES, ReleaseStatus, StageStatus, read_quality, reused_markdown,  # noqa: E402
+                               segment_markdown, write_status)
 from flows import jobs, keys  # noqa: E402
 from flows.runtime import ClusterConfig, dask_cluster, prefect_api  # noqa: E402
 
@@ -153,9 +155,10 @@ class _Board:
         self.key = "release-" + "".join(c if c.isalnum() else "-" for c in status.version.lower())
         self.progress_id = None
         self.last_table = 0.0
+        self.quality = None  # ReleaseQuality once the statistics and gates exist
 
     def flush(self, *, table: bool = False, final: bool = False) -> None:
-        write_status(self.out, self.status, refresh_s=None if final else 5)
+        write_status(self.out, self.status, refresh_s=None if final else 5, quality=self.quality)
         n = len(self.status.segments)
         finished = sum(1 for s in self.status.segments if s.state in ("done", "failed"))
         pct = 100.0 * finished / n if n else 100.0
@@ -171,6 +174,25 @@ class _Board:
                 self.last_table = time.monotonic()
         except Exception as e:  # the UI is advisory; the files are the record
             get_run_logger().warning(f"could not update Prefect artifacts: {type(e).__name__}: {e}")
+
+    def markdown(self, key_suffix: str, text: str, description: str) -> None:
+        """One markdown artifact of this run (advisory, like the others)."""
+        try:
+            create_markdown_artifact(text, key=f"{self.key}-{key_suffix}", description=description)
+        except Exception as e:
+            get_run_logger().warning(f"could not create the Prefect artifact {key_suffix}: {type(e).__name__}: {e}")
+
+    def segment_artifacts(self) -> None:
+        """Per segment: stages, clips, tracks, quality and gate results (``self.quality``)."""
+        try:
+            self.quality = read_quality(self.out)
+        except Exception as e:  # the summaries are advisory; the gates judge the tables
+            get_run_logger().warning(f"could not read the quality tables of {self.out}: {jobs.failure_summary(e)}")
+        for seg in self.status.segments:
+            slug = "".join(c if c.isalnum() else "-" for c in seg.segment.lower())[:40].strip("-")
+            tag = keys.sha256_json([seg.split, seg.segment])[:8]
+            self.markdown(f"segment-{slug}-{tag}", segment_markdown(self.status, seg, self.quality),
+                          f"{seg.split}/{seg.segment}: {seg.state}")
 
     def _describe(self) -> str:
         c = self.status.counts()
@@ -258,7 +280,10 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     from drivetrack.annotate import AnnotateConfig
     from drivetrack.release.manifest import code_version
 
+    from prefect.runtime import flow_run
+
     logger = get_run_logger()
+    run_id = str(flow_run.id)  # the artifacts of this build hang off this run
     cfg = AnnotateConfig.from_dict(config or {})
     config = cfg.to_dict()
     config_fp, code_out, code_all = cfg.fingerprint(), keys.code_fingerprint(outputs_only=True), keys.code_fingerprint()
@@ -291,6 +316,8 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     logger.info(f"{len(plan)} segments: {len(cached)} reused (same content key), {len(todo)} to compute")
     status.update_release("segments", "running")
     board.flush(table=True)
+    # reused segments are never submitted, so Prefect has no task run (Cached or other) for them
+    board.markdown("reused", reused_markdown(status), f"{len(cached)} of {len(plan)} segments reused")
 
     futures = {}
     for p in todo:
@@ -367,10 +394,11 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         status.update_release("publish", "skipped")
         status.message = (f"inputs, configuration and code are unchanged since {latest}: no new version "
                           f"(fingerprint {fingerprint[:16]})")
+        board.segment_artifacts()
         board.flush(final=True)
         logger.info(status.message)
         return {"version": None, "unchanged_since": latest, "published": False, "out": out,
-                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint, "flow_run_id": run_id}
 
     status.update_release("previews", "running")
     board.flush()
@@ -395,6 +423,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
                           count=len(report.get("results", [])), unit="gates",
                           error=None if report.get("success") else f"{n_failed_gates} gates failed"
                           + (f" (accepted: {accept_failed_gates})" if accept_failed_gates else ""))
+    board.segment_artifacts()
 
     # status.json/html go into the release itself: written as they will be once it is visible
     status.update_release("publish", "done")
@@ -413,13 +442,14 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         board.flush(final=True)
         logger.error(f"publish of {version} failed: {jobs.failure_summary(e)}")
         return {"version": version, "published": False, "out": out, "error": jobs.failure_summary(e),
-                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint, "flow_run_id": run_id}
     status.update_release("publish", "done")
     status.published = True
     status.message = f"published {dataset} {version} to {store}"
     board.flush(final=True)
     return {"version": version, "published": True, "out": out, "store": store, "dataset": dataset,
-            "publish": res, "counts": status.counts(), "failed": failed, "fingerprint": fingerprint}
+            "publish": res, "counts": status.counts(), "failed": failed, "fingerprint": fingerprint,
+            "flow_run_id": run_id}
 
 
 def jobs_fs_reset(out: str) -> None:

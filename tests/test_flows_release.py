@@ -6,6 +6,7 @@ segment."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -76,6 +77,12 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     assert list_versions(str(store)) == []
     # the good segment's depth jobs ran on a worker holding the GPU resource (CPU drain here)
     assert by_seg[good]["stages"]["depth"]["count"] > 0 and by_seg[good]["stages"]["depth"]["worker"]
+    arts1 = _run_markdown(r1["flow_run_id"])
+    seg_md = {seg: next(a for k, a in arts1.items() if k.startswith("release-0-1-0-segment-") and seg in a)
+              for seg in segs}
+    assert "| ingest | failed |" in seg_md[bad] and "segment.status" in seg_md[bad], seg_md[bad]
+    assert "Gates: release FAILED" in seg_md[good] and "- clips: " in seg_md[good]
+    assert "0 of 2 segments reused" in arts1["release-0-1-0-reused"]
     good_record = next((work / "segments" / "training" / good).glob("*/_done.json"))
     stamp = good_record.stat().st_mtime_ns
 
@@ -123,6 +130,20 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     assert {r["segment"] for r in rows} == set(segs) and {r["state"] for r in rows} == {"done"}
     assert max(float(a.data) for a in arts if a.key.endswith("progress")) == 100.0
 
+    # Prefect shows the reuse: the reused segment is named in this run's artifact (it has no task
+    # run), and every segment has its summary with quality and gate results
+    arts2 = _run_markdown(r2["flow_run_id"])
+    reused = arts2["release-0-1-0-reused"]
+    assert "1 of 2 segments reused" in reused and good in reused and bad not in reused
+    for seg in segs:
+        md = next(a for k, a in arts2.items() if k.startswith("release-0-1-0-segment-") and f"/{seg}:" in a)
+        assert f"training/{seg}: done" in md and "Gates: release passed" in md
+        assert re.search(r"- clips: [1-9]", md) and re.search(r"- tracks: [1-9]", md), md
+        assert re.search(r"- speed error p50 \(median over clips\): [0-9.e+-]+ m/s", md), md
+        assert ("reused" in md.splitlines()[0]) == (seg == good)
+    # the page shows quality beside state
+    assert 'data-q="speed_err_p50"' in page and 'data-q="gates"' in page
+
     # an explicit version that exists is refused before any work
     from drivetrack.release import VersionExistsError
 
@@ -143,6 +164,17 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     assert [v["version"] for v in list_versions(str(store))] == ["0.1.0"]
     assert _status(r3["out"])["counts"]["done"] == SEGMENTS
     assert all(s["cached"] for s in _status(r3["out"])["segments"])
+
+
+def _run_markdown(flow_run_id: str) -> dict[str, str]:
+    """The markdown artifacts of one flow run, by key (looked up by the run, not by a global key)."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId, ArtifactFilterType
+
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            flow_run_id=ArtifactFilterFlowRunId(any_=[flow_run_id]), type=ArtifactFilterType(any_=["markdown"])))
+    return {a.key: a.data for a in arts}
 
 
 def test_unknown_segment_fails_before_any_work(source, prefect_server, tmp_path):

@@ -132,7 +132,8 @@ def test_status_page_served_and_rendered_in_chromium(tmp_path):
     try:
         with urllib.request.urlopen(url, timeout=10) as r:
             served = r.read().decode()
-        assert served == (tmp_path / "store" / "drivetrack-waymo" / "1.2.3" / "status.html").read_text()
+        # rendered from the published status.json (the same page the release holds)
+        assert served == render_status_html(st) and 'data-segment="seg-broken" data-state="failed"' in served
         with urllib.request.urlopen(url + "status.json", timeout=10) as r:
             assert json.loads(r.read())["counts"]["failed"] == 1
         shot = tmp_path / "status.png"
@@ -180,3 +181,138 @@ def test_serving_a_build_folder_rerenders_live(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+# ---- quality beside state, previews and the version index, on a published annotation -------------
+
+STRICT_GATES = {"object": {"speed_err_p50_max_mps": {"value": 0.001, "reason": "demo: a bound some clips miss"}}}
+
+
+def _status_of_folder(src: Path, version: str, previews: list[str]) -> ReleaseStatus:
+    """A finished build's status for an annotation folder: one done segment per stats row."""
+    import pandas as pd
+
+    st = ReleaseStatus(dataset="drivetrack-waymo", version=version, source="synthetic", store="store")
+    segs = pd.read_parquet(src / "stats" / "segments.parquet")
+    for row in segs.itertuples():
+        st.add_segment(row.split, row.segment, key=f"k-{row.segment}")
+        for stage, count, unit in (("ingest", row.num_frames, "frames"), ("depth", 4, "depth batches"),
+                                   ("tracks", row.num_object_clips_annotated, "object clips"),
+                                   ("write", 2 * row.num_object_clips_annotated, "files")):
+            st.update(row.split, row.segment, stage, "running")
+            st.update(row.split, row.segment, stage, "done", count=int(count), unit=unit)
+    for name in st.stages:
+        st.update_release(name, "done")
+    st.previews, st.published = previews, True
+    return st
+
+
+@pytest.fixture(scope="module")
+def two_version_store(annotated_output, tmp_path_factory) -> Path:
+    """0.1.0: the annotation without previews or gates; 0.2.0: with previews and a gate report
+    that fails one bound (accepted), so the pages show failing gates with their values."""
+    from drivetrack.gates import run_gates
+    from drivetrack.release import publish_release
+    from drivetrack.show import write_previews
+    from drivetrack.status import read_quality
+
+    base = tmp_path_factory.mktemp("status_store")
+    store = base / "store"
+    src = base / "src"
+    shutil.copytree(annotated_output, src)
+    write_status(str(src), _status_of_folder(src, "0.1.0", []))
+    publish_release(str(src), str(store), "0.1.0")
+    root = str(src).rstrip("/") + "/"
+    previews = [u[len(root):] for u in write_previews(str(src), per_split=2)]
+    report = run_gates(str(src), STRICT_GATES).to_dict()
+    assert not report["success"]
+    write_status(str(src), _status_of_folder(src, "0.2.0", previews), quality=read_quality(str(src)))
+    publish_release(str(src), str(store), "0.2.0", gate_report=report,
+                    accept_failed_gates="demo: speed_err_p50 bound of 0.001 m/s is deliberately strict")
+    return store
+
+
+def test_quality_beside_state_from_the_release_tables(two_version_store):
+    import pandas as pd
+
+    from drivetrack.status import read_quality
+
+    rel = two_version_store / "drivetrack-waymo" / "0.2.0"
+    q = read_quality(str(rel))
+    objs = pd.read_parquet(rel / "stats" / "objects.parquet")
+    segs = pd.read_parquet(rel / "stats" / "segments.parquet")
+    assert q.gates_success is False and q.gates_failed >= 1
+    for row in segs.itertuples():
+        mine = objs[objs.segment == row.segment]
+        got = q.of(row.split, row.segment)
+        assert got["clips"] == row.num_object_clips_annotated and got["tracks"] == row.num_tracks
+        assert got["speed_err_p50"] == pytest.approx(float(mine.speed_err_p50.median()))
+        assert got["refined_share"] == pytest.approx(float(mine.refine_applied.eq(True).mean()))
+        assert got["rejected"] == {c[len("rejected_"):]: int(getattr(row, c)) for c in segs.columns
+                                   if c.startswith("rejected_") and getattr(row, c)}
+        too_slow = mine[mine.speed_err_p50 > 0.001]
+        gate = [g for g in got["gates"] if g["gate"] == "object.speed_err_p50_max"]
+        assert (len(gate) == 1 and gate[0]["num_failing"] == len(too_slow)) if len(too_slow) else not gate
+    page = (rel / "status.html").read_text()    # the page published inside the release
+    assert page.count('data-q="speed_err_p50"') == len(segs) and "object.speed_err_p50_max" in page
+    assert "speed_err_p50=" in page and "expected in [0, 0.001]" in page
+
+
+def _get(url: str) -> tuple[int, str, bytes]:
+    import urllib.error
+
+    try:
+        with urllib.request.urlopen(url, timeout=20) as r:
+            return r.status, r.headers.get("Content-Type", ""), r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, "", b""
+
+
+def _screenshot(url: str, shot: Path, tmp_path: Path, height: int) -> np.ndarray:
+    import imageio.v3 as iio
+
+    common = [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'chromium-profile'}"]
+    r = subprocess.run([*common, f"--screenshot={shot}", f"--window-size=1500,{height}",
+                        "--virtual-time-budget=3000", url], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and shot.exists(), r.stderr[-2000:]
+    return np.asarray(iio.imread(shot))[..., :3].astype(int)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed "
+                                              "(apt-get install -y chromium): no headless browser test")
+def test_version_index_page_and_previews_served_and_rendered_in_chromium(two_version_store, tmp_path):
+    proc, url = _serve([str(two_version_store)])
+    try:
+        code, ctype, body = _get(url)
+        index = body.decode()
+        assert code == 200 and ctype.startswith("text/html")
+        assert index.index('data-version="0.2.0"') < index.index('data-version="0.1.0"'), "newest first"
+        assert 'href="0.2.0/"' in index and "first version" in index and "from 0.1.0: +" in index
+        assert ">accepted<" in index and "2 done, 0 failed" in index
+        code, _, body = _get(url + "0.2.0/")
+        page = body.decode()
+        assert code == 200 and 'data-q="gates"' in page and "object.speed_err_p50_max" in page
+        st = json.loads(_get(url + "0.2.0/status.json")[2])
+        assert st["previews"]
+        for rel in st["previews"]:
+            code, ctype, data = _get(url + "0.2.0/" + rel)
+            expect = (two_version_store / "drivetrack-waymo" / "0.2.0" / rel).read_bytes()
+            assert code == 200 and data == expect and ctype == ("image/png" if rel.endswith(".png") else "video/mp4")
+        assert _get(url + "0.2.0/manifest.json")[0] == 404 and _get(url + "9.9.9/")[0] == 404
+        assert _get(url + "0.2.0")[0] == 200  # redirected to 0.2.0/
+
+        img = _screenshot(url + "0.2.0/", tmp_path / "status-page.png", tmp_path, 1300)
+        common = [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'chromium-profile'}"]
+        dom = subprocess.run([*common, "--dump-dom", url + "0.2.0/"], capture_output=True, text=True, timeout=120)
+        assert dom.stdout.count("<img") == sum(1 for p in st["previews"] if p.endswith(".png"))
+        assert int((np.abs(img - np.array(DONE_BG)).sum(axis=-1) <= 6).sum()) > 500, "no done-state cells"
+        assert int((np.abs(img - np.array(FAILED_BG)).sum(axis=-1) <= 6).sum()) > 200, "no failing-gate cell"
+        index_img = _screenshot(url, tmp_path / "version-index.png", tmp_path, 420)
+        assert int((np.abs(index_img - np.array(FAILED_BG)).sum(axis=-1) <= 6).sum()) > 100, "gate outcome cell"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+    keep = os.environ.get("DRIVETRACK_KEEP_SCREENSHOTS")
+    if keep:
+        shutil.copy(tmp_path / "status-page.png", Path(keep) / "status-page.png")
+        shutil.copy(tmp_path / "version-index.png", Path(keep) / "version-index.png")
