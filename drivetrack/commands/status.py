@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import sys
 
-from drivetrack.commands._release_common import add_store_options, storage_options
+from drivetrack.commands._release_common import (EXIT_BAD_INPUT, EXIT_CODES_HELP, add_store_options,
+                                                 check_dataset_arg, run_store_command, storage_options)
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("status", help="serve the per-segment status page of a release on 127.0.0.1",
                        description="Serves the self-contained status page (per segment and stage: pending, "
                                    "running, done, failed, counts, durations, errors) with http.server. "
-                                   "--print prints the per-segment summary instead of serving.")
+                                   "--print prints the per-segment summary instead of serving.",
+                       epilog=EXIT_CODES_HELP)
     p.add_argument("store", help="release store URL, or a folder holding status.json (a build in progress)")
     p.add_argument("--version", default="latest", dest="release_version", help="version, or 'latest' (default)")
     p.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (0 picks a free one)")
@@ -30,6 +32,7 @@ def _page_source(args):
 
     from drivetrack.status import STATUS_JSON, read_release_status, read_status, render_status_html
 
+    check_dataset_arg(args)
     so = storage_options(args)
     fs, path = fsspec.core.url_to_fs(args.store, **(so or {}))
     if fs.exists(f"{path.rstrip('/')}/{STATUS_JSON}"):
@@ -48,11 +51,17 @@ def run(args) -> int:
     from drivetrack.release import ReleaseError
     from drivetrack.status import StatusError
 
-    try:
-        what, page, status = _page_source(args)
-    except (ReleaseError, StatusError, FileNotFoundError, ValueError) as e:
-        print(f"drivetrack status: {type(e).__name__}: {e}", file=sys.stderr)
-        return 2
+    found = []
+
+    def load() -> int:
+        found.append(_page_source(args))
+        return 0
+
+    code = run_store_command("status", args.store, load,
+                             [((ReleaseError, StatusError, FileNotFoundError, ValueError), EXIT_BAD_INPUT)])
+    if code:
+        return code
+    what, page, status = found[0]
     if args.json:
         print(json.dumps(status.to_dict(), indent=1))
         return 0
