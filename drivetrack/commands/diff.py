@@ -1,13 +1,14 @@
 """``drivetrack diff STORE V1 V2``: files added, removed and changed, and statistic deltas."""
 from __future__ import annotations
 
-import sys
-
-from drivetrack.commands._release_common import add_store_options, print_json, storage_options
+from drivetrack.commands._release_common import (EXIT_BAD_INPUT, EXIT_CODES_HELP, add_store_options,
+                                                 check_dataset_arg, print_json, run_store_command,
+                                                 storage_options)
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("diff", help="compare two published versions (files and statistics)")
+    p = sub.add_parser("diff", help="compare two published versions (files and statistics)",
+                       epilog=EXIT_CODES_HELP)
     p.add_argument("store", help="store URL")
     p.add_argument("old", help="older version")
     p.add_argument("new", help="newer version")
@@ -16,13 +17,17 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from drivetrack.release import ReleaseError, diff_versions
+    from drivetrack.release import ReleaseError
 
-    try:
-        d = diff_versions(args.store, args.old, args.new, args.dataset, storage_options=storage_options(args))
-    except (ReleaseError, OSError, ValueError) as e:
-        print(f"drivetrack diff: {type(e).__name__}: {e}", file=sys.stderr)
-        return 2
+    return run_store_command("diff", args.store, lambda: _run(args),
+                             [((ReleaseError, OSError, ValueError), EXIT_BAD_INPUT)])
+
+
+def _run(args) -> int:
+    from drivetrack.release import diff_versions
+
+    check_dataset_arg(args)
+    d = diff_versions(args.store, args.old, args.new, args.dataset, storage_options=storage_options(args))
     if args.json:
         print_json(d.to_json())
         return 0

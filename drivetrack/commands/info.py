@@ -11,7 +11,9 @@ def add_parser(sub) -> None:
         description="Per segment: frame count and time span, cameras with image sizes, lasers with "
                     "the number of valid returns per return and of NaN/inf ranges (dropped by "
                     "annotate), labelled objects by type. Reads "
-                    "ROOT/SPLIT/COMPONENT/SEGMENT.parquet (local path, file://, s3://, gs://).")
+                    "ROOT/SPLIT/COMPONENT/SEGMENT.parquet (local path, file://, s3://, gs://).",
+        epilog="exit codes: 0 ok; 1 some segment could not be summarised; 2 bad input (no such split, "
+               "bad --storage-option); 4 cannot reach ROOT (connection, credentials, permission)")
     p.add_argument("root", help="dataset root URL or path (the folder that holds the splits)")
     p.add_argument("--split", default="training", help="training, validation or testing")
     p.add_argument("--segment", action="append", default=None,
@@ -38,6 +40,14 @@ def parse_storage_options(pairs: list[str]) -> dict:
 
 
 def run(args) -> int:
+    from drivetrack.commands._release_common import EXIT_BAD_INPUT, run_store_command
+
+    return run_store_command("info", args.root, lambda: _run(args), [((ValueError, OSError), EXIT_BAD_INPUT)],
+                             what="dataset root")
+
+
+def _run(args) -> int:
+    from drivetrack.commands._release_common import unreachable_cause
     from drivetrack.names import InvalidNameError
     from drivetrack.waymo.reader import WaymoFormatError, list_segments, segment_summary
 
@@ -45,6 +55,8 @@ def run(args) -> int:
         options = parse_storage_options(args.storage_option)
         segments = args.segment or list_segments(args.root, args.split, storage_options=options)
     except (ValueError, OSError) as exc:
+        if unreachable_cause(exc) is not None:
+            raise
         print(f"drivetrack info: {exc}", file=sys.stderr)
         return 2
     summaries, failed = [], 0
@@ -52,6 +64,8 @@ def run(args) -> int:
         try:
             summaries.append(segment_summary(args.root, args.split, segment, storage_options=options))
         except (WaymoFormatError, InvalidNameError, OSError) as exc:
+            if unreachable_cause(exc) is not None:
+                raise  # one line for the whole command, not one error per segment
             failed += 1
             summaries.append({"segment": segment, "split": args.split, "error": str(exc)})
     if args.json:

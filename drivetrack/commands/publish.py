@@ -5,13 +5,16 @@ import json
 import sys
 from pathlib import Path
 
-from drivetrack.commands._release_common import add_store_options, print_json, storage_options
+from drivetrack.commands._release_common import (EXIT_CODES_HELP, EXIT_FAILED, EXIT_GATES_FAILED,
+                                                 add_store_options, print_json, run_store_command,
+                                                 storage_options)
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("publish", help="publish an annotation output folder as an immutable, versioned release",
                        description="Stage, check and commit DIR as {STORE}/{dataset}/{version}/ "
-                                   "(manifest.json written last; latest/versions updated by compare-and-swap).")
+                                   "(manifest.json written last; latest/versions updated by compare-and-swap).",
+                       epilog=EXIT_CODES_HELP)
     p.add_argument("dir", help="annotation output folder (run.json, tracks/{split}/*.npz, stats/*.parquet, ...)")
     p.add_argument("--store", default="./store", help="store URL: folder, s3://bucket/prefix or gs://bucket/prefix")
     p.add_argument("--version", required=True, dest="release_version", help="semantic version, e.g. 1.0.0")
@@ -54,22 +57,32 @@ def _run_gates(dir: str, args) -> dict:
 
 
 def run(args) -> int:
-    from drivetrack.release import GatesFailedError, ReleaseError, publish_release
+    from drivetrack.release import GatesFailedError, ReleaseError
 
-    try:
-        config = _load_config(args.config)
-        report = _run_gates(args.dir, args)
-        result = publish_release(
-            args.dir, args.store, args.release_version, dataset=args.dataset,
-            storage_options=storage_options(args), gate_report=report,
-            accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
-            workers=args.workers)
-    except GatesFailedError as e:
-        print(f"drivetrack publish: {e}", file=sys.stderr)
-        return 3
-    except (ReleaseError, ValueError, OSError) as e:
-        print(f"drivetrack publish: {type(e).__name__}: {e}", file=sys.stderr)
-        return 1
+    def locate(cause):  # a local source file that cannot be read is the source's problem
+        name = getattr(cause, "filename", None)
+        src = str(Path(args.dir).resolve())
+        if isinstance(name, str) and (name == src or name.startswith(src + "/")):
+            return "source", args.dir
+        return None
+
+    return run_store_command(
+        "publish", args.store, lambda: _run(args),
+        [(GatesFailedError, EXIT_GATES_FAILED), ((ReleaseError, ValueError, OSError), EXIT_FAILED)],
+        after_unreachable="nothing was published; when it is reachable, run the same command with --resume "
+                          "(or `drivetrack gc` to clean up)", locate=locate)
+
+
+def _run(args) -> int:
+    from drivetrack.release import publish_release
+
+    config = _load_config(args.config)
+    report = _run_gates(args.dir, args)
+    result = publish_release(
+        args.dir, args.store, args.release_version, dataset=args.dataset,
+        storage_options=storage_options(args), gate_report=report,
+        accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
+        workers=args.workers)
     if args.json:
         print_json(result.__dict__)
     else:

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import sys
 
-from drivetrack.commands._release_common import add_store_options, storage_options
+from drivetrack.commands._release_common import (EXIT_BAD_INPUT, EXIT_CODES_HELP, add_store_options,
+                                                 check_dataset_arg, run_store_command, storage_options)
 
 
 def add_parser(sub) -> None:
@@ -21,7 +22,8 @@ def add_parser(sub) -> None:
                                    "refined share, rejected clips by reason, failing gates) and its previews with "
                                    "http.server. Without --version, / is an index of the published versions "
                                    "linking each version's page. --print prints the per-segment summary instead "
-                                   "of serving.")
+                                   "of serving.",
+                       epilog=EXIT_CODES_HELP)
     p.add_argument("store", help="release store URL, or a folder holding status.json (a build in progress)")
     p.add_argument("--version", default=None, dest="release_version",
                    help="version, or 'latest'; default: serve the index of versions (--print/--json: latest)")
@@ -177,6 +179,7 @@ def _source(args):
 
     from drivetrack.status import STATUS_JSON
 
+    check_dataset_arg(args)
     so = storage_options(args)
     fs, path = fsspec.core.url_to_fs(args.store, **(so or {}))
     if fs.exists(f"{path.rstrip('/')}/{STATUS_JSON}"):
@@ -195,11 +198,17 @@ def run(args) -> int:
     from drivetrack.release import ReleaseError
     from drivetrack.status import StatusError
 
-    try:
-        what, site = _source(args)
-    except (ReleaseError, StatusError, FileNotFoundError, ValueError) as e:
-        print(f"drivetrack status: {type(e).__name__}: {e}", file=sys.stderr)
-        return 2
+    found = []
+
+    def load() -> int:
+        found.append(_source(args))
+        return 0
+
+    code = run_store_command("status", args.store, load,
+                             [((ReleaseError, StatusError, FileNotFoundError, ValueError), EXIT_BAD_INPUT)])
+    if code:
+        return code
+    what, site = found[0]
     if args.json or args.print_only:
         status = site.status()
     if args.json:

@@ -1,15 +1,15 @@
 """``drivetrack verify STORE --version V``: re-hash a release against its manifest."""
 from __future__ import annotations
 
-import sys
-
-from drivetrack.commands._release_common import add_store_options, print_json, storage_options
+from drivetrack.commands._release_common import (EXIT_BAD_INPUT, EXIT_CODES_HELP, EXIT_FAILED, EXIT_OK,
+                                                 add_store_options, check_dataset_arg, print_json,
+                                                 run_store_command, storage_options)
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("verify", help="re-hash every file of a release against its manifest",
                        description="Streams and hashes every file concurrently; reports missing, extra and "
-                                   "corrupt files; exits 1 on any mismatch, 2 if the version is not published.")
+                                   "corrupt files.", epilog=EXIT_CODES_HELP)
     p.add_argument("store", help="store URL")
     p.add_argument("--version", required=True, dest="release_version", help="version to verify, or 'latest'")
     p.add_argument("--workers", type=int, default=8)
@@ -18,17 +18,18 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from drivetrack.release import ManifestError, ReleaseError, VersionNotFoundError, verify_release
+    from drivetrack.release import ReleaseError
 
-    try:
-        report = verify_release(args.store, args.release_version, args.dataset,
-                                storage_options=storage_options(args), workers=args.workers)
-    except (VersionNotFoundError, ManifestError) as e:
-        print(f"drivetrack verify: {type(e).__name__}: {e}", file=sys.stderr)
-        return 2
-    except (ReleaseError, OSError, ValueError) as e:
-        print(f"drivetrack verify: {type(e).__name__}: {e}", file=sys.stderr)
-        return 2
+    return run_store_command("verify", args.store, lambda: _run(args),
+                             [((ReleaseError, OSError, ValueError), EXIT_BAD_INPUT)])
+
+
+def _run(args) -> int:
+    from drivetrack.release import verify_release
+
+    check_dataset_arg(args)
+    report = verify_release(args.store, args.release_version, args.dataset,
+                            storage_options=storage_options(args), workers=args.workers)
     if args.json:
         print_json(report.to_json())
     else:
@@ -42,4 +43,4 @@ def run(args) -> int:
         print(f"{verdict}: {report.url}: {report.files_checked} files, {report.bytes / 1e6:.1f} MB in "
               f"{report.seconds:.2f} s ({report.mb_per_s:.0f} MB/s); {len(report.missing)} missing, "
               f"{len(report.extra)} extra, {len(report.corrupt)} corrupt")
-    return 0 if report.ok else 1
+    return EXIT_OK if report.ok else EXIT_FAILED

@@ -5,17 +5,26 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
-from drivetrack.release.errors import ManifestError, VersionNotFoundError
-from drivetrack.release.manifest import (MANIFEST_NAME, SemVer, manifest_entries, parse_manifest,
-                                         sha256_stream)
+from drivetrack.names import is_valid_name
+from drivetrack.release.errors import ManifestError, ReleaseError, VersionNotFoundError
+from drivetrack.release.manifest import (MANIFEST_NAME, SemVer, check_dataset, manifest_entries,
+                                         parse_manifest, sha256_stream)
 from drivetrack.release.publish import (DEFAULT_DATASET, DEFAULT_WORKERS, _read_json, add_to_index,
                                         claim_path, latest_path, move_latest, staging_prefix,
                                         version_prefix)
-from drivetrack.release.store import Store, open_store
+from drivetrack.release.store import TMP_DIR, Store, open_store
 
 
 def _as_store(store: Store | str, storage_options: dict | None) -> Store:
     return store if isinstance(store, Store) else open_store(store, storage_options)
+
+
+def _is_version(name: str) -> bool:
+    try:
+        SemVer.parse(name)
+    except ValueError:
+        return False
+    return True
 
 
 def _committed_versions(store: Store, dataset: str) -> list[str]:
@@ -34,19 +43,30 @@ def _committed_versions(store: Store, dataset: str) -> list[str]:
 
 
 def resolve_version(store: Store, dataset: str, version: str) -> str:
-    """``latest`` -> the version ``latest.json`` points at; any other string is returned checked."""
+    """``latest`` -> the version ``latest.json`` points at; any other string is returned checked.
+
+    The version read from ``latest.json`` is checked too: it is store data that becomes a path.
+    """
+    check_dataset(dataset)
     if version != "latest":
         SemVer.parse(version)
         return version
     doc, _ = _read_json(store, latest_path(dataset))
     if doc is None:
         raise VersionNotFoundError(f"{store.url_of(dataset)} has no latest.json: no version published")
-    return doc["version"]
+    found = doc.get("version") if isinstance(doc, dict) else None
+    try:
+        SemVer.parse(found)
+    except ValueError as e:
+        raise ManifestError(f"{store.url_of(latest_path(dataset))}: 'version' is {found!r}, not a semantic "
+                            f"version; repair it with `drivetrack gc`") from e
+    return found
 
 
 def read_manifest(store: Store | str, version: str, dataset: str = DEFAULT_DATASET,
                   storage_options: dict | None = None) -> dict:
     """The committed manifest of a version (its top-level hash checked)."""
+    check_dataset(dataset)
     store = _as_store(store, storage_options)
     version = resolve_version(store, dataset, version)
     rel = f"{version_prefix(dataset, version)}/{MANIFEST_NAME}"
@@ -74,6 +94,7 @@ def list_versions(store: Store | str, dataset: str = DEFAULT_DATASET,
 
     Found by scanning for manifests; ``versions.json`` only fills in the summary fields.
     """
+    check_dataset(dataset)
     store = _as_store(store, storage_options)
     index, _ = _read_json(store, f"{dataset}/versions.json")
     by_version = {v["version"]: v for v in (index or {}).get("versions", [])}
@@ -126,6 +147,7 @@ def verify_release(store: Store | str, version: str, dataset: str = DEFAULT_DATA
     Raises :class:`VersionNotFoundError` / :class:`ManifestError` if there is no valid manifest;
     otherwise reports missing, extra and corrupt (size or sha256 mismatch) files.
     """
+    check_dataset(dataset)
     store = _as_store(store, storage_options)
     version = resolve_version(store, dataset, version)
     manifest = read_manifest(store, version, dataset)
@@ -201,6 +223,7 @@ def _numeric_leaves(obj, prefix: str = "") -> dict[str, float]:
 def diff_versions(store: Store | str, old: str, new: str, dataset: str = DEFAULT_DATASET,
                   storage_options: dict | None = None) -> DiffReport:
     """Compare two published versions by their manifests (no data is read)."""
+    check_dataset(dataset)
     store = _as_store(store, storage_options)
     a, b = read_manifest(store, old, dataset), read_manifest(store, new, dataset)
     fa, fb = manifest_entries(a), manifest_entries(b)
@@ -223,6 +246,22 @@ def diff_versions(store: Store | str, old: str, new: str, dataset: str = DEFAULT
 
 # ---- gc -------------------------------------------------------------------------------------------
 
+def _collect_stale(store: Store, report: "GcReport", rel: str, now: float, older_than_s: float,
+                   dry_run: bool) -> None:
+    """Delete the local file ``rel`` (a lock or temporary) if it is at least ``older_than_s`` old."""
+    import os
+
+    try:
+        age = now - os.stat(store.path(rel)).st_mtime
+    except FileNotFoundError:
+        return
+    if age < older_than_s:
+        return
+    report.actions.append(f"{'would delete' if dry_run else 'deleted'} stale {store.url_of(rel)} (age {age:.0f} s)")
+    if not dry_run:
+        store.delete(rel)
+        report.removed_objects += 1
+
 @dataclass
 class GcReport:
     """What ``gc`` found and did. ``actions`` are human-readable lines."""
@@ -244,9 +283,13 @@ def gc(store: Store | str, dataset: str | None = None, *, older_than_s: float = 
     committed version missing from ``versions.json`` / ``latest.json`` is added. Committed versions
     are never touched.
     """
+    if dataset is not None:
+        check_dataset(dataset)
     store = _as_store(store, storage_options)
     report = GcReport()
-    datasets = [dataset] if dataset else [d for d in store.list_dirs("") if not d.startswith(("_", "."))]
+    # Folders that are not valid dataset names (``_tmp``, ``.git``, a name with a newline) are
+    # not datasets: never walked, never cleaned.
+    datasets = [dataset] if dataset is not None else [d for d in store.list_dirs("") if is_valid_name("dataset", d)]
     now = time.time()
 
     def remove_tree(rel: str, why: str) -> None:
@@ -258,8 +301,13 @@ def gc(store: Store | str, dataset: str | None = None, *, older_than_s: float = 
         if not dry_run:
             report.removed_objects += store.delete_tree(rel)
 
+    if store.is_local:  # temporaries of atomic writes (store-wide, see Store.local_tmp)
+        for rel in store.find(TMP_DIR):
+            _collect_stale(store, report, f"{TMP_DIR}/{rel}", now, older_than_s, dry_run)
     for ds in datasets:
         claims = {p[:-len(".json")]: p for p in store.find(f"{ds}/_txn") if p.endswith(".json")}
+        for odd in sorted(v for v in claims if not _is_version(v)):  # names from the store: checked
+            report.actions.append(f"ignored {ds}/_txn/{claims.pop(odd)!r}: not named after a version")
         for version, rel in sorted(claims.items()):
             doc, _ = _read_json(store, f"{ds}/_txn/{rel}")
             age = now - float((doc or {}).get("started_unix", 0))
@@ -277,23 +325,30 @@ def gc(store: Store | str, dataset: str | None = None, *, older_than_s: float = 
                 store.delete(claim_path(ds, version))
                 report.removed_objects += 1
         for version in store.list_dirs(f"{ds}/_staging"):
-            if version not in claims:
+            if not _is_version(version):
+                report.actions.append(f"ignored {ds}/_staging/{version!r}: not named after a version")
+            elif version not in claims:
                 remove_tree(staging_prefix(ds, version), "staging without a claim")
         if store.is_local:
-            import os
+            # Stale lock files and temporaries left by killed processes (temporaries of older
+            # drivetrack versions sat beside their target). A file listed in a committed manifest
+            # is release data, whatever its name: never touched.
+            committed_files: dict[str, set] = {}
             for rel in store.find(ds):
-                if rel.endswith(".lock") or ".tmp-" in rel:
-                    p = store.path(f"{ds}/{rel}")
-                    try:
-                        age = now - os.stat(p).st_mtime
-                    except FileNotFoundError:
-                        continue
-                    if age >= older_than_s and not rel.endswith(MANIFEST_NAME):
-                        report.actions.append(f"{'would delete' if dry_run else 'deleted'} stale "
-                                              f"{store.url_of(f'{ds}/{rel}')} (age {age:.0f} s)")
-                        if not dry_run:
-                            store.delete(f"{ds}/{rel}")
-                            report.removed_objects += 1
+                if not (rel.endswith(".lock") or ".tmp-" in rel):
+                    continue
+                top, _, inner = rel.partition("/")
+                if inner and top not in committed_files:
+                    committed_files[top] = set()
+                    if _is_version(top) and store.exists(f"{ds}/{top}/{MANIFEST_NAME}"):
+                        try:
+                            committed_files[top] = set(manifest_entries(read_manifest(store, top, ds))) | {MANIFEST_NAME}
+                        except (ValueError, ReleaseError):
+                            committed_files[top] = None  # unreadable manifest: leave the version alone
+                protected = committed_files.get(top) if inner else set()
+                if protected is None or inner in (protected or ()):
+                    continue
+                _collect_stale(store, report, f"{ds}/{rel}", now, older_than_s, dry_run)
         if not dry_run:  # empty transaction folders (local stores; only while empty)
             store.prune_empty(f"{ds}/_staging")
             store.prune_empty(f"{ds}/_txn")

@@ -1,6 +1,8 @@
 """Errors of the release store. Every message says what happened, where, and what to do next."""
 from __future__ import annotations
 
+from drivetrack.names import InvalidNameError
+
 
 class ReleaseError(Exception):
     """Base class of every release-store error."""
@@ -12,6 +14,15 @@ class InvalidVersionError(ReleaseError, ValueError):
 
 class InvalidSourceError(ReleaseError, ValueError):
     """The folder to publish cannot be published as it is (empty, reserved or unsafe names, bad run.json)."""
+
+
+class InvalidDatasetError(InvalidSourceError, InvalidNameError):
+    """A dataset name is not allowed (it becomes a folder name; see :mod:`drivetrack.names`)."""
+
+
+class UnsafeStorePathError(ReleaseError, ValueError):
+    """A path given to the store would leave the store's prefix or cannot name an object safely
+    (absolute, ``..``/``.``/empty parts, backslashes or control characters)."""
 
 
 class GatesFailedError(ReleaseError):

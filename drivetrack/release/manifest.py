@@ -17,7 +17,9 @@ from functools import total_ordering
 from pathlib import Path
 
 from drivetrack.layout import DRIVETRACK, TAPVID3D, parse_clip_path, splits_of
-from drivetrack.release.errors import InvalidSourceError, InvalidVersionError, ManifestError
+from drivetrack.names import InvalidNameError, check_name
+from drivetrack.release.errors import (InvalidDatasetError, InvalidSourceError, InvalidVersionError,
+                                       ManifestError)
 from drivetrack.release.store import CHUNK_BYTES, iter_chunks
 
 MANIFEST_FORMAT = "drivetrack-release-manifest/1"
@@ -31,9 +33,10 @@ RESERVED_NAMES = (MANIFEST_NAME, SUMS_NAME, CARD_NAME, CROISSANT_NAME)
 # ---- semantic versions (https://semver.org 2.0.0) -----------------------------------------
 
 _SEMVER = re.compile(
-    r"^(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)"
+    r"(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)"
     r"(?:-((?:0|[1-9]\d*|\d*[A-Za-z-][0-9A-Za-z-]*)(?:\.(?:0|[1-9]\d*|\d*[A-Za-z-][0-9A-Za-z-]*))*))?"
-    r"(?:\+([0-9A-Za-z-]+(?:\.[0-9A-Za-z-]+)*))?$")
+    r"(?:\+([0-9A-Za-z-]+(?:\.[0-9A-Za-z-]+)*))?")
+"""Applied with :meth:`re.Pattern.fullmatch` only: ``match`` with ``$`` accepts a trailing newline."""
 
 
 @total_ordering
@@ -49,7 +52,7 @@ class SemVer:
 
     @classmethod
     def parse(cls, text: str) -> "SemVer":
-        m = _SEMVER.match(text) if isinstance(text, str) else None
+        m = _SEMVER.fullmatch(text) if isinstance(text, str) else None
         if not m:
             raise InvalidVersionError(
                 f"version {text!r} is not a semantic version MAJOR.MINOR.PATCH[-PRERELEASE][+BUILD] "
@@ -90,16 +93,15 @@ def check_version(version: str) -> str:
     return version
 
 
-_DATASET = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-
-
 def check_dataset(name: str) -> str:
-    """Dataset names become folder names: letters, digits, ``.``, ``_``, ``-``."""
-    if not isinstance(name, str) or not _DATASET.match(name) or name.startswith("_"):
-        raise InvalidSourceError(
-            f"dataset name {name!r} is not allowed: use letters, digits, '.', '_' and '-' "
-            f"(starting with a letter or digit)")
-    return name
+    """Return ``name`` if it may be a dataset name (it becomes a folder name), else raise
+    :class:`InvalidDatasetError`. The one check every release command uses, before any path is built;
+    the rule is :func:`drivetrack.names.check_name` ``("dataset", ...)`` (full match, no ``.``/``..``,
+    no leading ``.`` or ``_``, no separators or control characters)."""
+    try:
+        return check_name("dataset", name)
+    except InvalidNameError as e:
+        raise InvalidDatasetError(str(e)) from None
 
 
 # ---- hashing -------------------------------------------------------------------------

@@ -313,6 +313,8 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
 
     # 1. never overwrite a published version
     if store.exists(manifest_rel):
+        if resume:  # killed after its commit: finish the pointers and clean-up, change nothing else
+            return _finish_committed(store, source, sizes, dataset, version, workers)
         raise VersionExistsError(
             f"{store.url_of(vpre)} is already published (manifest exists); published versions are "
             f"immutable: choose a new version")
@@ -528,6 +530,59 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
         manifest_sha256=manifest["manifest_sha256"], files=len(all_entries), bytes=total,
         seconds=time.perf_counter() - t0, mb_per_s=total / 1e6 / max(t_data, 1e-9), latest=latest,
         reused_files=sum(1 for s in state.values() if s.startswith("reused")), warnings=warnings)
+
+
+def _finish_committed(store: Store, source: _Source, sizes: dict[str, int], dataset: str, version: str,
+                      workers: int) -> PublishResult:
+    """``resume`` of a version whose manifest is already committed (the publish was killed after its
+    commit): if the committed files are exactly the source's (paths, sizes, sha256), repair
+    ``versions.json``/``latest.json`` and remove the claim and staging left behind; else the version
+    belongs to other content and :class:`VersionExistsError` is raised. Never writes the version."""
+    from drivetrack.release.manifest import manifest_entries, parse_manifest
+
+    t0 = time.perf_counter()
+    vpre, spre = version_prefix(dataset, version), staging_prefix(dataset, version)
+    rel = f"{vpre}/{MANIFEST_NAME}"
+    manifest = parse_manifest(store.read_bytes(rel), store.url_of(rel))
+    committed = {p: e for p, e in manifest_entries(manifest).items() if p not in RESERVED_NAMES}
+
+    def differs(path: str) -> str | None:
+        e = committed.get(path)
+        if e is None:
+            return f"{source.where(path)} is not in the committed release"
+        with source.open(path) as f:
+            digest, n = sha256_stream(f)
+        if (n, digest) != (e.size, e.sha256):
+            return (f"{source.where(path)} has {n} bytes, sha256 {digest}; the committed file has "
+                    f"{e.size} bytes, sha256 {e.sha256}")
+        return None
+
+    problems = [p for p in _run_pool(differs, list(sizes), workers) if p]
+    problems += [f"{store.url_of(f'{vpre}/{p}')} is not in the source" for p in committed if p not in sizes]
+    if problems:
+        raise VersionExistsError(
+            f"{store.url_of(vpre)} is already published with other content ({len(problems)} difference(s): "
+            f"{'; '.join(problems[:3])}); published versions are immutable: choose a new version")
+    warnings = [f"{store.url_of(vpre)} was already committed (an interrupted publish of this content); "
+                f"finished its index, latest pointer and clean-up"]
+    latest = None
+    try:
+        add_to_index(store, dataset, manifest)
+        latest = move_latest(store, dataset, manifest)
+    except Exception as e:  # noqa: BLE001 - the release is committed; gc repairs the pointers
+        warnings.append(f"updating versions.json/latest.json failed ({type(e).__name__}: {e}); run "
+                        f"`drivetrack gc {store.url} --dataset {dataset}` to repair them")
+    store.delete_tree(spre)
+    store.delete(claim_path(dataset, version))
+    store.prune_empty(f"{dataset}/_staging")
+    store.prune_empty(f"{dataset}/_txn")
+    total = sum(e.size for e in committed.values())
+    seconds = time.perf_counter() - t0
+    return PublishResult(
+        dataset=dataset, version=version, store_url=store.url, version_url=store.url_of(vpre),
+        manifest_sha256=manifest["manifest_sha256"], files=len(manifest["files"]), bytes=total,
+        seconds=seconds, mb_per_s=total / 1e6 / max(seconds, 1e-9), latest=latest,
+        reused_files=len(manifest["files"]), warnings=warnings)
 
 
 def _describe_npz_configs(source: _Source, paths: list[str], splits: list[str]):

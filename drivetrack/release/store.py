@@ -21,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import os
 import random
+import re
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -28,7 +29,11 @@ from typing import Any, Iterator
 
 import fsspec
 
-from drivetrack.release.errors import CasConflictError, LockTimeoutError, UnsupportedStoreError
+from drivetrack.release.errors import (CasConflictError, LockTimeoutError, UnsafeStorePathError,
+                                       UnsupportedStoreError)
+
+TMP_DIR = "_tmp"
+"""Folder under a local store's root that holds the temporary files of atomic writes."""
 
 CHUNK_BYTES = 8 * 2**20
 """Streaming chunk size for hashing, uploads and downloads (8 MiB)."""
@@ -38,6 +43,27 @@ S3_BLOCK_BYTES = 16 * 2**20
 
 
 _PARENT_RETRIES = 20
+
+_UNSAFE_CHARS = re.compile(r"[\x00-\x1f\x7f\\]")
+"""Control characters and backslashes: never part of a store path."""
+
+
+def check_store_path(rel, where: str) -> str:
+    """Return ``rel`` if it is a safe path relative to a store root, else raise :class:`UnsafeStorePathError`.
+
+    Safe: a ``str``, empty (the root itself) or ``/``-separated parts that are none of ``""``,
+    ``.`` and ``..`` (so no absolute path, no ``a//b``, no trailing ``/``), without control
+    characters or backslashes. Checked by every :class:`Store` method before it builds a path, so
+    the store never reaches outside its root whatever name a caller passes (names are checked
+    earlier too, with :mod:`drivetrack.names`; this is the second line).
+    """
+    if isinstance(rel, str) and (rel == "" or (
+            _UNSAFE_CHARS.search(rel) is None
+            and all(part not in ("", ".", "..") for part in rel.split("/")))):
+        return rel
+    raise UnsafeStorePathError(
+        f"{where}: path {rel!r} is not allowed in a store (relative '/'-separated parts only: no "
+        f"absolute path, no empty, '.' or '..' parts, no backslashes or control characters)")
 
 
 def _with_parents(p: str, create):
@@ -108,18 +134,38 @@ class Store:
 
     # ---- paths -------------------------------------------------------------------------
     def path(self, rel: str) -> str:
-        """fsspec path of ``rel`` (a ``/``-separated path relative to the store root)."""
-        rel = rel.strip("/")
+        """fsspec path of ``rel`` (a ``/``-separated path relative to the store root; see
+        :func:`check_store_path`, which raises :class:`UnsafeStorePathError` for anything else)."""
+        check_store_path(rel, f"store {self.url}")
         return f"{self.root}/{rel}" if rel else self.root
 
     def url_of(self, rel: str) -> str:
-        """Full URL of ``rel`` (for messages and cards)."""
-        rel = rel.strip("/")
+        """Full URL of ``rel`` (for messages and cards); ``rel`` is checked as in :meth:`path`."""
+        check_store_path(rel, f"store {self.url}")
         return f"{self.url}/{rel}" if rel else self.url
 
     @property
     def is_local(self) -> bool:
         return self.protocol == "file"
+
+    def local_tmp(self, rel: str) -> str:
+        """A fresh temporary file name for writing ``rel`` atomically on a local store.
+
+        Temporaries live in ``{root}/_tmp/``, never beside their target: a process killed between
+        writing one and renaming or linking it into place leaves nothing inside a release folder
+        (where ``verify`` would count it as an extra file) or a dataset folder. ``link(2)`` and
+        ``rename(2)`` from there need the store on one filesystem. ``gc`` removes stale ones.
+        """
+        name = rel.rsplit("/", 1)[-1]
+        return os.path.join(self.root, TMP_DIR, f"{name}.tmp-{uuid.uuid4().hex}")
+
+    def _check_inside(self, p: str) -> None:
+        """Refuse a local delete whose real path (symlinks resolved) leaves the store root."""
+        root = os.path.realpath(self.root)
+        real = os.path.realpath(p)
+        if real != root and not real.startswith(root + os.sep):
+            raise UnsafeStorePathError(f"store {self.url}: {p} resolves to {real}, outside the store "
+                                       f"root {root} (a symbolic link?); not deleting it")
 
     # ---- reads ---------------------------------------------------------------------------
     def exists(self, rel: str) -> bool:
@@ -211,10 +257,10 @@ class Store:
         """Unconditional write (staging only; committed objects go through the conditional writes)."""
         p = self.path(rel)
         if self.is_local:
-            tmp = f"{p}.tmp-{uuid.uuid4().hex}"
+            tmp = self.local_tmp(rel)
             with _with_parents(tmp, lambda: open(tmp, "wb")) as f:
                 f.write(data)
-            os.replace(tmp, p)  # tmp keeps the folder non-empty, so no prune removes it
+            _with_parents(p, lambda: os.replace(tmp, p))
             return
         self.fs.pipe_file(p, data)
 
@@ -223,6 +269,7 @@ class Store:
         p = self.path(rel)
         try:
             if self.is_local:
+                self._check_inside(os.path.dirname(p))
                 os.unlink(p)
             else:
                 self.fs.rm_file(p)
@@ -235,6 +282,7 @@ class Store:
         if self.is_local:
             import shutil
             if os.path.isdir(self.path(rel)):
+                self._check_inside(self.path(rel))
                 shutil.rmtree(self.path(rel))
             # Parents stay even when empty: ``_staging`` is shared by concurrent publishes of
             # other versions, and removing it under them is a race. Callers prune explicitly.
@@ -302,8 +350,8 @@ class LocalConditional:
     lock_timeout_s = 10.0
 
     @staticmethod
-    def _write_tmp(p: str, data: bytes) -> str:
-        tmp = f"{p}.tmp-{uuid.uuid4().hex}"
+    def _write_tmp(store: Store, rel: str, data: bytes) -> str:
+        tmp = store.local_tmp(rel)
         with _with_parents(tmp, lambda: open(tmp, "wb")) as f:
             f.write(data)
             f.flush()
@@ -312,9 +360,10 @@ class LocalConditional:
 
     def put_if_absent(self, store: Store, rel: str, data: bytes) -> None:
         p = store.path(rel)
-        tmp = self._write_tmp(p, data)
+        tmp = self._write_tmp(store, rel, data)
         try:
-            os.link(tmp, p)  # atomic and exclusive: fails with FileExistsError if p exists
+            # atomic and exclusive: fails with FileExistsError if p exists
+            _with_parents(p, lambda: os.link(tmp, p))
         finally:
             os.unlink(tmp)
 
@@ -354,8 +403,8 @@ class LocalConditional:
                 raise CasConflictError(
                     f"{store.url_of(rel)} changed underneath (expected token {expected_token}, "
                     f"found {token})")
-            tmp = self._write_tmp(p, data)
-            os.replace(tmp, p)
+            tmp = self._write_tmp(store, rel, data)
+            os.replace(tmp, p)  # the lock file keeps p's folder from being pruned
         finally:
             os.unlink(lock)
 
