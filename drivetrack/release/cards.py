@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clip_path, clips_of
+from drivetrack.layout import DRIVETRACK, LAYOUTS, TAPVID3D, clip_glob, clip_path, clips_of
 from drivetrack.release.manifest import FileEntry
 
 CROISSANT_CONFORMS_TO = "http://mlcommons.org/croissant/1.1"
@@ -371,9 +371,12 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
             for r in gates["results"]:
                 mark = {True: "pass", False: "FAIL", None: "?"}[r["success"]]
                 lines.append(f"| {r['name']} | {mark} |")
+    # a placeholder split is not a name (clip_path checks names): spell the example out then
+    example_clip = (clip_path(DRIVETRACK, splits[0], "<clip>") if splits
+                    else f"{LAYOUTS[DRIVETRACK]}/<split>/<clip>.npz")
     lines += ["", "## How to load", "", "```python",
               "import numpy as np",
-              f"clip = np.load('{clip_path(DRIVETRACK, splits[0] if splits else '<split>', '<clip>')}')",
+              f"clip = np.load('{example_clip}')",
               "video, tracks, visibles = clip['video'], clip['tracks'], clip['visibles']  # [T,H,W,3], [N,T,2] (x, y), [N,T]",
               "```", "",
               "Check the download: `sha256sum -c SHA256SUMS` in this folder, or "
