@@ -180,6 +180,9 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     from drivetrack.tracks import plan_segment
     from flows.runtime import GPU, submit_resource_jobs
 
+    from flows.credentials import resolve_options
+
+    storage_options = resolve_options(storage_options)  # references resolved here, on the worker
     cfg = core.AnnotateConfig.from_dict(config)
     out = segment_dir(work, split, segment, key)
     fs, root = _fs(out, storage_options=None)
