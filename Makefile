@@ -31,19 +31,24 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 # Debian's chromium renders the status page in the browser test. Installed when missing and we
-# may (root with apt-get, as on the project machines and CI); elsewhere that one test is skipped
-# with its reason.
+# may (root with apt-get, as on the project machines and CI); elsewhere, and when apt-get fails
+# or the network hangs (each apt-get is bounded by APT_TIMEOUT seconds), that one test is
+# skipped with its reason (pytest -rs prints it) and make goes on.
+APT_TIMEOUT ?= 300
+CHROMIUM ?= chromium
+APT_OPTS := -o Acquire::http::Timeout=30 -o Acquire::https::Timeout=30 -o Acquire::Retries=1
 system-deps:
-	@if ! command -v chromium >/dev/null 2>&1; then \
+	@if ! command -v $(CHROMIUM) >/dev/null 2>&1; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
-	    echo "installing Debian's chromium for the status-page browser test"; \
-	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
-	      || echo "warning: could not install chromium; the browser test will be skipped"; \
+	    echo "installing Debian's chromium for the status-page browser test (at most $(APT_TIMEOUT) s per step)"; \
+	    (timeout -k 10 $(APT_TIMEOUT) apt-get $(APT_OPTS) update -qq \
+	      && DEBIAN_FRONTEND=noninteractive timeout -k 10 $(APT_TIMEOUT) apt-get $(APT_OPTS) install -y -qq chromium >/dev/null) \
+	      || echo "warning: could not install chromium (offline? apt-get failed or timed out); the browser test will be skipped"; \
 	  else echo "note: chromium not installed; the browser test will be skipped"; fi; \
 	fi
 
 test: $(STAMP) system-deps
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q -rs -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) -m bench.run $(BENCH)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import inspect
 import json
 import time
@@ -157,6 +158,57 @@ def _apply(fn, item):
     return fn(item)
 
 
+# ---- the depth (GPU) queue: which completer, on which device --------------------------------------
+
+GPU_COMPLETER = "nearest-torch"
+"""What the default ``nearest`` completion runs as on a worker that sees CUDA: the same
+nearest-neighbour fill (docs/depth.md: equal fill mask, equidistant ties may pick another
+return), batched on the GPU."""
+
+
+@functools.lru_cache(maxsize=1)
+def worker_cuda() -> bool:
+    """Whether this process sees a CUDA device torch can use (cached per process). No visible GPU
+    (``CUDA_VISIBLE_DEVICES``/``nvidia-smi``) or no torch: False, without importing torch."""
+    from flows.runtime import gpu_count
+
+    if gpu_count() == 0:
+        return False
+    try:
+        import torch
+    except ImportError:
+        return False
+    return bool(torch.cuda.is_available())
+
+
+def depth_choice(configured: str, *, cuda: bool) -> tuple[str, str]:
+    """``(completer, device)`` for one depth job: on a worker that sees CUDA the default
+    ``nearest`` runs as :data:`GPU_COMPLETER` on ``cuda:0`` (the worker's GPU: GPU workers are
+    pinned with ``CUDA_VISIBLE_DEVICES``) and ``nearest-torch`` on ``cuda:0``; elsewhere
+    ``nearest-torch`` runs on the CPU. Other completers run as configured, on the CPU."""
+    if configured in ("nearest", GPU_COMPLETER) and cuda:
+        return GPU_COMPLETER, "cuda:0"
+    return configured, "cpu"
+
+
+def depth_job(batch, config):
+    """The unit of the GPU queue: complete one depth batch with :func:`depth_choice`'s completer
+    on this worker. Returns ``(dense batch, {"completer", "device"})``."""
+    import dataclasses
+
+    from drivetrack import annotate as core
+
+    track = config.track
+    completer, device = depth_choice(track.depth_completer, cuda=worker_cuda())
+    if completer != track.depth_completer:
+        options = {k: v for k, v in track.depth_completer_options.items() if k == "max_reach_px"}
+        track = type(track).from_dict({**track.to_dict(), "depth_completer": completer,
+                                       "depth_completer_options": options})
+        config = dataclasses.replace(config, track=track)
+    dense = core.complete_depth_batch(batch, config, device=device if completer == GPU_COMPLETER else None)
+    return dense, {"completer": completer, "device": device}
+
+
 def dask_map_fn(client, min_jobs: int = 2):
     """``map_fn(function, jobs)`` for :func:`drivetrack.annotate.track_segment` that fans object
     jobs out on the cluster: the function (it holds the segment context: scene and depth maps)
@@ -180,6 +232,9 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     from drivetrack.tracks import plan_segment
     from flows.runtime import GPU, submit_resource_jobs
 
+    from flows.credentials import resolve_options
+
+    storage_options = resolve_options(storage_options)  # references resolved here, on the worker
     cfg = core.AnnotateConfig.from_dict(config)
     out = segment_dir(work, split, segment, key)
     fs, root = _fs(out, storage_options=None)
@@ -194,13 +249,19 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
         batches = core.sparse_depth_batches(scene, cfg, plan)
         if batches:
             with _dask_client() as client:
-                futures = submit_resource_jobs(client, core.complete_depth_batch, batches, cfg, resource=GPU,
+                futures = submit_resource_jobs(client, depth_job, batches, cfg, resource=GPU,
                                                key_prefix=f"depth-{segment[:24]}", wait_s=gpu_wait_s)
                 done = client.gather(futures)
         else:
             done = []
-        dense = [d[0] for d in done]
-        st.update(count=len(batches), unit="depth batches", worker=",".join(sorted({d[1] for d in done})) or None)
+        dense = [d[0][0] for d in done]
+        # per batch: which completer on which device of which worker (docs/orchestration.md, Status)
+        per_batch = [{"camera": int(b.camera), "frames": int(len(b.frames)), "completer": info["completer"],
+                      "device": info["device"], "worker": addr, "seconds": round(secs, 3)}
+                     for b, ((_, info), addr, secs) in zip(batches, done)]
+        st.update(count=len(batches), unit="depth batches", worker=",".join(sorted({d[1] for d in done})) or None,
+                  completer=",".join(sorted({b["completer"] for b in per_batch})) or None,
+                  device=",".join(sorted({b["device"] for b in per_batch})) or None, batches=per_batch)
         del batches
     with rec.stage("tracks") as st:
         with _dask_client() as client:

@@ -29,6 +29,7 @@ from prefect.futures import wait  # noqa: E402
 from drivetrack.status import (SEGMENT_STAGES, ReleaseStatus, StageStatus, read_quality, reused_markdown,  # noqa: E402
                                segment_markdown, write_status)
 from flows import jobs, keys  # noqa: E402
+from flows.credentials import guarded_flow, resolve_options  # noqa: E402
 from flows.runtime import ClusterConfig, dask_cluster, prefect_api  # noqa: E402
 
 DEFAULT_DATASET = "drivetrack-waymo"
@@ -45,6 +46,7 @@ def list_segments_task(source: str, splits: list[str], segments: list[str] | Non
     """(split, segment) pairs to build; requested segments missing from every split are an error."""
     from drivetrack.waymo.reader import list_segments
 
+    storage_options = resolve_options(storage_options)  # references -> values, here on the worker
     found = {split: list_segments(source, split, storage_options) for split in splits}
     if segments:
         wanted = []
@@ -67,6 +69,7 @@ def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: s
               storage_options: dict | None = None) -> list[dict]:
     """Per segment: source checksums and content key, and its completion record if one exists."""
     memo_url = f"{work}/checksums.json"
+    storage_options = resolve_options(storage_options)
     memo = {k: tuple(v) for k, v in (jobs.read_json(memo_url) or {}).items()}
     plan = []
     for split, seg in pairs:
@@ -132,6 +135,7 @@ def publish_task(out: str, store: str, version: str, dataset: str, gate_report: 
 
     ctx = TaskRunContext.get()
     resume = bool(ctx and ctx.task_run.run_count > 1)
+    storage_options = resolve_options(storage_options, "store_options")
     res = publish_release(out, store, version, dataset=dataset, storage_options=storage_options,
                           gate_report=gate_report, accept_failed_gates=accept_failed_gates, config=config,
                           resume=resume)
@@ -239,7 +243,7 @@ def _latest_published(store: str, dataset: str, storage_options: dict | None) ->
     from drivetrack.release.catalog import resolve_version
 
     try:
-        st = open_store(store, storage_options)
+        st = open_store(store, resolve_options(storage_options, "store_options"))
         v = resolve_version(st, dataset, "latest")
         rel = f"{dataset}/{v}/run.json"
         return v, (json.loads(st.read_bytes(rel)) if st.exists(rel) else {})
@@ -252,7 +256,7 @@ def _refuse_published(store: str, dataset: str, version: str, storage_options: d
     from drivetrack.release import VersionExistsError, check_version, open_store
 
     check_version(version)
-    st = open_store(store, storage_options)
+    st = open_store(store, resolve_options(storage_options, "store_options"))
     if st.exists(f"{dataset}/{version}/manifest.json"):
         raise VersionExistsError(f"{st.url_of(f'{dataset}/{version}')} is already published; published versions "
                                  f"are immutable: choose a new version (or version='auto')")
@@ -462,7 +466,7 @@ def jobs_fs_reset(out: str) -> None:
     fs.makedirs(path, exist_ok=True)
 
 
-@flow(name="release", log_prints=True)
+@guarded_flow(name="release", log_prints=True)
 def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"), store: str = str(REPO / "store"),
             splits: list[str] | None = None, segments: list[str] | None = None, config: dict | None = None,
             dataset: str = DEFAULT_DATASET, work: str = DEFAULT_WORK, gates_config: dict | str | None = None,
@@ -473,8 +477,17 @@ def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"
     all when inputs, configuration and code are unchanged since the latest release (scheduled
     regeneration). The Dask cluster: ``dask_address`` (an existing scheduler) or a local one of
     ``n_workers`` x ``threads_per_worker`` (environment ``DRIVETRACK_DASK_*`` otherwise);
-    ``dask_processes=False`` keeps the local workers in this process (tests)."""
+    ``dask_processes=False`` keeps the local workers in this process (tests).
+    ``storage_options`` (source) and ``store_options`` (store) hold no secrets, only references
+    resolved on the workers (:mod:`flows.credentials`); a secret-looking value is refused."""
     from prefect_dask import DaskTaskRunner
+
+    from flows.credentials import check_no_secrets
+
+    # a deployment run's parameters come from the API, not through GuardedFlow: refuse them too
+    check_no_secrets({"source": source, "store": store, "storage_options": storage_options,
+                      "store_options": store_options, "config": config, "gates_config": gates_config},
+                     "flow 'release' parameters")
 
     splits = list(splits or ["training"])
     cfg = ClusterConfig.from_env(address=dask_address, n_workers=n_workers, threads_per_worker=threads_per_worker,

@@ -167,14 +167,20 @@ class ClusterConfig:
     gpus: int | None = None
     cpu_drains_gpu: bool | None = None
     memory_limit: str = "auto"
+    dashboard_host: str = "127.0.0.1"
+    """Interface of the local cluster's dashboards (scheduler and workers, free ports): loopback
+    unless asked (``DRIVETRACK_DASK_DASHBOARD_HOST=0.0.0.0`` listens on every interface, and
+    shows the cluster to the network)."""
 
     @classmethod
     def from_env(cls, **overrides) -> "ClusterConfig":
         """``DRIVETRACK_DASK_ADDRESS``, ``DRIVETRACK_DASK_WORKERS``, ``DRIVETRACK_DASK_THREADS``,
-        ``DRIVETRACK_GPUS``; explicit non-None overrides win."""
+        ``DRIVETRACK_GPUS``, ``DRIVETRACK_DASK_DASHBOARD_HOST``; explicit non-None overrides win."""
         env = {}
         if os.environ.get("DRIVETRACK_DASK_ADDRESS"):
             env["address"] = os.environ["DRIVETRACK_DASK_ADDRESS"]
+        if os.environ.get("DRIVETRACK_DASK_DASHBOARD_HOST"):
+            env["dashboard_host"] = os.environ["DRIVETRACK_DASK_DASHBOARD_HOST"].strip()
         for var, key in (("DRIVETRACK_DASK_WORKERS", "n_workers"), ("DRIVETRACK_DASK_THREADS", "threads_per_worker"),
                          ("DRIVETRACK_GPUS", "gpus")):
             if os.environ.get(var):
@@ -199,7 +205,7 @@ def worker_specs(cfg: ClusterConfig) -> dict[str, dict]:
     gpus = gpu_count() if cfg.gpus is None else cfg.gpus
     drain = (gpus == 0) if cfg.cpu_drains_gpu is None else cfg.cpu_drains_gpu
     tmp = os.environ.get("DASK_TEMPORARY_DIRECTORY") or str(REPO / "build" / "dask-scratch")
-    base = {"nthreads": cfg.threads_per_worker, "dashboard_address": ":0", "local_directory": tmp}
+    base = {"nthreads": cfg.threads_per_worker, "dashboard_address": _dashboard(cfg), "local_directory": tmp}
     if cfg.processes:
         base["memory_limit"] = cfg.memory_limit
     specs = {}
@@ -214,6 +220,14 @@ def worker_specs(cfg: ClusterConfig) -> dict[str, dict]:
             opts["env"] = {"CUDA_VISIBLE_DEVICES": str(i)}
         specs[f"gpu-{i}"] = {"cls": cls, "options": opts}
     return specs
+
+
+def _dashboard(cfg: ClusterConfig) -> str:
+    """``host:0`` (a free port on ``cfg.dashboard_host``); IPv6 hosts in brackets."""
+    host = cfg.dashboard_host
+    if ":" in host and not host.startswith("["):
+        host = f"[{host}]"
+    return f"{host}:0"
 
 
 @contextlib.contextmanager
@@ -234,7 +248,7 @@ def dask_cluster(cfg: ClusterConfig | None = None, *, specs: dict[str, dict] | N
     os.makedirs(tmp, exist_ok=True)
     os.environ.setdefault("DASK_TEMPORARY_DIRECTORY", tmp)
     specs = specs if specs is not None else worker_specs(cfg)
-    scheduler = {"cls": Scheduler, "options": {"dashboard_address": ":0", "host": "127.0.0.1"}}
+    scheduler = {"cls": Scheduler, "options": {"dashboard_address": _dashboard(cfg), "host": "127.0.0.1"}}
     for spec in specs.values():
         spec.setdefault("options", {}).setdefault("host", "127.0.0.1")
     cluster = SpecCluster(workers=specs, scheduler=scheduler, asynchronous=False, silence_logs=40)

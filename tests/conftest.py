@@ -7,12 +7,24 @@ corrupted file) still make their own, as small as they can.
 """
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import pytest
 
 os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+# The tests' own Prefect: a fresh PREFECT_HOME (database, results, caches) per test session, set
+# before anything imports prefect, and no inherited API URL, so that a `make release` or a
+# Prefect server of the same checkout (.prefect/) is never shared with the tests.
+_PREFECT_HOME = tempfile.mkdtemp(prefix="drivetrack-test-prefect-")
+os.environ["PREFECT_HOME"] = _PREFECT_HOME
+for _var in ("PREFECT_API_URL", "PREFECT_API_KEY", "PREFECT_PROFILES_PATH"):
+    os.environ.pop(_var, None)
+atexit.register(shutil.rmtree, _PREFECT_HOME, ignore_errors=True)
 
 SYNTH_SEED = 7
 SYNTH_FRAMES = 30

@@ -116,13 +116,19 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
     assert {s["segment"] for s in run["segments"]} == set(segs)
     assert all(s["source_checksums"]["camera_image"].startswith("sha256:") for s in run["segments"])
 
-    # the Prefect UI's view: the segment table and the progress artifacts of the run
+    # the Prefect UI's view: the segment table and the progress artifacts of this test's runs
+    # (filtered by flow run: artifact keys are global, another release may have made the same)
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+    from prefect.client.schemas.filters import (ArtifactFilter, ArtifactFilterFlowRunId, ArtifactFilterKey,
+                                                FlowFilter, FlowFilterName)
 
     with get_client(sync_client=True) as client:
-        arts = client.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(
-            any_=["release-0-1-0-segments", "release-0-1-0-progress"])))
+        runs = [r.id for r in client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["release-build"])))
+                if (r.parameters or {}).get("work") == str(work) and (r.parameters or {}).get("version") == "0.1.0"]
+        assert len(runs) == 2, runs
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            key=ArtifactFilterKey(any_=["release-0-1-0-segments", "release-0-1-0-progress"]),
+            flow_run_id=ArtifactFilterFlowRunId(any_=runs)))
     kinds = {a.key: a for a in arts}
     assert set(kinds) == {"release-0-1-0-segments", "release-0-1-0-progress"}
     latest_table = max((a for a in arts if a.key.endswith("segments")), key=lambda a: a.created)

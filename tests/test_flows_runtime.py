@@ -157,3 +157,83 @@ def test_deployment_definition_loads_with_its_schedule():
     assert loaded.name == "release"
     params = set(loaded.parameters.properties)
     assert set(dep["parameters"]) <= params and {"version", "source", "store", "dask_address"} <= params
+
+
+def _lidar_batch(seed: int, frames: int = 3):
+    from drivetrack.annotate import DepthBatch
+
+    rng = np.random.default_rng(seed)
+    sparse = np.zeros((frames, 40, 192), np.float32)
+    sparse[:, 1::4, ::5] = rng.uniform(2, 60, size=(frames, 10, 39)).astype(np.float32)
+    sparse[:, 30:, 100:140] = 0.0                                   # a hole wider than the reach
+    return DepthBatch("seg-torch", 1, np.arange(frames, dtype=np.int64), sparse, dense=False, method="")
+
+
+def test_nearest_torch_runs_through_the_gpu_queue_and_matches_nearest():
+    """The GPU queue's torch completer (CPU torch here), submitted as Dask jobs with the GPU
+    resource, gives the maps of the CPU `nearest` completer: the same filled pixels, each a
+    nearest return (ties aside); every batch records completer, device and worker."""
+    pytest.importorskip("torch")
+    from drivetrack.annotate import AnnotateConfig
+
+    from flows.jobs import depth_job
+
+    batches = [_lidar_batch(1), _lidar_batch(2)]
+    torch_cfg = AnnotateConfig.from_dict({"track": {"depth_completer": "nearest-torch"}})
+    cpu_cfg = AnnotateConfig()
+    cfg = ClusterConfig(n_workers=2, processes=False, gpus=0)           # CPU workers drain the GPU queue
+    with dask_cluster(cfg) as (client, _):
+        gpu_workers = set(workers_with(client, GPU))
+        torch_done = client.gather(submit_resource_jobs(client, depth_job, batches, torch_cfg))
+        cpu_done = client.gather(submit_resource_jobs(client, depth_job, batches, cpu_cfg))
+    for b, ((t, t_info), t_addr, _), ((c, c_info), c_addr, _) in zip(batches, torch_done, cpu_done):
+        assert t_info == {"completer": "nearest-torch", "device": "cpu"} and t.method == "nearest-torch"
+        assert c_info == {"completer": "nearest", "device": "cpu"} and c.method == "nearest"
+        assert {t_addr, c_addr} <= gpu_workers
+        assert t.maps.shape == c.maps.shape == b.maps.shape and t.maps.dtype == np.float32
+        np.testing.assert_array_equal(t.maps > 0, c.maps > 0)              # the same pixels filled
+        assert (t.maps > 0).sum() > (b.maps > 0).sum()
+        assert np.mean(t.maps == c.maps) > 0.95                          # equidistant ties may differ
+        assert np.isin(t.maps[t.maps > 0], b.maps[b.maps > 0]).all()     # every value a lidar return
+
+
+def test_depth_choice_gpu_worker_uses_torch_on_its_device_cpu_workers_nearest():
+    from flows.jobs import depth_choice, worker_cuda
+
+    assert depth_choice("nearest", cuda=True) == ("nearest-torch", "cuda:0")
+    assert depth_choice("nearest-torch", cuda=True) == ("nearest-torch", "cuda:0")
+    assert depth_choice("nearest", cuda=False) == ("nearest", "cpu")
+    assert depth_choice("nearest-torch", cuda=False) == ("nearest-torch", "cpu")
+    assert depth_choice("ipbasic", cuda=True) == ("ipbasic", "cpu")
+    import os
+    if os.environ.get("CUDA_VISIBLE_DEVICES", None) == "" or not __import__("shutil").which("nvidia-smi"):
+        assert worker_cuda() is False          # no GPU lent to this machine: torch is not even imported
+
+
+def _cuda() -> bool:
+    try:
+        import torch
+    except ImportError:
+        return False
+    return torch.cuda.is_available()
+
+
+@pytest.mark.skipif(not _cuda(), reason="no CUDA device visible to torch (run this on a GPU node: "
+                                        "infra/gpu-workers.md)")
+def test_on_a_gpu_node_the_default_depth_runs_as_torch_on_cuda():
+    """On a GPU node: the local cluster's GPU worker (a process pinned to GPU 0) completes the
+    default configuration's depth batches with nearest-torch on cuda:0, matching `nearest`."""
+    from drivetrack.annotate import AnnotateConfig
+    from drivetrack.depth import get_completer
+
+    from flows.jobs import depth_job
+
+    batches = [_lidar_batch(3)]
+    cfg = ClusterConfig(n_workers=1, processes=True, gpus=1, cpu_drains_gpu=False)
+    with dask_cluster(cfg) as (client, _):
+        (gpu_addr,) = workers_with(client, GPU)
+        [((dense, info), addr, _)] = client.gather(submit_resource_jobs(client, depth_job, batches, AnnotateConfig()))
+    assert addr == gpu_addr and info == {"completer": "nearest-torch", "device": "cuda:0"}
+    cpu = np.stack([get_completer("nearest")(m) for m in batches[0].maps])
+    np.testing.assert_array_equal(dense.maps > 0, cpu > 0)
+    assert np.mean(dense.maps == cpu) > 0.95

@@ -1,4 +1,8 @@
-"""Gate configuration: the versioned defaults in ``infra/gates.yaml`` plus an optional override.
+"""Gate configuration: the versioned defaults plus an optional override.
+
+The defaults ship inside the package as ``drivetrack/gates/default_gates.yaml`` (package data,
+read with :mod:`importlib.resources`, so a wheel install has them); ``infra/gates.yaml`` is a
+symbolic link to that one file.
 
 The file holds one entry per gate as ``{value, reason}``. An override (a YAML file or a dict) is
 deep-merged over the defaults; it may give a plain value (the default reason is kept, marked as
@@ -10,13 +14,14 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-#: The versioned defaults shipped with the repository.
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "infra" / "gates.yaml"
+#: The versioned defaults shipped with the package (``infra/gates.yaml`` links to this file).
+DEFAULT_CONFIG_PATH = resources.files(__package__).joinpath("default_gates.yaml")
 
 #: Sections whose entries are gates ({value, reason}).
 GATE_SECTIONS = ("object", "segment", "release")
@@ -28,8 +33,8 @@ class GateConfigError(ValueError):
     """The gate configuration is malformed: names the file (or 'dict'), the key and the value."""
 
 
-def _read_yaml(path: str | Path) -> dict:
-    path = Path(path)
+def _read_yaml(path) -> dict:
+    path = path if hasattr(path, "read_text") else Path(path)   # a Path or an importlib Traversable
     if not path.is_file():
         raise GateConfigError(f"gate configuration file {path} does not exist")
     try:
@@ -151,7 +156,7 @@ def _check_values(cfg: dict, source: str) -> None:
 
 def load_gate_config(config: str | Path | dict | None = None,
                      defaults_path: str | Path | None = None) -> dict:
-    """The effective gate configuration: defaults (``infra/gates.yaml``) merged with ``config``.
+    """The effective gate configuration: defaults (``default_gates.yaml``) merged with ``config``.
 
     ``config`` is None (defaults only), a path to a YAML file, or a dict of the same shape. The
     result has every gate as ``{"value": ..., "reason": ...}`` and a ``source`` entry.
