@@ -76,6 +76,11 @@ class StageStatus:
     error: str | None = None
     cached: bool = False
     worker: str | None = None
+    #: depth stage only: the completer(s) and device(s) that ran its batches (comma-joined), and per
+    #: batch ``{"camera", "frames", "completer", "device", "worker", "seconds"}`` (the GPU queue's choice)
+    completer: str | None = None
+    device: str | None = None
+    batches: list | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -98,7 +103,8 @@ class StageStatus:
 
 
 _FIELD_TYPES = {"state": str, "started": (int, float), "finished": (int, float), "seconds": (int, float),
-                "count": int, "unit": str, "error": str, "cached": bool, "worker": str}
+                "count": int, "unit": str, "error": str, "cached": bool, "worker": str, "completer": str,
+                "device": str, "batches": list}
 
 
 @dataclass
@@ -335,6 +341,8 @@ def _cell(st: StageStatus) -> str:
         details.append(f"{e(str(st.count))} {e(st.unit or '')}".rstrip())
     if isinstance(st.seconds, (int, float)):
         details.append(f"{st.seconds:.2f} s")
+    if st.completer:
+        details.append(e(st.completer) + (f" on {e(st.device)}" if st.device else ""))
     if st.worker:
         details.append(html.escape(st.worker))
     inner = " ".join(bits) + (f'<div class="small">{" · ".join(details)}</div>' if details else "")
@@ -625,12 +633,13 @@ def segment_markdown(status: ReleaseStatus, seg: SegmentStatus, quality: Release
     lines = [f"# {_md(seg.split)}/{_md(seg.segment)}: {seg.state}"
              + (" (reused: same content key, not recomputed)" if seg.cached and seg.state == "done" else ""),
              "", f"{_md(status.dataset)} {_md(status.version)}; content key `{_md((seg.key or '-')[:16])}`", "",
-             "| stage | state | count | seconds | worker | error |", "|---|---|---|---|---|---|"]
+             "| stage | state | count | seconds | completer, worker | error |", "|---|---|---|---|---|---|"]
     for name, st in seg.stages.items():
         count = "" if st.count is None else _md(f"{st.count} {st.unit or ''}".strip())
         seconds = f"{st.seconds:.2f}" if isinstance(st.seconds, (int, float)) else ""
         cached = " (cached)" if st.cached else ""
-        lines.append(f"| {_md(name)} | {st.state}{cached} | {count} | {seconds} | {_md(st.worker or '')} | "
+        where = " ".join(x for x in (st.completer and f"{st.completer} on {st.device or '?'}", st.worker) if x)
+        lines.append(f"| {_md(name)} | {st.state}{cached} | {count} | {seconds} | {_md(where)} | "
                      f"{_md(st.error or '')} |")
     lines.append("")
     if q is None:

@@ -316,3 +316,20 @@ def test_version_index_page_and_previews_served_and_rendered_in_chromium(two_ver
     if keep:
         shutil.copy(tmp_path / "status-page.png", Path(keep) / "status-page.png")
         shutil.copy(tmp_path / "version-index.png", Path(keep) / "version-index.png")
+
+
+def test_depth_stage_records_the_gpu_queue_choice_per_batch():
+    """The flow's depth stage carries completer, device and per-batch records (issue 17.2); they
+    survive status.json and show on the page."""
+    from drivetrack.status import ReleaseStatus, render_status_html
+
+    status = ReleaseStatus(dataset="d", version="0.1.0")
+    status.add_segment("training", "seg")
+    batches = [{"camera": 1, "frames": 8, "completer": "nearest-torch", "device": "cuda:0",
+                "worker": "tcp://127.0.0.1:1", "seconds": 0.5}]
+    status.update("training", "seg", "depth", "done", count=1, unit="depth batches", worker="tcp://127.0.0.1:1",
+                  completer="nearest-torch", device="cuda:0", batches=batches)
+    again = ReleaseStatus.from_dict(status.to_dict())
+    depth = again.segments[0].stages["depth"]
+    assert (depth.completer, depth.device, depth.batches) == ("nearest-torch", "cuda:0", batches)
+    assert "nearest-torch on cuda:0" in render_status_html(again)
