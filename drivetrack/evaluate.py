@@ -33,7 +33,6 @@ Pixels (x, y), pixel i covers [i, i+1), as everywhere in drivetrack.
 """
 from __future__ import annotations
 
-import io
 import math
 import posixpath
 import re
@@ -247,8 +246,9 @@ def _load_npz(url: str, spec: dict[str, tuple[tuple[str, str], tuple]], optional
                 e == f or (isinstance(e, str) and e not in bound) for e, f in zip(expected, found))
             if not ok:
                 origin = f" (N tracks, T frames of {dims_from})" if dims_from and dims else ""
-                raise ValueError(f"{url}: {name} has shape {found}, expected "
-                                 f"({', '.join(str(d) for d in pattern)}) = {expected}{origin}; "
+                symbolic = f"({', '.join(str(d) for d in pattern)}{',' if len(pattern) == 1 else ''})"
+                known = "" if any(isinstance(e, str) for e in expected) else f" = {expected}"
+                raise ValueError(f"{url}: {name} has shape {found}, expected {symbolic}{known}{origin}; "
                                  f"refused before reading its data")
             for symbol, value in zip(pattern, found):
                 if isinstance(symbol, str):
