@@ -33,7 +33,6 @@ Pixels (x, y), pixel i covers [i, i+1), as everywhere in drivetrack.
 """
 from __future__ import annotations
 
-import io
 import math
 import posixpath
 import re
@@ -49,7 +48,7 @@ from drivetrack.waymo.schema import CameraName
 
 __all__ = ["METRIC_KEYS", "Clip", "Evaluation", "AnnotationFile", "TruthIndex", "find_annotation_files",
            "read_clip", "clip_from_tracks", "score_clip", "evaluate_clips", "evaluate_tracks",
-           "evaluate_annotations", "score_predictions", "tapvid_scores"]
+           "evaluate_annotations", "score_predictions", "tapvid_scores", "pixel_error_stats"]
 
 #: TAP-Vid metric names, in table order.
 METRIC_KEYS = (("occlusion_accuracy",) + tuple(f"pts_within_{d}" for d in THRESHOLDS_PX)
@@ -204,33 +203,77 @@ def find_annotation_files(root: str, split: str | None = None,
     return out
 
 
-def _load_npz(url: str, keys: tuple[str, ...], optional: tuple[str, ...] = (),
-              storage_options: dict | None = None) -> dict[str, np.ndarray]:
-    """The named arrays of an npz (other members, e.g. ``video``, are not decompressed)."""
-    fs, path = _fs(url, storage_options)
-    try:
-        with fs.open(path, "rb") as handle:
-            data = handle.read()
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{url} does not exist") from None
-    try:
-        archive = np.load(io.BytesIO(data), allow_pickle=False)
-    except Exception as error:
-        raise ValueError(f"{url}: not a readable npz archive ({type(error).__name__}: {error})") from error
-    with archive:
-        missing = [k for k in keys if k not in archive.files]
+#: dtype kinds accepted per role of an array (numpy ``dtype.kind``): pixel coordinates, 0/1
+#: flags (visibility, occlusion), integer indices. Anything else (object, string, complex,
+#: structured, datetime) is refused from the header, before the data is read.
+_PIXELS = ("fiu", "a real number type")
+_FLAGS = ("biuf", "bool (or 0/1 numbers)")
+_INTEGERS = ("iu", "an integer type")
+
+_CLIP_SPEC = {"visibles": (_FLAGS, ("N", "T")), "tracks": (_PIXELS, ("N", "T", 2)),
+              "timestamps_micros": (_INTEGERS, ("T",)), "query_frames": (_INTEGERS, ("N",)),
+              "lidar_sources": (_INTEGERS, ("N", 4))}
+
+
+def _load_npz(url: str, spec: dict[str, tuple[tuple[str, str], tuple]], optional: tuple[str, ...] = (),
+              storage_options: dict | None = None, dims: dict[str, int] | None = None,
+              dims_from: str = "") -> dict[str, np.ndarray]:
+    """The arrays ``spec`` names, each checked from its npy header before its data is read.
+
+    ``spec``: ``{name: ((dtype kinds, description), shape)}``, shape entries an int or a symbol
+    (``"N"``, ``"T"``) that must take the same value in every array; ``dims`` pre-binds symbols
+    (their origin ``dims_from`` goes into the error). Names in ``optional`` may be absent. Every
+    refusal (missing array, object or other foreign dtype, wrong ndim or shape, a header that
+    declares more data than the member holds) is a ValueError naming ``url`` and the array;
+    other members (e.g. ``video``) are not touched.
+    """
+    from drivetrack.storage import NpzReader
+
+    bound = dict(dims or {})
+    with NpzReader(url, url, storage_options) as npz:
+        missing = [k for k in spec if k not in npz and k not in optional]
         if missing:
-            raise ValueError(f"{url}: missing array(s) {missing}; has {sorted(archive.files)}")
-        return {k: archive[k] for k in keys + tuple(k for k in optional if k in archive.files)}
+            raise ValueError(f"{url}: missing array(s) {missing}; has {sorted(npz.files)}")
+        present = [k for k in spec if k in npz]
+        for name in present:
+            (kinds, kind_text), pattern = spec[name]
+            header = npz.header(name)
+            if header.dtype.kind not in kinds:
+                raise ValueError(f"{url}: {name} has dtype {header.dtype}; expected {kind_text}")
+            expected = tuple(bound.get(d, d) if isinstance(d, str) else d for d in pattern)
+            found = header.shape
+            ok = len(found) == len(pattern) and all(
+                e == f or (isinstance(e, str) and e not in bound) for e, f in zip(expected, found))
+            if not ok:
+                origin = f" (N tracks, T frames of {dims_from})" if dims_from and dims else ""
+                symbolic = f"({', '.join(str(d) for d in pattern)}{',' if len(pattern) == 1 else ''})"
+                known = "" if any(isinstance(e, str) for e in expected) else f" = {expected}"
+                raise ValueError(f"{url}: {name} has shape {found}, expected {symbolic}{known}{origin}; "
+                                 f"refused before reading its data")
+            for symbol, value in zip(pattern, found):
+                if isinstance(symbol, str):
+                    bound.setdefault(symbol, value)
+        return {name: npz.load(name) for name in present}
+
+
+def _flags(array: np.ndarray, url: str, name: str) -> np.ndarray:
+    """bool of a 0/1 flag array; NaN or any other value is a ValueError naming file, array, place."""
+    if array.dtype == bool:
+        return array
+    bad = ~((array == 0) | (array == 1))               # NaN compares unequal to both
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{url}: {name} must hold only 0/1 (or bool); found {array[index]!r} at index {index} "
+                         f"({int(bad.sum()):,} such values); refusing to guess what it means")
+    return array.astype(bool)
 
 
 def read_clip(file: AnnotationFile, storage_options: dict | None = None) -> Clip:
     """The arrays of one DriveTrack-layout clip file (``video`` is not read)."""
-    arrays = _load_npz(file.url, ("tracks", "visibles", "timestamps_micros", "query_frames", "lidar_sources"),
-                       storage_options=storage_options)
+    arrays = _load_npz(file.url, _CLIP_SPEC, storage_options=storage_options)
     clip = Clip(segment=file.segment, camera=file.camera, object_id=file.object_id, split=file.split,
                 file=file.relpath, timestamps_micros=arrays["timestamps_micros"].astype(np.int64),
-                tracks=arrays["tracks"], visibles=arrays["visibles"].astype(bool),
+                tracks=arrays["tracks"], visibles=_flags(arrays["visibles"], file.url, "visibles"),
                 query_frames=arrays["query_frames"].astype(np.int64),
                 lidar_sources=arrays["lidar_sources"].astype(np.int64))
     clip.check()
@@ -337,6 +380,30 @@ def _subsample(count: int, limit: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, count - 1, limit).round().astype(np.int64))
 
 
+def pixel_error_stats(errors: np.ndarray) -> dict[str, float]:
+    """Median, mean and p95 (px) of pixel errors, a non-finite error counting as +inf.
+
+    A prediction that is NaN or inf where the truth is visible is infinitely wrong, never
+    "no error": it sorts above every finite error, so the median and p95 become inf once that
+    share of errors is non-finite, and the mean is inf as soon as one is. NaN when ``errors`` is
+    empty. ``errors``: float [E].
+    """
+    errors = np.asarray(errors, dtype=np.float64).reshape(-1)
+    if errors.size == 0:
+        return {"pixel_error_median": math.nan, "pixel_error_mean": math.nan, "pixel_error_p95": math.nan}
+    ordered = np.sort(np.where(np.isfinite(errors), errors, np.inf))
+
+    def quantile(q: float) -> float:                       # numpy's "linear" method, inf-safe
+        position = q * (ordered.size - 1)
+        low, frac = int(math.floor(position)), position - math.floor(position)
+        if frac == 0 or math.isinf(ordered[low + 1]):
+            return float(ordered[low]) if frac == 0 else math.inf
+        return float(ordered[low] + (ordered[low + 1] - ordered[low]) * frac)
+
+    mean = math.inf if math.isinf(ordered[-1]) else float(np.mean(ordered))
+    return {"pixel_error_median": quantile(0.5), "pixel_error_mean": mean, "pixel_error_p95": quantile(0.95)}
+
+
 def tapvid_scores(gt_tracks: np.ndarray, gt_visibles: np.ndarray, pred_tracks: np.ndarray,
                   pred_visibles: np.ndarray, query_mode: str, stride: int = 5,
                   max_queries: int | None = DEFAULT_MAX_QUERIES) -> dict[str, float]:
@@ -371,13 +438,25 @@ def tapvid_scores(gt_tracks: np.ndarray, gt_visibles: np.ndarray, pred_tracks: n
     return {**{k: float(metrics[k][0]) for k in METRIC_KEYS}, **out}
 
 
+def _errors_at_visible(pred_tracks: np.ndarray, gt_tracks: np.ndarray,
+                       gt_visibles: np.ndarray) -> tuple[np.ndarray, int]:
+    """(float64 [E] distance at every truth-visible point, +inf where the prediction is not
+    finite; count of those non-finite predictions)."""
+    pred = pred_tracks[gt_visibles]
+    with np.errstate(invalid="ignore", over="ignore"):
+        errors = np.linalg.norm(pred - gt_tracks[gt_visibles], axis=-1)
+    bad = ~np.isfinite(pred).all(axis=-1)
+    errors[bad | ~np.isfinite(errors)] = np.inf
+    return errors, int(bad.sum())
+
+
 def score_clip(clip: Clip, index: TruthIndex, query_modes: tuple[str, ...] = QUERY_MODES, stride: int = 5,
                max_queries: int | None = DEFAULT_MAX_QUERIES) -> tuple[list[dict], np.ndarray]:
     """Score one annotated clip against the exact truth of its segment.
 
     Returns ``(rows, errors)``: one dict per query mode (identity, counts, purity, recall, pixel
     error and TAP-Vid metrics; see the module docstring) and float64 [E] the pixel error of every
-    matched track at every frame where the truth sees it (NaN where the track is not finite).
+    matched track at every frame where the truth sees it (+inf where the track is not finite).
     """
     clip.check()
     where = clip.where
@@ -401,14 +480,12 @@ def score_clip(clip: Clip, index: TruthIndex, query_modes: tuple[str, ...] = QUE
     gt_visibles = hits["visible"][hm[:, None], camera_axis, frames[None, :]]                      # [M, T]
     pred_tracks = np.asarray(clip.tracks[matched], dtype=np.float64)
     pred_visibles = clip.visibles[matched]
-    with np.errstate(invalid="ignore"):
-        errors = np.linalg.norm(pred_tracks - gt_tracks, axis=-1)[gt_visibles]
+    errors, nonfinite = _errors_at_visible(pred_tracks, gt_tracks, gt_visibles)
 
     object_hits = index.object_hits(object_k, frames)
     visible_hits = object_hits[hits["visible"][object_hits[:, None], camera_axis, frames[None, :]].any(axis=1)] \
         if object_hits.size else object_hits
     tracked = np.unique(hit[on_object])
-    finite = errors[np.isfinite(errors)]
     base = {
         "split": clip.split, "segment": clip.segment, "camera": clip.camera, "object_id": clip.object_id,
         "file": clip.file, "num_frames": int(t), "num_tracks": int(n), "num_matched": int(matched.sum()),
@@ -422,10 +499,8 @@ def score_clip(clip: Clip, index: TruthIndex, query_modes: tuple[str, ...] = QUE
                            if visible_hits.size else math.nan),
         "num_gt_visible_points": int(gt_visibles.sum()),
         "num_pred_visible_points": int(pred_visibles.sum()),
-        "pixel_error_median": float(np.median(finite)) if finite.size else math.nan,
-        "pixel_error_mean": float(np.mean(finite)) if finite.size else math.nan,
-        "pixel_error_p95": float(np.percentile(finite, 95)) if finite.size else math.nan,
-        "num_nonfinite_at_visible": int(errors.size - finite.size),
+        **pixel_error_stats(errors),
+        "num_nonfinite_at_visible": nonfinite,
     }
     rows = [{**base, "query_mode": mode,
              **tapvid_scores(gt_tracks, gt_visibles, pred_tracks, pred_visibles, mode, stride, max_queries)}
@@ -514,11 +589,12 @@ def _summary(kind: str, clips: pd.DataFrame, errors: list[np.ndarray], extra: di
         summary["recall"] = float(_pooled(summary["num_hits_tracked"], summary["num_object_hits"]))
         summary["recall_visible"] = float(_pooled(summary["num_visible_hits_tracked"],
                                                   summary["num_object_hits_visible"]))
-    pooled = np.concatenate(errors) if errors else np.zeros(0)
-    pooled = pooled[np.isfinite(pooled)]
-    summary["pixel_error_median"] = float(np.median(pooled)) if pooled.size else math.nan
-    summary["pixel_error_mean"] = float(np.mean(pooled)) if pooled.size else math.nan
-    summary["pixel_error_p95"] = float(np.percentile(pooled, 95)) if pooled.size else math.nan
+    summary.update(pixel_error_stats(np.concatenate(errors) if errors else np.zeros(0)))
+    # non-finite predictions at truth-visible points: errors, in the headline as well as per clip
+    nonfinite = first["num_nonfinite_at_visible"] if "num_nonfinite_at_visible" in first.columns else None
+    summary["num_gt_visible_points"] = int(first["num_gt_visible_points"].sum()) if len(first) else 0
+    summary["num_nonfinite_at_visible"] = int(nonfinite.sum()) if nonfinite is not None else 0
+    summary["num_clips_nonfinite"] = int((nonfinite > 0).sum()) if nonfinite is not None else 0
     modes = {}
     for mode, part in (clips.groupby("query_mode", sort=False) if not clips.empty else []):
         modes[mode] = {"num_queries": int(part["num_queries"].sum()),
@@ -601,36 +677,55 @@ def _prediction_index(predictions_url: str, storage_options: dict | None) -> dic
     return by_name
 
 
-def _read_prediction(url: str, shape: tuple[int, int], storage_options: dict | None) -> tuple[np.ndarray, np.ndarray]:
-    arrays = _load_npz(url, ("tracks",), optional=("visibles", "occluded"), storage_options=storage_options)
-    tracks = arrays["tracks"]
-    if "visibles" in arrays:
-        visibles = arrays["visibles"].astype(bool)
-    elif "occluded" in arrays:
-        visibles = ~arrays["occluded"].astype(bool)
-    else:
-        raise ValueError(f"{url}: needs 'visibles' or 'occluded' [N, T]; has {sorted(arrays)}")
-    n, t = shape
-    if tracks.shape != (n, t, 2):
-        raise ValueError(f"{url}: tracks has shape {tracks.shape}, expected {(n, t, 2)} (N tracks, T frames of "
-                         f"the ground-truth clip)")
-    if visibles.shape != (n, t):
-        raise ValueError(f"{url}: visibility has shape {visibles.shape}, expected {(n, t)}")
+_TRUTH_SPEC = {"visibles": (_FLAGS, ("N", "T")), "tracks": (_PIXELS, ("N", "T", 2))}
+_PREDICTION_SPEC = {"tracks": (_PIXELS, ("N", "T", 2)), "visibles": (_FLAGS, ("N", "T")),
+                    "occluded": (_FLAGS, ("N", "T"))}
+
+
+def _read_truth(file: AnnotationFile, storage_options: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """(tracks float64 [N, T, 2], visibles bool [N, T]) of a release clip used as ground truth."""
+    arrays = _load_npz(file.url, _TRUTH_SPEC, storage_options=storage_options)
+    tracks = arrays["tracks"].astype(np.float64)
+    visibles = _flags(arrays["visibles"], file.url, "visibles")
+    bad = visibles & ~np.isfinite(tracks).all(axis=-1)
+    if bad.any():
+        n, t = (int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{file.url}: ground-truth tracks are not finite at {int(bad.sum()):,} visible points "
+                         f"(first: track {n}, frame {t}: {tracks[n, t].tolist()}); the clip cannot be a reference")
     return tracks, visibles
+
+
+def _read_prediction(url: str, shape: tuple[int, int], truth_file: str,
+                     storage_options: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """(tracks [N, T, 2], visibles bool [N, T]) of one prediction file, shapes checked against the
+    ground-truth clip's (N, T) from the npy headers before any data is read."""
+    n, t = shape
+    arrays = _load_npz(url, _PREDICTION_SPEC, optional=("visibles", "occluded"), storage_options=storage_options,
+                       dims={"N": n, "T": t}, dims_from=f"the ground-truth clip {truth_file}")
+    if "visibles" not in arrays and "occluded" not in arrays:
+        raise ValueError(f"{url}: needs 'visibles' or 'occluded' [N, T] = {(n, t)}; has {sorted(arrays)}")
+    visibles = _flags(arrays["visibles"], url, "visibles") if "visibles" in arrays else None
+    if "occluded" in arrays:
+        occluded = _flags(arrays["occluded"], url, "occluded")
+        if visibles is not None and (visibles == occluded).any():
+            n_bad, t_bad = (int(i) for i in np.argwhere(visibles == occluded)[0])
+            raise ValueError(f"{url}: has both 'visibles' and 'occluded' and they disagree (track {n_bad}, frame "
+                             f"{t_bad}: visible {bool(visibles[n_bad, t_bad])}, occluded "
+                             f"{bool(occluded[n_bad, t_bad])}); keep one")
+        visibles = ~occluded if visibles is None else visibles
+    return arrays["tracks"], visibles
 
 
 def _video_size(url: str, storage_options: dict | None) -> tuple[int, int]:
     """(width, height) of a clip file's ``video`` [T, H, W, 3], from the npy header only."""
-    import zipfile
+    from drivetrack.storage import NpzReader
 
-    fs, path = _fs(url, storage_options)
-    with fs.open(path, "rb") as handle, zipfile.ZipFile(handle) as archive:
-        if "video.npy" not in archive.namelist():
+    with NpzReader(url, url, storage_options) as npz:
+        if "video" not in npz:
             raise ValueError(f"{url}: has no 'video' array to take the image size from; pass image_size")
-        with archive.open("video.npy") as member:
-            version = np.lib.format.read_magic(member)
-            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            shape, _, _ = read(member)
+        shape = npz.header("video").shape
+    if len(shape) != 4 or shape[1] < 1 or shape[2] < 1:
+        raise ValueError(f"{url}: video has shape {shape}, expected (T, H, W, 3) to take the image size from")
     return int(shape[2]), int(shape[1])
 
 
@@ -644,7 +739,12 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
         release_or_out_url: folder holding ``waymo_*.npz`` clips (any depth; TAPVid-3D copies skipped).
         predictions_url: folder of npz files with the *same file names* (any depth), each with
             ``tracks`` float [N, T, 2] pixels (x, y) at the clip's resolution and ``visibles``
-            (or ``occluded``) bool [N, T], track n answering the query of ground-truth track n.
+            (or ``occluded``) bool (or 0/1) [N, T], track n answering the query of ground-truth
+            track n. Each file's npy headers are checked (dtype, shape = the ground-truth clip's
+            N and T, declared size) before its data is read; NaN or any value other than 0/1
+            in a flag array is an error; a non-finite predicted position where the truth is
+            visible is a miss and an infinite pixel error, counted per clip and in the summary
+            (``num_nonfinite_at_visible``, ``num_clips_nonfinite``).
         resize_to: (width, height) to rescale both to before scoring (TAP-Vid uses 256 x 256);
             None scores at the clip's own resolution.
         allow_missing: skip clips without a prediction (counted in the summary) instead of raising.
@@ -664,26 +764,21 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
     for file, name in zip(files, names):
         if name not in predictions:
             continue
-        truth = _load_npz(file.url, ("tracks", "visibles"), storage_options=storage_options)
-        gt_tracks = truth["tracks"].astype(np.float64)
-        gt_visibles = truth["visibles"].astype(bool)
-        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, storage_options)
+        gt_tracks, gt_visibles = _read_truth(file, storage_options)
+        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, file.relpath,
+                                                      storage_options)
         pred_tracks = pred_tracks.astype(np.float64)
         if resize_to is not None:
             size = _video_size(file.url, storage_options)
             gt_tracks = rescale_points(gt_tracks, size, resize_to)
-            pred_tracks = rescale_points(pred_tracks, size, resize_to)
-        with np.errstate(invalid="ignore"):
-            clip_errors = np.linalg.norm(pred_tracks - gt_tracks, axis=-1)[gt_visibles]
-        finite = clip_errors[np.isfinite(clip_errors)]
+            with np.errstate(over="ignore", invalid="ignore"):
+                pred_tracks = rescale_points(pred_tracks, size, resize_to)
+        clip_errors, nonfinite = _errors_at_visible(pred_tracks, gt_tracks, gt_visibles)
         errors.append(clip_errors.astype(np.float32))
         base = {"split": file.split, "segment": file.segment, "camera": file.camera, "object_id": file.object_id,
                 "file": file.relpath, "num_frames": int(gt_visibles.shape[1]), "num_tracks": int(gt_visibles.shape[0]),
                 "num_gt_visible_points": int(gt_visibles.sum()), "num_pred_visible_points": int(pred_visibles.sum()),
-                "pixel_error_median": float(np.median(finite)) if finite.size else math.nan,
-                "pixel_error_mean": float(np.mean(finite)) if finite.size else math.nan,
-                "pixel_error_p95": float(np.percentile(finite, 95)) if finite.size else math.nan,
-                "num_nonfinite_at_visible": int(clip_errors.size - finite.size)}
+                **pixel_error_stats(clip_errors), "num_nonfinite_at_visible": nonfinite}
         for mode in query_modes:
             rows.append({**base, "query_mode": mode,
                          **tapvid_scores(gt_tracks, gt_visibles, pred_tracks, pred_visibles, mode, stride,

@@ -11,7 +11,8 @@ frames of each query:
 - ``occlusion_accuracy``: fraction of evaluated frames whose predicted occlusion equals the truth.
 - ``pts_within_{d}`` (d in 1, 2, 4, 8, 16 px): among evaluated frames where the ground truth is
   visible, the fraction whose predicted position is within d pixels, i.e. squared distance
-  *strictly* below d^2 (the predicted occlusion flag is ignored).
+  *strictly* below d^2 (the predicted occlusion flag is ignored). A non-finite predicted
+  position (NaN, inf) is never within any d: it is a miss here and in the Jaccard.
 - ``jaccard_{d}``: TP / (TP + FP + FN) with TP = truth visible, predicted visible and within d;
   FP = predicted visible and (truth occluded or not within d); FN = truth visible and (predicted
   occluded or not within d). TP + FN is the number of visible ground-truth points.
@@ -83,13 +84,14 @@ def compute_tapvid_metrics(query_points: np.ndarray, gt_occluded: np.ndarray, gt
 
     out = {"occlusion_accuracy": _ratio(np.sum((gt_occluded == pred_occluded) & evaluated, axis=axes),
                                         np.sum(evaluated, axis=axes))}
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
         squared = np.sum((pred_tracks - gt_tracks) ** 2, axis=-1)
+    finite = np.isfinite(pred_tracks).all(axis=-1)
     num_gt_visible = np.sum(gt_visible, axis=axes)
     within_all, jaccard_all = [], []
     for threshold in THRESHOLDS_PX:
         with np.errstate(invalid="ignore"):
-            within = squared < threshold * threshold          # NaN distance -> not within
+            within = finite & (squared < threshold * threshold)   # NaN / inf position -> a miss
         true_positive = np.sum(gt_visible & pred_visible & within, axis=axes)
         false_positive = np.sum(pred_visible & (gt_occluded | ~within), axis=axes)
         pts_within = _ratio(np.sum(gt_visible & within, axis=axes), num_gt_visible)

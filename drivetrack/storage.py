@@ -2,21 +2,25 @@
 
 One place for the "write a local temporary file, then move or upload it" pattern, so that a
 reader never sees a half-written file (local: ``os.replace`` in the same folder; remote:
-``put_file`` of a complete file), and for the project's npz writer.
+``put_file`` of a complete file), and for the project's npz writer and its header-first reader
+(:class:`NpzReader`, :func:`read_npz_headers`: check what a member declares before allocating it).
 """
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import tempfile
 import zipfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import fsspec
 import numpy as np
 
-__all__ = ["atomic_local_path", "write_npz", "StreamedArray", "NPZ_DATE_TIME"]
+__all__ = ["atomic_local_path", "write_npz", "StreamedArray", "NPZ_DATE_TIME", "NpyHeader", "NpzReader",
+           "read_npz_headers"]
 
 #: Fixed timestamp of every npz member, so identical arrays give identical bytes (and sha256).
 NPZ_DATE_TIME = (1980, 1, 1, 0, 0, 0)
@@ -140,3 +144,192 @@ def write_npz(url: str, arrays: dict[str, np.ndarray | StreamedArray], compressl
                 with archive.open(info, "w", force_zip64=True) as member:
                     _write_array(member, url, key, value)
     return url
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading npz files header first
+# ------------------------------------------------------------------------------------------------
+
+#: Deflate cannot expand data by more than about 1032:1 (258-byte matches in 2-bit codes); a
+#: member declaring more uncompressed bytes than this bound allows lies in its zip directory.
+_DEFLATE_MAX_RATIO = 1032
+
+
+class NpyHeader(NamedTuple):
+    """What one ``.npy`` member of an npz declares (read without touching its data).
+
+    Attributes:
+        dtype: the declared dtype (never an object dtype: those are refused).
+        shape: the declared shape.
+        fortran_order: the declared memory order.
+        data_offset: bytes of magic and header before the data, in the uncompressed member.
+        nbytes: bytes of data, ``prod(shape) * dtype.itemsize`` (checked equal to the member's
+            uncompressed size minus ``data_offset``).
+    """
+    dtype: np.dtype
+    shape: tuple
+    fortran_order: bool
+    data_offset: int
+    nbytes: int
+
+
+class _Counting:
+    """A read-only stream wrapper that counts the bytes read (the npy header's length)."""
+
+    def __init__(self, stream):
+        self.stream, self.count = stream, 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.stream.read(size)
+        self.count += len(data)
+        return data
+
+
+class NpzReader:
+    """An npz opened for reading member by member, each header checked before its data.
+
+    ``NpzReader(source, where)`` takes a path, a URL (through fsspec) or a seekable binary file
+    object; ``where`` names it in errors (default: the path). Use as a context manager::
+
+        with NpzReader(url) as npz:
+            header = npz.header("tracks")          # NpyHeader, from the member's first bytes
+            ... check header.dtype / header.shape against what the caller expects ...
+            tracks = npz.load("tracks")            # allocates header.nbytes, then reads
+
+    Every error is a ValueError naming the file and the member: not a zip, a member that is
+    not an ``.npy`` array, a name present twice, a compression other than stored or deflate,
+    an object (pickled) dtype, a negative dimension, a declared size that differs from the
+    member's uncompressed size (``ZipInfo.file_size``) or that the compressed bytes cannot
+    hold, truncated or corrupt data. Members are named as ``np.load`` names them (``tracks``
+    for ``tracks.npy``). Only the members asked for are read.
+    """
+
+    def __init__(self, source, where: str | None = None, storage_options: dict | None = None):
+        self.where = where if where is not None else str(getattr(source, "name", source))
+        self._owned = None
+        if isinstance(source, (str, os.PathLike)):
+            fs, path = fsspec.core.url_to_fs(str(source), **(storage_options or {}))
+            try:
+                self._owned = fs.open(path, "rb")
+            except FileNotFoundError:
+                raise FileNotFoundError(f"{self.where} does not exist") from None
+            handle = self._owned
+        else:
+            handle = source
+        try:
+            handle.seek(0, os.SEEK_END)
+            self._size = handle.tell()
+            handle.seek(0)
+            self._zip = zipfile.ZipFile(handle)
+        except Exception as error:
+            self.close()
+            raise ValueError(f"{self.where}: not a readable npz archive ({type(error).__name__}: {error})") \
+                from error
+        self._members: dict[str, zipfile.ZipInfo] = {}
+        for info in self._zip.infolist():
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if name in self._members:
+                self.close()
+                raise ValueError(f"{self.where}: member {name!r} appears twice in the archive "
+                                 f"({self._members[name].filename}, {info.filename}); refusing to guess which")
+            self._members[name] = info
+        self._headers: dict[str, NpyHeader] = {}
+
+    @property
+    def files(self) -> list[str]:
+        """Member names, as ``np.load(...).files`` gives them."""
+        return list(self._members)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._members
+
+    def __enter__(self) -> "NpzReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if getattr(self, "_zip", None) is not None:
+            self._zip.close()
+        if self._owned is not None:
+            self._owned.close()
+            self._owned = None
+
+    def _info(self, name: str) -> zipfile.ZipInfo:
+        if name not in self._members:
+            raise ValueError(f"{self.where}: has no member {name!r}; has {sorted(self._members)}")
+        info = self._members[name]
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise ValueError(f"{self.where}: member {name!r} uses zip compression method {info.compress_type}; "
+                             f"npz files are stored or deflated")
+        if info.compress_size > self._size:
+            raise ValueError(f"{self.where}: member {name!r} declares {info.compress_size:,} compressed bytes, "
+                             f"more than the whole file ({self._size:,} bytes)")
+        limit = info.compress_size if info.compress_type == zipfile.ZIP_STORED \
+            else info.compress_size * _DEFLATE_MAX_RATIO + 1024
+        if info.file_size > limit:
+            raise ValueError(f"{self.where}: member {name!r} declares {info.file_size:,} uncompressed bytes from "
+                             f"{info.compress_size:,} compressed bytes, more than "
+                             f"{'stored' if info.compress_type == zipfile.ZIP_STORED else 'deflate'} data can hold")
+        return info
+
+    def header(self, name: str) -> NpyHeader:
+        """The checked :class:`NpyHeader` of member ``name`` (reads only its first bytes)."""
+        if name in self._headers:
+            return self._headers[name]
+        info = self._info(name)
+        where = f"{self.where}: member {name!r}"
+        try:
+            with self._zip.open(info) as member:
+                counting = _Counting(member)
+                version = np.lib.format.read_magic(counting)
+                if version == (1, 0):
+                    shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(counting)
+                elif version == (2, 0):
+                    shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(counting)
+                else:
+                    raise ValueError(f"npy format version {version[0]}.{version[1]} is not supported (1.0, 2.0)")
+        except (ValueError, EOFError, zipfile.BadZipFile, OSError) as error:
+            raise ValueError(f"{where} is not a readable .npy array ({type(error).__name__}: {error})") from None
+        dtype = np.dtype(dtype)
+        if dtype.hasobject:
+            raise ValueError(f"{where} has dtype {dtype} (pickled Python objects); refused: npz data must be "
+                             f"plain numeric arrays that load without pickle")
+        if any(int(d) < 0 for d in shape):
+            raise ValueError(f"{where} declares a negative dimension in shape {tuple(shape)}")
+        shape = tuple(int(d) for d in shape)
+        nbytes = math.prod(shape) * dtype.itemsize
+        stored = info.file_size - counting.count
+        if nbytes != stored:
+            raise ValueError(f"{where} declares {dtype} {shape} = {nbytes:,} bytes of data, but the member holds "
+                             f"{stored:,} bytes after its header; refused before reading")
+        header = NpyHeader(dtype, shape, bool(fortran_order), counting.count, nbytes)
+        self._headers[name] = header
+        return header
+
+    def load(self, name: str) -> np.ndarray:
+        """Member ``name`` as an array: its header is checked first (see :meth:`header`)."""
+        header = self.header(name)
+        where = f"{self.where}: member {name!r}"
+        try:
+            with self._zip.open(self._members[name]) as member:
+                array = np.lib.format.read_array(member, allow_pickle=False)
+        except (ValueError, EOFError, zipfile.BadZipFile, OSError) as error:
+            raise ValueError(f"{where}: could not read its {header.dtype} {header.shape} data "
+                             f"({type(error).__name__}: {error})") from None
+        if array.shape != header.shape or array.dtype != header.dtype:
+            raise ValueError(f"{where}: read {array.dtype} {array.shape}, header declared {header.dtype} "
+                             f"{header.shape}")
+        return array
+
+
+def read_npz_headers(source, names: Iterable[str] | None = None, where: str | None = None,
+                     storage_options: dict | None = None) -> dict[str, NpyHeader]:
+    """``{member: NpyHeader(dtype, shape, ...)}`` of an npz, no array data read.
+
+    ``source``: path, URL or seekable binary file; ``names``: only these members (default all).
+    Raises ValueError naming the file and member on anything :class:`NpzReader` refuses.
+    """
+    with NpzReader(source, where, storage_options) as npz:
+        return {name: npz.header(name) for name in (npz.files if names is None else names)}

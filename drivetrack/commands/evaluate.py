@@ -13,7 +13,9 @@ def add_parser(sub) -> None:
                     "that `drivetrack synth` wrote beside SRC (TAP-Vid metrics in query modes first and "
                     "strided, pixel error, track purity, recall). With --predictions DIR: score a "
                     "tracker's npz files (same names as the clips; tracks [N,T,2] and visibles or "
-                    "occluded [N,T]) against the release or annotation folder as ground truth. "
+                    "occluded [N,T], bool or 0/1) against the release or annotation folder as ground truth; "
+                    "headers are checked before data is read, and NaN/inf positions count as misses "
+                    "(+inf px) and are reported. "
                     "See docs/evaluation.md.")
     p.add_argument("input", metavar="OUT_OR_RELEASE", help="annotation output or release folder (path or URL)")
     what = p.add_mutually_exclusive_group(required=True)
@@ -83,6 +85,12 @@ def print_tables(result, console) -> None:
     console.print(table)
     line = (f"pixel error at truth-visible frames: median {_fmt(summary['pixel_error_median'])} px, "
             f"mean {_fmt(summary['pixel_error_mean'])} px, p95 {_fmt(summary['pixel_error_p95'])} px")
+    nonfinite = summary.get("num_nonfinite_at_visible", 0)
+    if nonfinite:
+        what = "track positions" if truth_mode else "predictions"
+        line += (f"\n[bold red]non-finite {what}: {nonfinite:,} point-frames in {summary['num_clips_nonfinite']:,} "
+                 f"clips[/] (of {summary['num_gt_visible_points']:,} truth-visible; NaN/inf counted as misses and "
+                 f"as +inf px above)")
     if truth_mode:
         line += (f"\npurity {_fmt(summary['purity'], 4)} ({summary['num_unmatched']:,} tracks from ground/background, "
                  f"{summary['num_other_object']:,} from other objects); recall {_fmt(summary['recall'])} of the "
@@ -92,6 +100,8 @@ def print_tables(result, console) -> None:
         if not result.clips.empty else result.clips
     clips = Table(title=f"per clip ({first['query_mode'].iloc[0] if len(first) else '-'} mode)")
     columns = ["segment", "camera", "object", "tracks", "OA", "AJ", "δ_avg", "px med"]
+    if nonfinite:
+        columns.append("non-finite")
     if truth_mode:
         columns += ["purity", "recall"]
     for column in columns:
@@ -100,6 +110,8 @@ def print_tables(result, console) -> None:
         cells = [row["segment"], row["camera"], row["object_id"], f"{row['num_tracks']:,}",
                  _fmt(row["occlusion_accuracy"]), _fmt(row["average_jaccard"]),
                  _fmt(row["average_pts_within_thresh"]), _fmt(row["pixel_error_median"], 2)]
+        if nonfinite:
+            cells.append(f"{row['num_nonfinite_at_visible']:,}")
         if truth_mode:
             cells += [_fmt(row["purity"], 4), _fmt(row["recall"])]
         clips.add_row(*cells)
