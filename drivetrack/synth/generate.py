@@ -138,13 +138,22 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
 
     # ------------------------------------------------------------- boxes (truth, then labels)
     vehicle_from_world = invert_rigid(g.world_from_vehicle)                          # [T,4,4]
-    center_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], g.centers) + vehicle_from_world[None, :, :3, 3]
-    box_x_world = np.stack([np.cos(g.headings), np.sin(g.headings), np.zeros_like(g.headings)], -1)
+    vel_world = np.stack([o.velocity(g.times) for o in world.objects])               # [K,T,3]
+    if config.label_time == "sweep":   # the box where the object was when the sweep passed it
+        label_times = g.sweep_label_times()                                          # [K,T]
+        label_centers = np.stack([o.center(label_times[k]) for k, o in enumerate(world.objects)])
+        label_headings = np.stack([o.heading(label_times[k]) for k, o in enumerate(world.objects)])
+        label_vel = np.stack([o.velocity(label_times[k]) for k, o in enumerate(world.objects)])
+        acc_world = np.stack([o.acceleration(label_times[k]) for k, o in enumerate(world.objects)])
+    else:
+        label_times = np.broadcast_to(g.times[None, :], (K, T))
+        label_centers, label_headings, label_vel = g.centers, g.headings, vel_world
+        acc_world = np.stack([o.acceleration(g.times) for o in world.objects])
+    center_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], label_centers) + vehicle_from_world[None, :, :3, 3]
+    box_x_world = np.stack([np.cos(label_headings), np.sin(label_headings), np.zeros_like(label_headings)], -1)
     box_x_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], box_x_world)
     heading_v = np.arctan2(box_x_v[..., 1], box_x_v[..., 0])                          # [K,T]
-    vel_world = np.stack([o.velocity(g.times) for o in world.objects])               # [K,T,3]
-    acc_world = np.stack([o.acceleration(g.times) for o in world.objects])
-    speed_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], vel_world)
+    speed_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], label_vel)
     accel_v = np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3], acc_world)
     num_pts = np.zeros((K, T), np.int64)
     num_top = np.zeros((K, T), np.int64)
@@ -184,12 +193,19 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
     hits["pixels"] = pixels
     hits["visible"] = visible
     world_from_box = np.stack([o.world_from_box(g.times) for o in world.objects])
-    sizes["objects.npz"] = gt.write_npz(f"{gt_url}/objects.npz", dict(
+    objects = dict(
         object_id=np.array([o.object_id for o in world.objects]),
         type=np.array([o.type for o in world.objects], np.int8), size=g.sizes,
         world_from_box=world_from_box, velocity_world=vel_world, labelled=g.labelled,
         timestamps_micros=g.timestamps, world_from_vehicle=g.world_from_vehicle,
-        camera_names=np.array([c for c, _ in cams], np.int8)))
+        camera_names=np.array([c for c, _ in cams], np.int8))
+    if config.extended_truth:   # kept out of the default output, whose bytes stay the same
+        objects.update(
+            role=np.array([o.role for o in world.objects]),
+            label_time_offset_s=np.asarray(label_times - g.times[None, :], np.float64),
+            camera_time_offset_s=np.array([g.camera_offsets[c] for c, _ in cams], np.float64),
+            world_from_camera_vehicle=np.stack([g.camera_frames[c].world_from_vehicle for c, _ in cams]))
+    sizes["objects.npz"] = gt.write_npz(f"{gt_url}/objects.npz", objects)
     sizes["lidar_hits.npz"] = gt.write_npz(f"{gt_url}/lidar_hits.npz", hits)
     return {"segment": seg, "files": files, "ground_truth": gt_url, "ground_truth_bytes": sizes,
             "num_frames": T, "num_objects": K, "num_object_returns": int(hits["frame"].size),

@@ -10,7 +10,8 @@ import numpy as np
 
 from drivetrack.geometry import CameraModel, invert_rigid
 from drivetrack.synth.boxes import _box_matrix, _rotate_rpy, _screen_rect
-from drivetrack.synth.config import FRAME_PERIOD_S, LABEL_RANGE_M, T0_MICROS, SynthConfig, segment_name
+from drivetrack.synth.config import (FRAME_PERIOD_S, LABEL_RANGE_M, T0_MICROS, SynthConfig, segment_name,
+                                     sweep_offset)
 from drivetrack.synth.lidar_cast import _LidarCasting
 from drivetrack.synth.render import _CameraRendering
 from drivetrack.synth.sensors import GLOBAL_SHUTTER, PRESETS, READOUT_S, SHUTTER_S, camera_models, lidar_specs
@@ -32,13 +33,19 @@ class _Generator(_CameraRendering, _LidarCasting):
         self.T = config.frames
         self.times = np.arange(self.T) * FRAME_PERIOD_S
         self.timestamps = (T0_MICROS + index * 10**9 + np.arange(self.T) * 100_000).astype(np.int64)
-        self.world: World = make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S)
+        self.world: World = make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S,
+                                             config.world)
         self.id_rng = np.random.default_rng(id_seq)
         self.noise_rng = np.random.default_rng(noise_seq)
         self.rolling = bool(config.rolling_shutter)
         self.cameras = camera_models(self.preset, tuple(config.cameras),
                                      None if self.rolling else GLOBAL_SHUTTER)
         self.lidars = lidar_specs(self.preset)
+        #: seconds from the frame time to each camera's pose_timestamp (0 unless triggered by the sweep)
+        self.camera_offsets = {cam: (float(sweep_offset(np.arctan2(m.vehicle_from_camera[1, 0],
+                                                                   m.vehicle_from_camera[0, 0])))
+                                     if config.trigger == "sweep" else 0.0)
+                               for cam, m in self.cameras.items()}
         K = len(self.world.objects)
         self.K = K
         self.world_from_vehicle = self.world.world_from_vehicle(self.times)          # [T,4,4]
@@ -52,24 +59,55 @@ class _Generator(_CameraRendering, _LidarCasting):
         self.rects: dict[tuple[int, int], list] = {}
         self.visible_pixels = np.zeros((len(self.cameras), self.T, K), np.int64)
         self.camera_boxes: list[tuple] = []
-        self.camera_frames = {cam: self._camera_frames(model) for cam, model in self.cameras.items()}
+        self.camera_frames = {cam: self._camera_frames(model, self.camera_offsets[cam])
+                              for cam, model in self.cameras.items()}
         self._laws: dict[tuple[int, int], tuple | None] = {}
 
     # ----------------------------------------------------------------- camera timing
-    def _camera_frames(self, model: CameraModel):
-        """:class:`CameraFrames` (no images) holding exactly the ``camera_image`` values written."""
+    def _camera_frames(self, model: CameraModel, offset: float = 0.0):
+        """:class:`CameraFrames` (no images) holding exactly the ``camera_image`` values written;
+        ``offset`` (s) moves the pose time (and the pose, velocity, trigger and readout times) from
+        the frame time."""
         from drivetrack.scene import CameraFrames
 
-        lin, ang = self.world.ego_velocity(self.times)
+        if offset == 0.0:
+            world_from_vehicle = self.world_from_vehicle
+            lin, ang = self.world.ego_velocity(self.times)
+            pose_ts = self.timestamps / 1e6
+        else:
+            world_from_vehicle = self.world.world_from_vehicle(self.times + offset)
+            lin, ang = self.world.ego_velocity(self.times + offset)
+            pose_ts = self.timestamps / 1e6 + offset
         if self.rolling:   # the official model reads the angular velocity in the vehicle frame
-            ang = np.einsum("tji,tj->ti", self.world_from_vehicle[:, :3, :3], ang)
-        pose_ts = self.timestamps / 1e6
+            ang = np.einsum("tji,tj->ti", world_from_vehicle[:, :3, :3], ang)
         return CameraFrames(
-            model=model, jpeg=[None] * self.T, world_from_vehicle=self.world_from_vehicle,
+            model=model, jpeg=[None] * self.T, world_from_vehicle=world_from_vehicle,
             pose_timestamp=pose_ts, velocity=np.concatenate([lin, ang], axis=-1),
             shutter=np.full(self.T, SHUTTER_S),
             trigger_time=pose_ts - SHUTTER_S / 2 - READOUT_S / 2,
             readout_done_time=pose_ts + SHUTTER_S / 2 + READOUT_S / 2)
+
+    def sweep_label_times(self, iterations: int = 6) -> np.ndarray:
+        """float64 [K, T] s since frame 0: when the TOP sweep passed each object's box centre.
+
+        Fixed point of ``t = times[t] + sweep_offset(azimuth of the centre at t, seen from the
+        TOP lidar at t)`` (the column-time law of ``cast_lidar``; azimuths in the lidar frame plus
+        its mount yaw, as ``beam_azimuths`` has it). The map contracts by (angular rate of the
+        object around the lidar) x 0.1 s / (2 pi), far below 1; 6 iterations reach 1e-9 s."""
+        from drivetrack.waymo.schema import LaserName
+
+        spec = self.lidars[int(LaserName.TOP)]
+        mount_yaw = np.arctan2(spec.vehicle_from_lidar[1, 0], spec.vehicle_from_lidar[0, 0])
+        base = np.broadcast_to(self.times[None, :], (self.K, self.T))
+        tl = base.copy()
+        index = np.broadcast_to(np.arange(self.K)[:, None], (self.K, self.T)).ravel()
+        for _ in range(iterations):
+            center, _ = self.object_poses_at(index, tl.ravel())
+            world_from_lidar = self.world.world_from_vehicle(tl.ravel()) @ spec.vehicle_from_lidar
+            rel = center - world_from_lidar[:, :3, 3]
+            p = np.einsum("nji,nj->ni", world_from_lidar[:, :3, :3], rel)
+            tl = base + sweep_offset(np.arctan2(p[:, 1], p[:, 0]) + mount_yaw).reshape(self.K, self.T)
+        return tl
 
     def time_law(self, cam: int, t: int) -> tuple[int, float, float] | None:
         """Capture-time law of image ``t`` of camera ``cam``, None for a global shutter.
@@ -83,9 +121,12 @@ class _Generator(_CameraRendering, _LidarCasting):
             from drivetrack.rolling_shutter import shutter_state
 
             state = shutter_state(self.camera_frames[cam], t)
-            self._laws[key] = (None if not state.rolling else
-                               (0 if state.horizontal else 1, float(state.time_per_normalised),
-                                -float(state.pose_offset)))
+            offset = self.camera_offsets[cam]
+            if state.rolling:
+                self._laws[key] = (0 if state.horizontal else 1, float(state.time_per_normalised),
+                                   offset - float(state.pose_offset))
+            else:   # a global shutter away from the frame time: a law with zero readout rate
+                self._laws[key] = None if offset == 0.0 else (0, 0.0, offset)
         return self._laws[key]
 
     def camera_poses_at(self, model: CameraModel, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,6 @@ import numpy as np
 
 from drivetrack.geometry import transform_points
 from drivetrack.synth.boxes import _box_edge_samples, _box_matrix
-from drivetrack.synth.sensors import READOUT_S, SHUTTER_S
 from drivetrack.waymo.schema import COMPONENTS
 from drivetrack.waymo.writer import list_array
 
@@ -44,29 +43,25 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
         cc.col("extrinsic.transform"): _flat16(np.stack([m.vehicle_from_camera for _, m in models])),
         cc.col("width"): [m.width for _, m in models], cc.col("height"): [m.height for _, m in models],
         cc.col("rolling_shutter_direction"): [m.rolling_shutter_direction for _, m in models]}
-    # camera_image
+    # camera_image: exactly the values of g.camera_frames (the timing the images were rendered with)
     ci_ = C["camera_image"]
     cam_t = [(cam, t) for cam, _ in models for t in range(T)]
-    lin, ang = g.world.ego_velocity(g.times)
-    if g.rolling:
-        ang = g.camera_frames[models[0][0]].velocity[:, 3:]      # vehicle frame (official model)
-    pose_ts = ts / 1e6
-    shutter, readout = SHUTTER_S, READOUT_S
+    frames = g.camera_frames
     tables["camera_image"] = {
         **key_cols(ci_, len(cam_t)), "key.frame_timestamp_micros": [int(ts[t]) for _, t in cam_t],
         "key.camera_name": [cam for cam, _ in cam_t],
         ci_.col("image"): [jpegs[cam][t] for cam, t in cam_t],
-        ci_.col("pose.transform"): _flat16(np.stack([g.world_from_vehicle[t] for _, t in cam_t])),
-        **{ci_.col(f"velocity.linear_velocity.{a}"): [float(lin[t, i]) for _, t in cam_t]
+        ci_.col("pose.transform"): _flat16(np.stack([frames[cam].world_from_vehicle[t] for cam, t in cam_t])),
+        **{ci_.col(f"velocity.linear_velocity.{a}"): [float(frames[cam].velocity[t, i]) for cam, t in cam_t]
            for i, a in enumerate("xyz")},
-        **{ci_.col(f"velocity.angular_velocity.{a}"): [float(ang[t, i]) for _, t in cam_t]
+        **{ci_.col(f"velocity.angular_velocity.{a}"): [float(frames[cam].velocity[t, 3 + i]) for cam, t in cam_t]
            for i, a in enumerate("xyz")},
-        ci_.col("pose_timestamp"): [float(pose_ts[t]) for _, t in cam_t],
-        ci_.col("rolling_shutter_params.shutter"): [shutter] * len(cam_t),
+        ci_.col("pose_timestamp"): [float(frames[cam].pose_timestamp[t]) for cam, t in cam_t],
+        ci_.col("rolling_shutter_params.shutter"): [float(frames[cam].shutter[t]) for cam, t in cam_t],
         ci_.col("rolling_shutter_params.camera_trigger_time"):
-            [float(pose_ts[t] - shutter / 2 - readout / 2) for _, t in cam_t],
+            [float(frames[cam].trigger_time[t]) for cam, t in cam_t],
         ci_.col("rolling_shutter_params.camera_readout_done_time"):
-            [float(pose_ts[t] + shutter / 2 + readout / 2) for _, t in cam_t]}
+            [float(frames[cam].readout_done_time[t]) for cam, t in cam_t]}
     # lidar_calibration
     lc = C["lidar_calibration"]
     specs = [g.lidars[k] for k in sorted(g.lidars)]
