@@ -189,9 +189,11 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
                       "capture_time", "point_vehicle", "point_box")}
     if not hit_records:
         hits = _empty_hits()
-    pixels, visible = _carry_and_check(g, hits["object_index"], hits["point_box"], progress)
+    pixels, visible, facing = _carry_and_check(g, hits["object_index"], hits["point_box"], progress)
     hits["pixels"] = pixels
     hits["visible"] = visible
+    if config.extended_truth:   # kept out of the default output, whose bytes stay the same
+        hits["facing"] = facing
     world_from_box = np.stack([o.world_from_box(g.times) for o in world.objects])
     objects = dict(
         object_id=np.array([o.object_id for o in world.objects]),

@@ -22,14 +22,29 @@ def _empty_hits():
 
 
 
+def face_normals_box(object_index: np.ndarray, point_box: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """float64 [N, 3] outward unit normal, in the box frame, of the face each body point lies on
+    (the axis where the point is closest to the box surface, relative to the half size)."""
+    rel = np.abs(point_box) / (sizes[object_index] / 2.0)
+    axis = np.argmax(rel, axis=-1)
+    normal = np.zeros_like(point_box)
+    normal[np.arange(axis.size), axis] = np.sign(point_box[np.arange(axis.size), axis])
+    return normal
+
+
 def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndarray, progress):
-    """Pixels float32 [N, C, T, 2] and visibility bool [N, C, T] of every body point."""
+    """Pixels float32 [N, C, T, 2], visibility bool [N, C, T] and facing bool [N, C, T] of every
+    body point. ``facing``: the point's face normal points towards the camera centre at the
+    point's capture time (a back face when False); computed where the pixel is inside the image,
+    False elsewhere."""
     N, C, T = object_index.size, len(g.cameras), g.T
     pixels = np.full((N, C, T, 2), np.nan, np.float32)
     visible = np.zeros((N, C, T), bool)
+    facing = np.zeros((N, C, T), bool)
     if N == 0:
-        return pixels, visible
+        return pixels, visible, facing
     half = g.sizes / 2.0
+    normal_box = face_normals_box(object_index, point_box, g.sizes)
     for tau in range(T):
         pw_frame = _yaw_transform(point_box, g.centers[object_index, tau], g.headings[object_index, tau])
         for ci, (cam, model) in enumerate(g.cameras.items()):
@@ -54,6 +69,12 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
                 origin = np.broadcast_to(world_from_camera[:3, 3], (cand.size, 3))
             else:
                 origin = g.camera_centres_rays_at(model, point_time[cand], np.zeros((cand.size, 3)))[0]
+            if point_time is None:
+                heading = g.headings[object_index[cand], tau]
+            else:
+                heading = g.object_poses_at(object_index[cand], point_time[cand])[1]
+            normal_world = _yaw_transform(normal_box[cand], np.zeros((cand.size, 3)), heading)
+            facing[cand, ci, tau] = np.sum(normal_world * (origin - pw[cand]), axis=-1) > 0.0
             vec = pw[cand] - origin
             dist = np.linalg.norm(vec, axis=-1)
             dirs = vec / dist[:, None]
@@ -96,7 +117,7 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
             visible[cand, ci, tau] = vis
         if progress:
             progress("truth", tau + 1, T)
-    return pixels, visible
+    return pixels, visible, facing
 
 
 #: fixed-point iteration on a body point's capture time: stop below this change (s) ...
