@@ -96,5 +96,7 @@ def run(args) -> int:
                 f"ground truth {gt_mb:.1f} MB in {summary['ground_truth']}")
     shutter = "rolling" if args.rolling_shutter else "global"
     print(f"{args.segments} segment(s) written to {args.out} (split {args.split}, seed {args.seed}, "
-          f"preset {args.preset}, {shutter} shutter)", file=sys.stdout)
+          f"preset {args.preset}, {shutter} shutter"
+          + (f", world {config.world}, cameras at {config.trigger} time, lidar_box at {config.label_time} time"
+             if config.extended_truth else "") + ")", file=sys.stdout)
     return 0

@@ -21,6 +21,12 @@ truth pixels, visibility and dense depth are exact with respect to the rendered 
 model's convention; the global-shutter output keeps its previous bytes).
 ``lidar_camera_projection`` and ``projected_lidar_box`` stay global-shutter projections at the
 frame pose.
+
+Sweep-triggered cameras (``SynthConfig.camera_trigger`` "sweep", the hard world's default): each
+camera's pose time is the frame time plus ``config.sweep_offset(camera yaw)`` (where the TOP
+sweep crosses its axis); images, dense depth and truth are at that instant (a global shutter is
+a time law with zero readout rate there). ``SynthConfig.label_time`` "sweep" writes ``lidar_box``
+where each object was when the sweep passed its centre.
 """
 from __future__ import annotations
 
