@@ -194,3 +194,17 @@ def test_world_options_are_checked():
         SynthConfig(camera_trigger="lidar")
     assert SynthConfig().trigger == "frame" and SynthConfig(world="hard").trigger == "sweep"
     assert SynthConfig(world="hard", camera_trigger="frame").trigger == "frame"
+
+
+def test_cli_world_and_timing_options(tmp_path, capsys):
+    from drivetrack.cli import main
+
+    assert main(["synth", str(tmp_path), "--frames", "1", "--cameras", "SIDE_RIGHT", "--world", "hard",
+                 "--label-time", "sweep"]) == 0
+    assert "world hard, cameras at sweep time, lidar_box at sweep time" in capsys.readouterr().out
+    objects = load_ground_truth(str(tmp_path), "training", "drivetrack_synth_s7_0000").objects
+    assert "pole" in objects["role"].astype(str)
+    assert objects["camera_time_offset_s"][0] == pytest.approx(0.025, abs=1e-3)
+    assert np.abs(objects["label_time_offset_s"]).max() > 0.01
+    with pytest.raises(SystemExit):
+        main(["synth", str(tmp_path), "--world", "harder"])
