@@ -208,3 +208,27 @@ def test_cli_world_and_timing_options(tmp_path, capsys):
     assert np.abs(objects["label_time_offset_s"]).max() > 0.01
     with pytest.raises(SystemExit):
         main(["synth", str(tmp_path), "--world", "harder"])
+
+
+def test_camera_synced_boxes_are_at_the_most_visible_cameras_time(hard):
+    root, summary, truth = hard
+    seg = summary["segment"]
+    lb, sb = COMPONENTS["lidar_box"], COMPONENTS["lidar_camera_synced_box"]
+    label = _read(root, "lidar_box", seg).to_pandas()
+    synced = _read(root, "lidar_camera_synced_box", seg).to_pandas()
+    keys = ["key.frame_timestamp_micros", "key.laser_object_id"]
+    assert (label[keys].values == synced[keys].values).all()
+    c_label = label[[lb.col(f"box.center.{a}") for a in "xyz"]].to_numpy()
+    c_synced = synced[[sb.col(f"camera_synced_box.center.{a}") for a in "xyz"]].to_numpy()
+    v = label[[lb.col(f"speed.{a}") for a in "xyz"]].to_numpy()
+    cam = synced[sb.col("most_visible_camera_name")].to_numpy()
+    offset = {int(CameraName[c]): -0.1 * yaw / (2 * np.pi) for c, yaw in
+              (("FRONT", 0.0), ("FRONT_LEFT", np.pi / 4), ("SIDE_LEFT", np.pi / 2), ("SIDE_RIGHT", -np.pi / 2))}
+    rows = np.flatnonzero(cam > 0)
+    dt = np.array([offset[c] for c in cam[rows]])
+    # displacement = velocity x the camera's offset, to second order (accelerations below 2 m/s^2
+    # over <= 25 ms: < 1 mm) and the mount yaws' difference from the nominal (< 0.2 ms: < 4 mm)
+    np.testing.assert_allclose(c_synced[rows], c_label[rows] + v[rows] * dt[:, None], atol=5e-3)
+    moved = np.linalg.norm(c_synced[rows] - c_label[rows], axis=1)
+    assert (moved > 0.2).any()          # a car beside the ego in a side camera: >= 8 m/s x 25 ms
+    np.testing.assert_array_equal(c_synced[cam == 0], c_label[cam == 0])

@@ -179,7 +179,20 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
         label_heading += g.noise_rng.normal(0.0, config.heading_sigma, size=label_heading.shape)
         label_heading = np.angle(np.exp(1j * label_heading))
 
+    synced_center, synced_heading = label_center, label_heading
+    if any(offset != 0.0 for offset in g.camera_offsets.values()):
+        # lidar_camera_synced_box: the box at the pose time of its most visible camera (label time
+        # when no camera sees it), in the vehicle frame of the frame; label noise carried along
+        offsets = np.array([g.camera_offsets[c] for c in g.cameras])                   # [C]
+        seen = (g.visible_pixels.max(axis=0) > 0).T                                      # [K,T]
+        sync_times = np.where(seen, g.times[None, :] + offsets[g.visible_pixels.argmax(axis=0).T], label_times)
+        sync_centers = np.stack([o.center(sync_times[k]) for k, o in enumerate(world.objects)])
+        sync_headings = np.stack([o.heading(sync_times[k]) for k, o in enumerate(world.objects)])
+        synced_center = label_center + np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3],
+                                                 sync_centers - label_centers)
+        synced_heading = np.angle(np.exp(1j * (label_heading + sync_headings - label_headings)))
     tables = _build_tables(g, jpegs, lidar_rows, pose_rows, proj_rows, label_center, label_heading,
+                           synced_center, synced_heading,
                            speed_v, accel_v, num_pts, num_top)
     files = {}
     for i, (name, cols) in enumerate(tables.items()):

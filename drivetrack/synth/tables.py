@@ -19,7 +19,8 @@ def _flat16(m: np.ndarray) -> np.ndarray:
 
 
 def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_center,
-                  label_heading, speed_v, accel_v, num_pts, num_top) -> dict[str, dict]:
+                  label_heading, synced_center, synced_heading, speed_v, accel_v, num_pts,
+                  num_top) -> dict[str, dict]:
     seg, T, K = g.segment, g.T, g.K
     world = g.world
     ts = g.timestamps
@@ -106,7 +107,8 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
         **{lb.col(f"speed.{a}"): speed_v[ks, tt, i] for i, a in enumerate("xyz")},
         **{lb.col(f"acceleration.{a}"): accel_v[ks, tt, i] for i, a in enumerate("xyz")},
         lb.col("difficulty_level.detection"): difficulty, lb.col("difficulty_level.tracking"): difficulty}
-    # lidar_camera_synced_box (cameras fire at the frame time: synced box = frame box)
+    # lidar_camera_synced_box: the label box, moved to the most visible camera's pose time when
+    # the cameras fire with the sweep (synced_center / synced_heading, see generate_segment)
     sb = C["lidar_camera_synced_box"]
     most = g.visible_pixels.argmax(axis=0)                                          # [T,K]
     most_any = g.visible_pixels.max(axis=0) > 0
@@ -115,9 +117,9 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
         **key_cols(sb, len(kt)), "key.frame_timestamp_micros": ts[tt] if kt else [],
         "key.laser_object_id": [world.objects[k].object_id for k in ks],
         sb.col("most_visible_camera_name"): np.where(most_any[tt, ks], cam_values[most[tt, ks]], 0).astype(np.int8),
-        **{sb.col(f"camera_synced_box.center.{a}"): label_center[ks, tt, i] for i, a in enumerate("xyz")},
+        **{sb.col(f"camera_synced_box.center.{a}"): synced_center[ks, tt, i] for i, a in enumerate("xyz")},
         **{sb.col(f"camera_synced_box.size.{a}"): g.sizes[ks, i] for i, a in enumerate("xyz")},
-        sb.col("camera_synced_box.heading"): label_heading[ks, tt]}
+        sb.col("camera_synced_box.heading"): synced_heading[ks, tt]}
     # projected_lidar_box: the written (possibly noisy) label box projected into each camera
     pb_rows = []
     for ci, (cam, model) in enumerate(models):
