@@ -90,6 +90,10 @@ def test_hard_world_contains_each_case(hard):
     on = np.isin(hits["object_index"], oblique)
     normals = face_normals_box(hits["object_index"][on], hits["point_box"][on], objects["size"])
     assert np.abs(normals[:, 0]).sum() > 0 and np.abs(normals[:, 1]).sum() > 0
+    # the car behind the van: seen at the start, progressively hidden
+    k = int(np.flatnonzero(roles == "hidden")[0])
+    seen = hits["visible"][hits["object_index"] == k].sum(axis=(0, 1))          # per frame
+    assert seen[0] > 0 and seen[-1] < seen[0] / 2, seen
     # a mover beside the ego seen by a side camera, 1-3 m from the ego's side
     axis = {CameraName[c].value: i for i, c in enumerate(CAMERAS)}
     speed = np.linalg.norm(objects["velocity_world"], axis=-1)
