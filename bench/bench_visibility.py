@@ -16,8 +16,8 @@ clips at all) and scores the tracks against the exact truth:
 - OA by camera-to-point distance (<20 m, 20-40, 40-60, 60+);
 - per camera and per moving / static object: median pixel error (truth-visible frames) and AJ.
 
-    .venv/bin/python bench/bench_visibility.py                   # small preset, 30 frames, seed 7
-    .venv/bin/python bench/bench_visibility.py --preset medium --frames 20 --no-docs
+    .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~8 min, ~5 GB)
+    .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -198,8 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     from drivetrack.tracks import TrackConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="small", choices=["small", "medium", "full"])
-    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--preset", default="medium", choices=["small", "medium", "full"])
+    ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--workers", type=int, default=2, help="threads rendering the cameras")
     ap.add_argument("--no-docs", action="store_true", help="do not rewrite the block in docs/benchmarks.md")
