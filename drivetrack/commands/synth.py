@@ -34,6 +34,18 @@ def add_parser(sub) -> None:
                         "top-to-bottom, FRONT_LEFT right-to-left, FRONT_RIGHT left-to-right), "
                         "33 ms readout, every pixel rendered at its own capture time, truth "
                         "solved with the same timing (default: global shutter)")
+    p.add_argument("--world", choices=["default", "hard"], default="default",
+                   help="hard: add the cases that break depth-ratio occlusion tests and frame-time "
+                        "projection (oblique cars 20-70 m away, a car hidden behind a van, poles and "
+                        "a low sign, pedestrians by cars, cars passing close beside the ego, a "
+                        "turning car, a crossing cyclist); cameras then fire as the sweep passes "
+                        "them (docs/synthetic.md)")
+    p.add_argument("--camera-trigger", choices=["frame", "sweep"], default=None,
+                   help="frame: every image at the frame time; sweep: each camera fires when the "
+                        "TOP sweep crosses its axis (default: sweep in the hard world, else frame)")
+    p.add_argument("--label-time", choices=["frame", "sweep"], default="frame",
+                   help="lidar_box at the frame time (default) or where the object was when the "
+                        "TOP sweep passed it")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -62,7 +74,8 @@ def run(args) -> int:
         return 2
     config = SynthConfig(
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
-        box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter,
+        box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
+        camera_trigger=args.camera_trigger, label_time=args.label_time,
         heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
@@ -83,5 +96,7 @@ def run(args) -> int:
                 f"ground truth {gt_mb:.1f} MB in {summary['ground_truth']}")
     shutter = "rolling" if args.rolling_shutter else "global"
     print(f"{args.segments} segment(s) written to {args.out} (split {args.split}, seed {args.seed}, "
-          f"preset {args.preset}, {shutter} shutter)", file=sys.stdout)
+          f"preset {args.preset}, {shutter} shutter"
+          + (f", world {config.world}, cameras at {config.trigger} time, lidar_box at {config.label_time} time"
+             if config.extended_truth else "") + ")", file=sys.stdout)
     return 0

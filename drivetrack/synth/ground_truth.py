@@ -20,7 +20,18 @@ Layout (``OUT/{split}/drivetrack_ground_truth/{segment}/``), every file an ``.np
     [N, C, T] (in front, trusted, inside the image, and the first surface along the camera ray is
     that point within ``VISIBILITY_TOLERANCE_M``). With rolling-shutter cameras
     (``SynthConfig.rolling_shutter``) pixels and visibility are at the point's own capture time
-    in image tau (solved with the camera's readout law, see ``drivetrack.synth.generate``).
+    in image tau (solved with the camera's readout law, see ``drivetrack.synth.generate``); so
+    are they with cameras triggered by the sweep (at the camera's pose time).
+Extended truth (only when ``SynthConfig.extended_truth``: the hard world, ``camera_trigger`` or
+``label_time`` "sweep"; the default output keeps its bytes)
+    ``objects.npz`` adds ``role`` str [K] (what the object is there for, e.g. ``pole``,
+    ``close_pass``), ``label_time_offset_s`` float64 [K, T] (when the written ``lidar_box``
+    holds, minus the frame time), ``camera_time_offset_s`` float64 [C] (pose time minus frame
+    time), ``world_from_camera_vehicle`` float64 [C, T, 4, 4] (the ego pose at each image's pose
+    time = ``camera_image.pose``); ``lidar_hits.npz`` adds ``facing`` bool [N, C, T]: the
+    point's face normal points towards the camera centre at the point's capture time (False: a
+    back face, hidden by its own box), computed where the pixel is inside the image, False
+    elsewhere.
 ``depth_{CAMERA}.npz``
     ``depth`` float32 [T, H, W]: exact z-depth (camera-frame x, metres) of the first surface
     through each pixel centre; 0 = sky (rolling shutter: at that pixel's capture time).

@@ -9,6 +9,10 @@ Motion model shared by the ego and every object ("weave"): in a local frame rota
 initial heading ``h0`` about z and placed at ``p0``, ``local x = s t`` and
 ``local y = a (1 - cos(w t))``; the heading is ``h0 + atan2(a w sin(w t), s)``. Parked objects have
 ``s = a = 0``. The ego adds a small pitch and roll oscillation (about its origin on the ground).
+
+Turning objects ("arc", ``turn`` != 0, ``a = 0``): a circle at speed ``s`` and constant yaw rate
+``turn`` (rad/s): ``local x = s sin(turn t) / turn``, ``local y = s (1 - cos(turn t)) / turn``,
+heading ``h0 + turn t``.
 """
 from __future__ import annotations
 
@@ -20,7 +24,10 @@ import numpy as np
 from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 from drivetrack.waymo.schema import BoxType
 
-__all__ = ["Motion", "SynthObject", "World", "make_world", "LANE_WIDTH"]
+__all__ = ["Motion", "SynthObject", "World", "make_world", "LANE_WIDTH", "WORLDS"]
+
+#: ``SynthConfig.world`` values: the default scene, and the one adding the cases of issues 15/16.
+WORLDS = ("default", "hard")
 
 LANE_WIDTH = 3.5
 #: lane centres (world y, metres): ego direction at negative y, oncoming at positive y.
@@ -38,31 +45,58 @@ class Motion:
     s: float = 0.0
     a: float = 0.0
     w: float = 0.0
+    turn: float = 0.0
+
+    def __post_init__(self):
+        if self.turn != 0.0 and self.a != 0.0:
+            raise ValueError(f"Motion: a turning motion (turn={self.turn}) cannot also weave (a={self.a})")
+
+    def _local(self, t):
+        """(x, y, vx, vy, ax, ay) in the local frame, float64 [...] each."""
+        if self.turn != 0.0:
+            wt = self.turn * t
+            r = self.s / self.turn
+            return (r * np.sin(wt), r * (1.0 - np.cos(wt)), self.s * np.cos(wt), self.s * np.sin(wt),
+                    -self.s * self.turn * np.sin(wt), self.s * self.turn * np.cos(wt))
+        return (self.s * t, self.a * (1.0 - np.cos(self.w * t)), np.full_like(t, self.s),
+                self.a * self.w * np.sin(self.w * t), np.zeros_like(t),
+                self.a * self.w * self.w * np.cos(self.w * t))
 
     def position_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world (x, y) at times ``t`` float [...], seconds."""
         t = np.asarray(t, dtype=np.float64)
-        lx, ly = self.s * t, self.a * (1.0 - np.cos(self.w * t))
+        if self.turn != 0.0:
+            lx, ly = self._local(t)[:2]
+        else:
+            lx, ly = self.s * t, self.a * (1.0 - np.cos(self.w * t))
         c, s = np.cos(self.h0), np.sin(self.h0)
         return np.stack([self.p0[0] + c * lx - s * ly, self.p0[1] + s * lx + c * ly], axis=-1)
 
     def velocity_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world-frame velocity (m/s)."""
         t = np.asarray(t, dtype=np.float64)
-        vx, vy = np.full_like(t, self.s), self.a * self.w * np.sin(self.w * t)
+        if self.turn != 0.0:
+            vx, vy = self._local(t)[2:4]
+        else:
+            vx, vy = np.full_like(t, self.s), self.a * self.w * np.sin(self.w * t)
         c, s = np.cos(self.h0), np.sin(self.h0)
         return np.stack([c * vx - s * vy, s * vx + c * vy], axis=-1)
 
     def acceleration_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world-frame acceleration (m/s^2)."""
         t = np.asarray(t, dtype=np.float64)
-        ax, ay = np.zeros_like(t), self.a * self.w * self.w * np.cos(self.w * t)
+        if self.turn != 0.0:
+            ax, ay = self._local(t)[4:]
+        else:
+            ax, ay = np.zeros_like(t), self.a * self.w * self.w * np.cos(self.w * t)
         c, s = np.cos(self.h0), np.sin(self.h0)
         return np.stack([c * ax - s * ay, s * ax + c * ay], axis=-1)
 
     def heading(self, t: np.ndarray) -> np.ndarray:
         """float64 [...] yaw about world z (radians)."""
         t = np.asarray(t, dtype=np.float64)
+        if self.turn != 0.0:
+            return self.h0 + self.turn * t
         if self.s == 0.0 and self.a == 0.0:
             return np.full_like(t, self.h0)
         return self.h0 + np.arctan2(self.a * self.w * np.sin(self.w * t), self.s)
@@ -70,6 +104,8 @@ class Motion:
     def yaw_rate(self, t: np.ndarray) -> np.ndarray:
         """float64 [...] d heading / dt (rad/s)."""
         t = np.asarray(t, dtype=np.float64)
+        if self.turn != 0.0:
+            return np.full_like(t, self.turn)
         if self.s == 0.0:
             return np.zeros_like(t)
         vy = self.a * self.w * np.sin(self.w * t)
@@ -174,8 +210,11 @@ def _object_id(rng: np.random.Generator) -> str:
     return "".join(rng.choice(alphabet, size=22))
 
 
-def make_world(rng: np.random.Generator, duration: float) -> World:
+def make_world(rng: np.random.Generator, duration: float, kind: str = "default") -> World:
     """Sample one segment's world from ``rng``; ``duration`` (s) shapes where objects start.
+
+    ``kind`` "hard" adds :func:`_hard_objects` after the default ones (drawn from ``rng`` after
+    everything the default world draws, so the default objects, ego and ground are the same).
 
     Roles: ``lead`` (ahead in the ego lane), ``overtaking`` (from behind, in the next lane),
     ``slow`` (ahead, in the outer lane: overtaken, occluded by the lead car), ``oncoming``
@@ -219,6 +258,95 @@ def make_world(rng: np.random.Generator, duration: float) -> World:
         Motion((u(18.0, 26.0) + v_ego * duration * 0.5, FAR_CURB_Y + 1.0), -np.pi / 2, s=u(1.2, 1.6)))
     add("sign", sign, (0.12, 0.9, 0.9), Motion((u(20.0, 30.0), CURB_Y - 0.8), np.pi / 2),
         z=2.4, pattern=1)
-    return World(ego=ego, pitch_amplitude=float(u(0.003, 0.008)),
-                 roll_amplitude=float(u(0.002, 0.006)), objects=tuple(objects),
-                 ground_seed=int(rng.integers(0, 2**31 - 1)))
+    if kind not in WORLDS:
+        raise ValueError(f"unknown world {kind!r}; choose from {', '.join(WORLDS)}")
+    pitch, roll = float(u(0.003, 0.008)), float(u(0.002, 0.006))
+    ground_seed = int(rng.integers(0, 2**31 - 1))
+    if kind == "hard":
+        _hard_objects(rng, duration, ego, objects, add, car_size)
+    return World(ego=ego, pitch_amplitude=pitch, roll_amplitude=roll, objects=tuple(objects),
+                 ground_seed=ground_seed)
+
+
+def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
+    """The cases of issues 15 and 16 that break a depth-ratio occlusion test or frame-time
+    projection (all closed-form in time; roles name them in the truth's ``objects.npz``):
+
+    - ``oblique`` (x3, one pulling out at 2 m/s): cars 20-70 m ahead (at mid-clip) beside the
+      road, turned 30-60 degrees from the line of sight, so their far faces hide behind their near
+      ones and the ego's motion shows the lidar different faces over the clip;
+    - ``occluder`` (a parked 8 m van beyond the far curb) and ``hidden`` (a car behind it, driving
+      so that it slides progressively into the van's shadow as seen from the ego);
+    - ``pole`` (x3, 0.3 x 0.3 x 5 m, type SIGN) on the curbs in the mid-clip line of sight to the
+      oblique cars and the van; ``low_sign`` (a plate 0.8 m square centred 1.3 m up, car height);
+    - ``pedestrian_near_car`` (x2): one walking along the road side of the first parked car, one
+      standing on the sidewalk behind the second;
+    - ``close_pass``: a car overtaking on the left 1.5-1.8 m beside the ego (it follows the ego's
+      weave, so the gap stays constant), passing it at mid-clip (SIDE_LEFT, FRONT_LEFT);
+    - ``overtaken_right``: a slower car in the right lane beside the ego, overtaken at mid-clip
+      (FRONT_RIGHT, SIDE_RIGHT);
+    - ``turning``: an oncoming car turning right (towards +y) off the road just ahead of the ego
+      (FRONT_LEFT, SIDE_LEFT);
+    - ``crossing_cyclist`` (type CYCLIST): crosses the road ahead of the ego's end position.
+    """
+    u = rng.uniform
+    v = ego.s
+    t_mid = 0.5 * duration
+    x_mid = v * t_mid
+    y_ego = EGO_LANES[0] + ego.a          # mean lateral position of the weaving ego
+    vehicle, pedestrian, sign = BoxType.VEHICLE, BoxType.PEDESTRIAN, BoxType.SIGN
+
+    def toward(x, y):
+        return float(np.arctan2(y - y_ego, x - x_mid))
+
+    def on_sight_line(x, y, y_line):
+        """x where the mid-clip line of sight from the ego to (x, y) crosses y = y_line."""
+        return float(x_mid + (x - x_mid) * (y_line - y_ego) / (y - y_ego))
+
+    oblique = [(x_mid + u(20.0, 30.0), FAR_CURB_Y + u(3.5, 5.0)),
+               (x_mid + u(35.0, 45.0), CURB_Y - u(3.5, 5.0)),
+               (x_mid + u(50.0, 65.0), FAR_CURB_Y + u(3.0, 4.0))]
+    for i, (x, y) in enumerate(oblique):
+        angle = np.deg2rad(u(30.0, 60.0)) * (1 if rng.integers(0, 2) else -1)
+        heading = toward(x, y) + angle + (np.pi if rng.integers(0, 2) else 0.0)
+        add("oblique", vehicle, car_size(),
+            Motion((x, y), float(heading), s=2.0 if i == 2 else 0.0))
+    # the van and the car sliding into its shadow (seen from the ego's mean lateral position)
+    xo, yo, yh = x_mid + u(22.0, 30.0), FAR_CURB_Y + 2.0, FAR_CURB_Y + 6.5
+    add("occluder", vehicle, (8.0, 2.4, 3.0), Motion((xo, yo), 0.0))
+    scale = (yh - y_ego) / (yo - y_ego)
+
+    def shadow_x(t):    # x of the van's centre seen at y = yh from the ego at time t
+        return v * t + (xo - v * t) * scale
+    start = shadow_x(0.0) + 0.5 * 8.0 * scale + 3.0         # just clear of the shadow at t = 0
+    end = shadow_x(duration)                                  # behind the van's centre at the end
+    add("hidden", vehicle, car_size(), Motion((start, yh), 0.0, s=(end - start) / duration))
+    for x, y in (oblique[0], oblique[2], (xo, yo)):
+        add("pole", sign, (0.3, 0.3, 5.0), Motion((on_sight_line(x, y, FAR_CURB_Y + 0.4), FAR_CURB_Y + 0.4), 0.0),
+            z=2.5, pattern=1)
+    x, y = oblique[1]
+    add("low_sign", sign, (0.1, 0.8, 0.8),
+        Motion((on_sight_line(x, y, CURB_Y - 0.4), CURB_Y - 0.4), np.pi / 2), z=1.3, pattern=1)
+    parked = [o for o in objects if o.role == "parked"]
+    p0, p1 = parked[0].motion.p0, parked[1].motion.p0
+    add("pedestrian_near_car", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
+        Motion((p0[0] - 4.0, p0[1] + 1.6), 0.0, s=u(1.0, 1.4)))
+    add("pedestrian_near_car", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
+        Motion((p1[0] + u(-1.0, 1.0), CURB_Y - 0.6), 0.0))
+    # movers beside the ego: same weave as the ego, so the lateral gap is constant
+    gap = u(1.5, 1.8)
+    size = car_size()
+    dv = u(3.0, 4.5)
+    add("close_pass", vehicle, size, Motion((-dv * t_mid, EGO_LANES[0] + 1.0 + gap + size[1] / 2), 0.0,
+                                            s=v + dv, a=ego.a, w=ego.w))
+    size = car_size()
+    dv = u(2.5, 3.5)
+    add("overtaken_right", vehicle, size, Motion((dv * t_mid, EGO_LANES[0] - 1.0 - u(1.5, 2.5) - size[1] / 2),
+                                                 0.0, s=v - dv, a=ego.a, w=ego.w))
+    s_turn = u(5.0, 6.5)
+    add("turning", vehicle, car_size(), Motion((x_mid + 6.0 + s_turn * t_mid, ONCOMING_LANES[0]), np.pi,
+                                               s=s_turn, turn=-u(0.45, 0.6)))
+    s_bike = u(3.5, 4.5)
+    x_bike = v * duration + u(8.0, 12.0)
+    add("crossing_cyclist", BoxType.CYCLIST, (1.8, 0.6, 1.7),
+        Motion((x_bike, y_ego + s_bike * duration * 0.6), -np.pi / 2, s=s_bike))

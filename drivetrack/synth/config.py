@@ -1,0 +1,89 @@
+"""What to generate: :class:`SynthConfig`, segment names and the timing constants."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivetrack.synth.sensors import DEFAULT_CAMERAS
+
+__all__ = ["SynthConfig", "segment_name", "FRAME_PERIOD_S", "SWEEP_S", "LABEL_RANGE_M", "T0_MICROS",
+           "sweep_offset"]
+
+FRAME_PERIOD_S = 0.1
+SWEEP_S = 0.1
+LABEL_RANGE_M = 75.0
+T0_MICROS = 1_557_000_000_000_000
+
+
+
+def sweep_offset(azimuth_vehicle: np.ndarray) -> np.ndarray:
+    """float64 [...] seconds after the frame time at which the TOP sweep points along
+    ``azimuth_vehicle`` (radians about the vehicle's z, 0 = forward, positive = left).
+
+    The TOP columns (``drivetrack.waymo.lidar.beam_azimuths``, mount yaw corrected) run from
+    azimuth +pi at the sweep start (frame time - 0.05 s) down to -pi at its end, so
+    ``offset = -wrap(azimuth) / (2 pi) * SWEEP_S``: left-facing cameras fire before the frame time,
+    right-facing ones after it."""
+    a = np.angle(np.exp(1j * np.asarray(azimuth_vehicle, np.float64)))
+    return -a / (2.0 * np.pi) * SWEEP_S
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What to generate. ``box_noise_m`` is the sigma (metres, per axis) of Gaussian noise added
+    to the *written* box centres; ``heading_noise_rad`` defaults to 1 degree per 5 cm of it.
+    ``rolling_shutter`` renders rolling-shutter cameras (module docstring); off by default, which
+    keeps the global-shutter output byte-identical to earlier versions.
+
+    ``world``: "default", or "hard" (adds the cases of issues 15 and 16, see
+    :func:`drivetrack.synth.world._hard_objects`). ``camera_trigger``: "frame" (every camera image
+    at the frame time) or "sweep" (each camera fires when the TOP sweep crosses its optical axis,
+    as Waymo's do: ``pose_timestamp`` = frame time - yaw / (2 pi) * 0.1 s); None means "sweep"
+    in the hard world, "frame" otherwise. ``label_time``: "frame" (``lidar_box`` = the box at the
+    frame time) or "sweep" (the box where the object was when the TOP sweep passed its centre,
+    still expressed in the vehicle frame of the frame time)."""
+    seed: int = 7
+    frames: int = 40
+    preset: str = "small"
+    cameras: tuple[str, ...] = DEFAULT_CAMERAS
+    split: str = "training"
+    box_noise_m: float = 0.0
+    heading_noise_rad: float | None = None
+    rolling_shutter: bool = False
+    world: str = "default"
+    camera_trigger: str | None = None
+    label_time: str = "frame"
+
+    def __post_init__(self):
+        from drivetrack.synth.world import WORLDS
+
+        for name, value, allowed in (("world", self.world, WORLDS),
+                                     ("camera_trigger", self.camera_trigger, (None, "frame", "sweep")),
+                                     ("label_time", self.label_time, ("frame", "sweep"))):
+            if value not in allowed:
+                raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
+
+    @property
+    def trigger(self) -> str:
+        """The camera trigger convention in effect ("frame" or "sweep")."""
+        if self.camera_trigger is not None:
+            return self.camera_trigger
+        return "sweep" if self.world == "hard" else "frame"
+
+    @property
+    def extended_truth(self) -> bool:
+        """True when anything beyond the original scene is on: the truth then also records roles
+        and time offsets (kept out of the default output so its bytes stay the same)."""
+        return self.world != "default" or self.trigger != "frame" or self.label_time != "frame"
+
+    @property
+    def heading_sigma(self) -> float:
+        if self.heading_noise_rad is not None:
+            return float(self.heading_noise_rad)
+        return float(np.deg2rad(1.0) * self.box_noise_m / 0.05)
+
+
+def segment_name(seed: int, index: int) -> str:
+    """Deterministic ``key.segment_context_name`` of synthetic segment ``index`` of ``seed``."""
+    return f"drivetrack_synth_s{seed}_{index:04d}"

@@ -1,0 +1,238 @@
+"""The hard synthetic world (issues 15 and 16): deterministic, valid v2 schema, contains every case
+(back faces, poles, side-camera movers), cameras triggered by the sweep, label_time conventions."""
+from __future__ import annotations
+
+import glob
+import os
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from drivetrack.geometry import invert_rigid, matrix_from_flat
+from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
+from drivetrack.waymo.schema import COMPONENTS, BoxType, CameraName, LaserName, types_compatible
+
+CAMERAS = ("FRONT", "FRONT_LEFT", "SIDE_LEFT", "SIDE_RIGHT")
+HARD = SynthConfig(seed=7, frames=6, preset="small", cameras=CAMERAS, world="hard")
+
+
+@pytest.fixture(scope="module")
+def hard(tmp_path_factory):
+    root = str(tmp_path_factory.mktemp("hard"))
+    summary = generate_segment(root, HARD, 0)
+    return root, summary, load_ground_truth(root, "training", summary["segment"])
+
+
+def _read(root, name, seg):
+    return pq.read_table(f"{root}/training/{name}/{seg}.parquet")
+
+
+def _files(root):
+    return sorted(os.path.relpath(p, root) for p in glob.glob(f"{root}/**/*.*", recursive=True))
+
+
+def test_hard_world_writes_the_official_schema(hard):
+    root, summary, _ = hard
+    seg = summary["segment"]
+    for name in summary["files"]:
+        path = f"{root}/training/{name}/{seg}.parquet"
+        table = pq.read_table(path)
+        comp = COMPONENTS[name]
+        assert table.column_names == [c.name for c in comp.columns], name
+        for col in comp.columns:
+            assert types_compatible(col.type, table.schema.field(col.name).type), (name, col.name)
+        meta = pq.ParquetFile(path).metadata
+        assert all(meta.row_group(0).column(i).compression == "BROTLI" for i in range(meta.num_columns))
+        assert table.num_rows > 0, name
+    assert len(summary["files"]) == 13
+
+
+def test_hard_world_is_deterministic_and_keeps_the_default_objects(tmp_path):
+    config = SynthConfig(seed=3, frames=2, preset="small", cameras=("SIDE_LEFT",), world="hard")
+    generate_segment(str(tmp_path / "a"), config, 0)
+    generate_segment(str(tmp_path / "b"), config, 0)
+    files = _files(tmp_path / "a")
+    assert len(files) == 13 + 3 and files == _files(tmp_path / "b")
+    for rel in files:
+        assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    # the hard world only adds objects: the default ones keep their ids, sizes and poses
+    default = SynthConfig(seed=3, frames=2, preset="small", cameras=("SIDE_LEFT",))
+    generate_segment(str(tmp_path / "d"), default, 0)
+    seg = "drivetrack_synth_s3_0000"
+    h = load_ground_truth(str(tmp_path / "a"), "training", seg).objects
+    d = load_ground_truth(str(tmp_path / "d"), "training", seg).objects
+    k = d["object_id"].size
+    assert h["object_id"].size > k and (h["object_id"][:k] == d["object_id"]).all()
+    np.testing.assert_array_equal(h["world_from_box"][:k], d["world_from_box"])
+    np.testing.assert_array_equal(h["world_from_vehicle"], d["world_from_vehicle"])
+    assert "role" not in d and "facing" not in load_ground_truth(str(tmp_path / "d"), "training", seg).hits
+
+
+def test_hard_world_contains_each_case(hard):
+    root, summary, truth = hard
+    objects, hits = truth.objects, truth.hits
+    roles = objects["role"].astype(str)
+    for role in ("oblique", "occluder", "hidden", "pole", "low_sign", "pedestrian_near_car",
+                 "close_pass", "overtaken_right", "turning", "crossing_cyclist"):
+        assert role in roles, role
+    poles = np.flatnonzero(roles == "pole")
+    assert (objects["type"][poles] == int(BoxType.SIGN)).all()
+    assert np.allclose(objects["size"][poles, :2], 0.3)
+    # back faces: points inside an image whose face points away from the camera; never visible
+    inside = np.isfinite(hits["pixels"][..., 0])
+    back = inside & ~hits["facing"]
+    assert back.any()
+    assert not (hits["visible"] & ~hits["facing"]).any()
+    # oblique cars: the lidar returns come from two faces (an end and a side) of one car
+    from drivetrack.synth.truth import face_normals_box
+    oblique = np.flatnonzero(roles == "oblique")
+    on = np.isin(hits["object_index"], oblique)
+    normals = face_normals_box(hits["object_index"][on], hits["point_box"][on], objects["size"])
+    assert np.abs(normals[:, 0]).sum() > 0 and np.abs(normals[:, 1]).sum() > 0
+    # the car behind the van: seen at the start, progressively hidden
+    k = int(np.flatnonzero(roles == "hidden")[0])
+    seen = hits["visible"][hits["object_index"] == k].sum(axis=(0, 1))          # per frame
+    assert seen[0] > 0 and seen[-1] < seen[0] / 2, seen
+    # a mover beside the ego seen by a side camera, 1-3 m from the ego's side
+    axis = {CameraName[c].value: i for i, c in enumerate(CAMERAS)}
+    speed = np.linalg.norm(objects["velocity_world"], axis=-1)
+    for role, cam in (("close_pass", "SIDE_LEFT"), ("overtaken_right", "SIDE_RIGHT")):
+        k = int(np.flatnonzero(roles == role)[0])
+        assert (speed[k] > 1.0).all(), role
+        seen = hits["visible"][hits["object_index"] == k][:, axis[CameraName[cam].value]]
+        assert seen.any(), (role, cam)
+        box_v = invert_rigid(objects["world_from_vehicle"]) @ objects["world_from_box"][k]
+        gap = np.abs(box_v[:, 1, 3]) - objects["size"][k, 1] / 2 - 1.0     # the ego is ~2 m wide
+        assert (gap > 1.0).all() and (gap < 3.0).all(), (role, gap)
+
+
+def test_cameras_fire_when_the_sweep_crosses_them(hard):
+    root, summary, truth = hard
+    seg = summary["segment"]
+    ci = COMPONENTS["camera_image"]
+    cc = COMPONENTS["camera_calibration"]
+    yaw = {r["key.camera_name"]: np.arctan2(*matrix_from_flat(r[cc.col("extrinsic.transform")])[[1, 0], 0])
+           for r in _read(root, "camera_calibration", seg).to_pylist()}
+    rows = _read(root, "camera_image", seg).to_pylist()
+    assert len(rows) == len(CAMERAS) * HARD.frames
+    offsets = {}
+    for r in rows:
+        cam, frame_s = r["key.camera_name"], r["key.frame_timestamp_micros"] / 1e6
+        offset = r[ci.col("pose_timestamp")] - frame_s
+        # the TOP sweep runs from azimuth +pi (frame - 50 ms) to -pi (frame + 50 ms)
+        assert offset == pytest.approx(-yaw[cam] / (2 * np.pi) * 0.1, abs=2e-6), cam
+        trigger = r[ci.col("rolling_shutter_params.camera_trigger_time")]
+        done = r[ci.col("rolling_shutter_params.camera_readout_done_time")]
+        assert (trigger + done) / 2 == pytest.approx(r[ci.col("pose_timestamp")], abs=1e-6)
+        offsets[cam] = offset
+    assert offsets[int(CameraName.SIDE_LEFT)] == pytest.approx(-0.025, abs=1e-3)
+    assert offsets[int(CameraName.SIDE_RIGHT)] == pytest.approx(0.025, abs=1e-3)
+    # the image pose is the ego pose at the camera's time, not at the frame time
+    t = 3
+    pose = {r["key.camera_name"]: matrix_from_flat(r[ci.col("pose.transform")]) for r in rows
+            if r["key.frame_timestamp_micros"] == truth.objects["timestamps_micros"][t]}
+    side = pose[int(CameraName.SIDE_LEFT)]
+    frame_pose = truth.objects["world_from_vehicle"][t]
+    moved = np.linalg.norm(side[:3, 3] - frame_pose[:3, 3])
+    assert 0.1 < moved < 0.3            # 25 ms at 7-9.5 m/s
+    np.testing.assert_allclose(side, truth.objects["world_from_camera_vehicle"][axis_of(truth, "SIDE_LEFT"), t],
+                               atol=1e-9)
+
+
+def axis_of(truth, camera):
+    return truth.camera_axis(camera)
+
+
+def test_label_time_sweep_moves_boxes_by_velocity_times_the_sweep_offset(tmp_path):
+    seg = "drivetrack_synth_s5_0000"
+    boxes = {}
+    for label_time in ("frame", "sweep"):
+        config = SynthConfig(seed=5, frames=2, preset="small", cameras=("FRONT",), world="hard",
+                             label_time=label_time)
+        root = str(tmp_path / label_time)
+        generate_segment(root, config, 0)
+        boxes[label_time] = _read(root, "lidar_box", seg).to_pandas()
+        truth = load_ground_truth(root, "training", seg)
+    lb = COMPONENTS["lidar_box"]
+    lc = COMPONENTS["lidar_calibration"]
+    top = [r for r in _read(str(tmp_path / "frame"), "lidar_calibration", seg).to_pylist()
+           if r["key.laser_name"] == int(LaserName.TOP)][0]
+    vehicle_from_lidar = matrix_from_flat(top[lc.col("extrinsic.transform")])
+    frame, sweep = boxes["frame"], boxes["sweep"]
+    keys = ["key.frame_timestamp_micros", "key.laser_object_id"]
+    assert (frame[keys].values == sweep[keys].values).all()
+    center = [lb.col(f"box.center.{a}") for a in "xyz"]
+    speed = [lb.col(f"speed.{a}") for a in "xyz"]    # z: the vehicle frame pitches and rolls
+    c_frame, c_sweep = frame[center].to_numpy(), sweep[center].to_numpy()
+    displacement = c_sweep - c_frame
+    still = frame[speed].abs().max(axis=1).to_numpy() == 0
+    np.testing.assert_array_equal(displacement[still], 0.0)
+    # straight movers (constant world velocity: not weaving or turning): displacement = velocity
+    # (vehicle frame) x dt, dt = when the sweep passed the box centre: -azimuth(centre in the lidar
+    # frame) / 2 pi x 0.1 s
+    velocity = truth.objects["velocity_world"]
+    constant = np.abs(velocity - velocity[:, :1]).max(axis=(1, 2)) < 1e-12
+    straight = set(truth.objects["object_id"].astype(str)[constant])
+    rows = np.flatnonzero(~still & frame["key.laser_object_id"].isin(straight).to_numpy())
+    assert rows.size >= 5
+    v = sweep[speed].to_numpy()[rows]
+    dt = np.sum(displacement[rows] * v, axis=1) / np.sum(v * v, axis=1)
+    np.testing.assert_allclose(displacement[rows], v * dt[:, None], atol=1e-9)
+    p = (invert_rigid(vehicle_from_lidar)[:3, :3] @ (c_sweep[rows] - vehicle_from_lidar[:3, 3]).T).T
+    mount_yaw = np.arctan2(vehicle_from_lidar[1, 0], vehicle_from_lidar[0, 0])
+    expected = -np.angle(np.exp(1j * (np.arctan2(p[:, 1], p[:, 0]) + mount_yaw))) / (2 * np.pi) * 0.1
+    # the ego moves and turns during dt, so the frame-time azimuth is good to a few ms
+    np.testing.assert_allclose(dt, expected, atol=3e-3)
+    assert np.abs(dt).max() > 0.01
+    # the truth stays at the frame time
+    assert truth.objects["label_time_offset_s"].shape == truth.objects["labelled"].shape
+
+
+def test_world_options_are_checked():
+    with pytest.raises(ValueError, match=r"SynthConfig.world.*'nope'"):
+        SynthConfig(world="nope")
+    with pytest.raises(ValueError, match=r"SynthConfig.label_time.*'camera'"):
+        SynthConfig(label_time="camera")
+    with pytest.raises(ValueError, match=r"SynthConfig.camera_trigger"):
+        SynthConfig(camera_trigger="lidar")
+    assert SynthConfig().trigger == "frame" and SynthConfig(world="hard").trigger == "sweep"
+    assert SynthConfig(world="hard", camera_trigger="frame").trigger == "frame"
+
+
+def test_cli_world_and_timing_options(tmp_path, capsys):
+    from drivetrack.cli import main
+
+    assert main(["synth", str(tmp_path), "--frames", "1", "--cameras", "SIDE_RIGHT", "--world", "hard",
+                 "--label-time", "sweep"]) == 0
+    assert "world hard, cameras at sweep time, lidar_box at sweep time" in capsys.readouterr().out
+    objects = load_ground_truth(str(tmp_path), "training", "drivetrack_synth_s7_0000").objects
+    assert "pole" in objects["role"].astype(str)
+    assert objects["camera_time_offset_s"][0] == pytest.approx(0.025, abs=1e-3)
+    assert np.abs(objects["label_time_offset_s"]).max() > 0.01
+    with pytest.raises(SystemExit):
+        main(["synth", str(tmp_path), "--world", "harder"])
+
+
+def test_camera_synced_boxes_are_at_the_most_visible_cameras_time(hard):
+    root, summary, truth = hard
+    seg = summary["segment"]
+    lb, sb = COMPONENTS["lidar_box"], COMPONENTS["lidar_camera_synced_box"]
+    label = _read(root, "lidar_box", seg).to_pandas()
+    synced = _read(root, "lidar_camera_synced_box", seg).to_pandas()
+    keys = ["key.frame_timestamp_micros", "key.laser_object_id"]
+    assert (label[keys].values == synced[keys].values).all()
+    c_label = label[[lb.col(f"box.center.{a}") for a in "xyz"]].to_numpy()
+    c_synced = synced[[sb.col(f"camera_synced_box.center.{a}") for a in "xyz"]].to_numpy()
+    v = label[[lb.col(f"speed.{a}") for a in "xyz"]].to_numpy()
+    cam = synced[sb.col("most_visible_camera_name")].to_numpy()
+    offset = {int(CameraName[c]): -0.1 * yaw / (2 * np.pi) for c, yaw in
+              (("FRONT", 0.0), ("FRONT_LEFT", np.pi / 4), ("SIDE_LEFT", np.pi / 2), ("SIDE_RIGHT", -np.pi / 2))}
+    rows = np.flatnonzero(cam > 0)
+    dt = np.array([offset[c] for c in cam[rows]])
+    # displacement = velocity x the camera's offset, to second order (accelerations below 2 m/s^2
+    # over <= 25 ms: < 1 mm) and the mount yaws' difference from the nominal (< 0.2 ms: < 4 mm)
+    np.testing.assert_allclose(c_synced[rows], c_label[rows] + v[rows] * dt[:, None], atol=5e-3)
+    moved = np.linalg.norm(c_synced[rows] - c_label[rows], axis=1)
+    assert (moved > 0.2).any()          # a car beside the ego in a side camera: >= 8 m/s x 25 ms
+    np.testing.assert_array_equal(c_synced[cam == 0], c_label[cam == 0])
