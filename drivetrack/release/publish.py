@@ -343,6 +343,7 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
         if rel in RESERVED_NAMES:
             raise InvalidSourceError(
                 f"{source.where(rel)}: the release writes {rel} itself; remove or rename it in the source")
+    run = read_run_json(source.read("run.json") if "run.json" in sizes else None, source.where("run.json"))
     stats_files = {p.split("/", 1)[1]: source.read(p) for p in sizes
                    if p.startswith("stats/") and p.count("/") == 1 and p.endswith(".parquet")}
     for name, data in stats_files.items():
@@ -375,7 +376,6 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     # same clip paths and sizes. The clips' sha256 are compared on the staged bytes (step 3).
     _check_binding(gate_report, {f"stats/{n}": sha256_bytes(d) for n, d in stats_files.items()},
                    {p: (sizes[p], None) for p in clips}, source.where(""))
-    run = read_run_json(source.read("run.json") if "run.json" in sizes else None, source.where("run.json"))
     statistics = statistics_from_parquet(stats_files)
 
     store = open_store(store_url, storage_options)
