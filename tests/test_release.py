@@ -310,7 +310,8 @@ def test_concurrent_publishes_of_one_version_exactly_one_wins(tmp_path):
     def attempt(i):
         barrier.wait()
         try:
-            outcomes[i] = publish_release(sources[i], store, "2.0.0", workers=2, gate_report=gates_of(sources[i]))
+            outcomes[i] = publish_release(sources[i], store, "2.0.0", workers=2,
+                                          gate_report=gates_of(sources[i]))
         except PublishConflictError as e:
             outcomes[i] = e
 

@@ -12,7 +12,8 @@ from drivetrack.release.publish import DEFAULT_DATASET, PublishResult, check_gat
 from drivetrack.release.store import Store, open_store
 
 __all__ = [
-    "CasConflictError", "ConcurrentPublishError", "DEFAULT_DATASET", "DiffReport", "GateBindingError", "GatesFailedError", "GcReport",
+    "CasConflictError", "ConcurrentPublishError", "DEFAULT_DATASET", "DiffReport", "GateBindingError",
+    "GatesFailedError", "GcReport",
     "InvalidSourceError", "InvalidVersionError", "LockTimeoutError", "ManifestError", "PublishConflictError",
     "PublishInterruptedError", "PublishResult", "ReleaseError", "SemVer", "StagingCheckError", "Store",
     "UnsupportedStoreError", "VerifyReport", "VersionExistsError", "VersionNotFoundError", "check_gate_report",
