@@ -162,10 +162,14 @@ def test_truncated_npz_is_refused(gated, out, report, tmp_path):
     assert other.name in msg and "not a readable .npz" in msg
 
 
-def test_unreadable_statistics_table_is_refused(out, report, tmp_path):
-    (out / "stats" / "rejections.parquet").write_bytes(b"PAR1 not parquet PAR1")
+def test_statistics_table_without_its_schema_is_refused(out, report, tmp_path):
+    path = out / "stats" / "rejections.parquet"
+    pd.read_parquet(path).drop(columns=["reason"]).to_parquet(path)
     msg = _refused(out, tmp_path / "store", report)
-    assert "stats/rejections.parquet" in msg and "parquet" in msg
+    assert "stats/rejections.parquet" in msg and "lacks column(s) ['reason']" in msg
+    path.write_bytes(b"PAR1 not parquet PAR1")
+    msg = _refused(out, tmp_path / "store2", report)
+    assert "stats/rejections.parquet: cannot be read as parquet" in msg
 
 
 # ---- item 4: a gate report is bound to the content it validated ---------------------------------
