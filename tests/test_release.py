@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import threading
 from pathlib import Path
@@ -14,7 +15,7 @@ import pytest
 import yaml
 
 from drivetrack.cli import main as cli
-from drivetrack.release import (ConcurrentPublishError, GatesFailedError, InvalidSourceError,
+from drivetrack.release import (ConcurrentPublishError, GateBindingError, GatesFailedError, InvalidSourceError,
                                 InvalidVersionError, ManifestError, PublishConflictError,
                                 PublishInterruptedError, SemVer, StagingCheckError, VersionExistsError,
                                 VersionNotFoundError, diff_versions, gc, list_versions, open_store,
@@ -25,31 +26,96 @@ from drivetrack.release.manifest import manifest_hash
 DS = "drivetrack-waymo"
 
 
+PAPER = np.array([0.0651, 0.1260, 0.2471, 0.5497, 0.8687])  # speed-error percentiles (m/s) at the paper's scale
+T_FRAMES = 24  # the gates' minimum clip length
+
+
+def _clip_arrays(rng, n: int, t: int) -> dict[str, dict[str, np.ndarray]]:
+    """Small arrays of one clip in both layouts, as the writers declare them (docs/formats.md)."""
+    visibles = rng.random((n, t)) > 0.3
+    return {
+        "tracks": {"video": rng.integers(0, 255, (t, 6, 8, 3), dtype=np.uint8),
+                   "tracks": rng.random((n, t, 2)).astype(np.float32), "visibles": visibles,
+                   "timestamps_micros": np.arange(t, dtype=np.int64) * 100_000,
+                   "query_frames": np.zeros(n, np.int32), "lidar_sources": np.ones((n, 4), np.int32),
+                   "points3d": rng.random((n, t, 3)).astype(np.float32)},
+        "tapvid3d": {"images_jpeg_bytes": np.array([b"\xff\xd8jpeg\xff\xd9"] * t),
+                     "tracks_XYZ": rng.random((t, n, 3)).astype(np.float32),
+                     "visibility": np.ascontiguousarray(visibles.T),
+                     "queries_xyt": rng.random((n, 3)).astype(np.float32),
+                     "fx_fy_cx_cy": np.array([100.0, 100.0, 4.0, 3.0], np.float32),
+                     "extrinsics_w2c": np.tile(np.eye(4, dtype=np.float32), (t, 1, 1)),
+                     "distortion_k1_k2_p1_p2_k3": np.zeros(5, np.float32),
+                     "timestamps_micros": np.arange(t, dtype=np.int64) * 100_000}}
+
+
+_GATED: dict[tuple, dict[str, bytes]] = {}
+
+
 def make_output(root: Path, *, seed: int = 0, n_clips: int = 2, splits=("training", "validation")) -> Path:
-    """A small annotation output folder in the documented layout (docs/architecture.md)."""
+    """A small annotation output folder in the documented layout (docs/architecture.md) that passes
+    the default gates, with its gate report in ``validation/`` (the gates run once per distinct
+    content; the clips are written with deterministic bytes, so copies share the report)."""
+    from drivetrack.storage import write_npz
+
     rng = np.random.default_rng(seed)
-    rows = []
+    rows, seg_rows, rej_rows = [], [], []
     for split in splits:
-        (root / "tracks" / split).mkdir(parents=True, exist_ok=True)
-        (root / "tapvid3d" / split).mkdir(parents=True, exist_ok=True)
         for i in range(n_clips):
-            name = f"waymo_seg{i}_FRONT_{split[:3]}{i}.npz"
-            n = 4 + i
-            np.savez(root / "tracks" / split / name, video=rng.integers(0, 255, (3, 6, 8, 3), dtype=np.uint8),
-                     tracks=rng.random((n, 3, 2)).astype(np.float32), visibles=rng.random((n, 3)) > 0.3)
-            np.savez(root / "tapvid3d" / split / name, tracks_XYZ=rng.random((3, n, 3)),
-                     visibility=rng.random((3, n)) > 0.3, fx_fy_cx_cy=np.array([100.0, 100.0, 4.0, 3.0]))
-            rows.append({"split": split, "segment": f"seg{i}", "camera": "FRONT", "object_id": f"{split[:3]}{i}",
+            segment = f"seg{i}" if split == splits[0] else f"{split[0]}seg{i}"  # segment ids are unique
+            name = f"waymo_{segment}_FRONT_{split[:3]}{i}.npz"
+            n = 60 + i
+            for layout, arrays in _clip_arrays(rng, n, T_FRAMES).items():
+                write_npz(str(root / layout / split / name), arrays)
+            err = PAPER * (1 + 0.1 * i + 0.01 * seed)
+            rows.append({"split": split, "segment": segment, "camera": "FRONT", "object_id": f"{split[:3]}{i}",
                          "object_type": "VEHICLE", "file": f"tracks/{split}/{name}", "num_tracks": n,
-                         "num_frames": 3, "visible_fraction": 0.5 + 0.1 * i, "speed_err_p50": 0.1 * (i + 1)})
+                         "num_frames": T_FRAMES, "visible_fraction": 0.5 + 0.1 * i, "min_camera_distance_m": 10.0,
+                         **{f"speed_err_{p}": float(v) for p, v in zip(("p25", "p50", "p75", "p95", "p99"), err)},
+                         "num_nonfinite_visible": 0, "num_visible_outside_image": 0})
+            too_far = int(i == 0)
+            seg_rows.append({"split": split, "segment": segment, "status": "done",
+                             "num_object_clips_considered": 1 + too_far, "num_object_clips_annotated": 1,
+                             "rejected_too_far": too_far})
+            rej_rows += [{"segment": segment, "reason": "too_far"}] * too_far
     (root / "stats").mkdir(exist_ok=True)
     pd.DataFrame(rows).to_parquet(root / "stats" / "objects.parquet")
-    pd.DataFrame({"split": list(splits), "segment": ["seg0"] * len(splits), "status": ["done"] * len(splits),
-                  "rejected_too_far": [1] * len(splits)}).to_parquet(root / "stats" / "segments.parquet")
+    pd.DataFrame(seg_rows).to_parquet(root / "stats" / "segments.parquet")
+    pd.DataFrame(rej_rows).to_parquet(root / "stats" / "rejections.parquet")
     (root / "run.json").write_text(json.dumps({
         "config": {"depth": {"completer": "nearest"}}, "code_version": {"drivetrack": "0.1.0"}, "seed": seed,
         "segments": [{"segment": "seg0", "split": "training", "sources": {"camera_image": "a" * 64}}]}))
+    key = (seed, n_clips, tuple(splits))
+    if key not in _GATED:
+        from drivetrack.gates import run_gates
+
+        report = run_gates(str(root), data_docs=False)
+        assert report.success, [f.gate for f in report.failures]
+        _GATED[key] = {p.relative_to(root).as_posix(): p.read_bytes()
+                       for p in (root / "validation").rglob("*") if p.is_file()}
+    for rel, data in _GATED[key].items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(data)
     return root
+
+
+def gates_of(root: Path) -> dict:
+    """The gate report in ``root/validation/gates.json`` (bound to that folder's content)."""
+    return json.loads((root / "validation" / "gates.json").read_text())
+
+
+def failing_report(root: Path) -> dict:
+    """Make one clip of ``root`` have visible points outside the image in its statistics, run the
+    gates (they fail) and return their report, bound to the edited folder."""
+    from drivetrack.gates import run_gates
+
+    path = root / "stats" / "objects.parquet"
+    df = pd.read_parquet(path)
+    df.loc[0, "num_visible_outside_image"] = 3
+    df.to_parquet(path)
+    report = run_gates(str(root), data_docs=False).to_dict()
+    assert not report["success"]
+    return report
 
 
 @pytest.fixture
@@ -63,7 +129,7 @@ def sha256sum_check(folder: Path) -> subprocess.CompletedProcess:
 
 def test_publish_local_verifies_with_drivetrack_and_sha256sum(output, tmp_path):
     store = tmp_path / "store"
-    result = publish_release(output, store, "1.0.0")
+    result = publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     vdir = store / DS / "1.0.0"
     assert result.latest == "1.0.0" and result.files == len(list(p for p in vdir.rglob("*") if p.is_file())) - 1
     report = verify_release(store, "1.0.0")
@@ -78,7 +144,7 @@ def test_publish_local_verifies_with_drivetrack_and_sha256sum(output, tmp_path):
 
 
 def test_manifest_records_inputs_and_hash(output, tmp_path):
-    publish_release(output, tmp_path / "store", "1.0.0", config={"note": "first"})
+    publish_release(output, tmp_path / "store", "1.0.0", config={"note": "first"}, gate_report=gates_of(output))
     m = read_manifest(tmp_path / "store", "1.0.0")
     assert m["manifest_sha256"] == manifest_hash(m)
     files = {f["path"]: f for f in m["files"]}
@@ -93,7 +159,7 @@ def test_manifest_records_inputs_and_hash(output, tmp_path):
     assert m["run"]["seed"] == 0 and m["code_version"]["drivetrack"]
     assert m["counts"]["splits"]["training"] == {"clips": 2, "tapvid3d_clips": 2,
                                                  "bytes": m["counts"]["splits"]["training"]["bytes"]}
-    assert m["statistics"]["objects"]["num_tracks_total"] == 2 * (4 + 5)
+    assert m["statistics"]["objects"]["num_tracks_total"] == 2 * (60 + 61)
     assert m["statistics"]["segments"]["rejected_too_far_total"] == 2
     # Editing the manifest breaks its top-level hash, and verify refuses it.
     path = tmp_path / "store" / DS / "1.0.0" / "manifest.json"
@@ -106,8 +172,7 @@ def test_manifest_records_inputs_and_hash(output, tmp_path):
 def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     import mlcroissant as mlc
 
-    gate_report = {"success": True, "results": [{"gate": "speed_err_p50", "success": True}]}
-    publish_release(output, tmp_path / "store", "1.0.0", gate_report=gate_report)
+    publish_release(output, tmp_path / "store", "1.0.0", gate_report=gates_of(output))
     vdir = tmp_path / "store" / DS / "1.0.0"
     text = (vdir / "README.md").read_text()
     front = yaml.safe_load(text.split("---\n")[1])
@@ -117,7 +182,7 @@ def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     assert configs["drivetrack"]["data_files"] == [{"split": "training", "path": "tracks/training/waymo_*.npz"},
                                                    {"split": "validation", "path": "tracks/validation/waymo_*.npz"}]
     assert configs["tapvid3d"]["data_files"][0] == {"split": "training", "path": "tapvid3d/training/waymo_*.npz"}
-    assert "speed_err_p50 | pass" in text and "Citation" in text and "sha256sum -c SHA256SUMS" in text
+    assert "| object.visible_inside_image | pass |" in text and "Citation" in text and "sha256sum -c SHA256SUMS" in text
 
     doc = json.loads((vdir / "croissant.json").read_text())
     assert doc["conformsTo"] == "http://mlcommons.org/croissant/1.1"
@@ -127,19 +192,19 @@ def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     ds = mlc.Dataset(jsonld=str(vdir / "croissant.json"))
     assert not ds.metadata.issues.errors, ds.metadata.issues.report()
     fields = {f.name: f for rs in ds.metadata.record_sets if rs.name == "drivetrack" for f in rs.fields}
-    assert fields["tracks"].is_array and fields["tracks"].array_shape == "-1,3,2"
+    assert fields["tracks"].is_array and fields["tracks"].array_shape == "-1,24,2"
     # The stats record set really loads through mlcroissant from the release folder.
     records = list(ds.records("stats-objects"))
-    assert len(records) == 4 and sorted(r["stats-objects/num_tracks"] for r in records) == [4, 4, 5, 5]
+    assert len(records) == 4 and sorted(r["stats-objects/num_tracks"] for r in records) == [60, 60, 61, 61]
 
 
 def test_second_publish_of_same_version_fails_and_leaves_first_untouched(output, tmp_path):
     store = tmp_path / "store"
-    publish_release(output, store, "1.0.0")
+    publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     before = {p: p.read_bytes() for p in (store / DS / "1.0.0").rglob("*") if p.is_file()}
     other = make_output(tmp_path / "other", seed=5)
     with pytest.raises(VersionExistsError, match="already published"):
-        publish_release(other, store, "1.0.0")
+        publish_release(other, store, "1.0.0", gate_report=gates_of(other))
     after = {p: p.read_bytes() for p in (store / DS / "1.0.0").rglob("*") if p.is_file()}
     assert after == before
     assert verify_release(store, "1.0.0").ok
@@ -150,7 +215,7 @@ def test_versions_are_checked(output, tmp_path, bad):
     import re
 
     with pytest.raises(InvalidVersionError, match=re.escape(repr(bad))):
-        publish_release(output, tmp_path / "store", bad)
+        publish_release(output, tmp_path / "store", bad, gate_report=gates_of(output))
     assert not (tmp_path / "store").exists()
 
 
@@ -163,16 +228,15 @@ def test_semver_precedence():
 
 def test_failed_gates_write_nothing_unless_accepted(output, tmp_path):
     store = tmp_path / "store"
-    failed = {"success": False, "results": [{"gate": "speed_err_p50", "success": False},
-                                            {"gate": "nonfinite", "success": True}]}
-    with pytest.raises(GatesFailedError, match="speed_err_p50"):
+    failed = failing_report(output)
+    with pytest.raises(GatesFailedError, match="object.visible_inside_image"):
         publish_release(output, store, "1.0.0", gate_report=failed)
     assert not store.exists()
     publish_release(output, store, "1.0.0", gate_report=failed, accept_failed_gates="known label noise in seg0")
     m = read_manifest(store, "1.0.0")
     assert m["gates"]["success"] is False and m["gates"]["accepted_failure_reason"] == "known label noise in seg0"
     assert "known label noise in seg0" in (store / DS / "1.0.0" / "README.md").read_text()
-    with pytest.raises(ValueError, match="'success'"):
+    with pytest.raises(GateBindingError, match="'success'"):
         publish_release(output, store, "1.1.0", gate_report={"results": []})
 
 
@@ -186,7 +250,7 @@ def test_bad_sources_raise_clear_errors(tmp_path):
     reserved = tmp_path / "reserved"
     reserved.mkdir()
     (reserved / "README.md").write_text("mine")
-    with pytest.raises(InvalidSourceError, match="README.md"):
+    with pytest.raises(InvalidSourceError, match="README.md: not a release member"):
         publish_release(reserved, tmp_path / "store", "1.0.0")
     badrun = tmp_path / "badrun"
     badrun.mkdir()
@@ -194,35 +258,35 @@ def test_bad_sources_raise_clear_errors(tmp_path):
     with pytest.raises(InvalidSourceError, match=r"badrun/run.json: run.json is not valid JSON"):
         publish_release(badrun, tmp_path / "store", "1.0.0")
     badnpz = make_output(tmp_path / "badnpz")
-    (badnpz / "tracks" / "validation" / "waymo_seg0_FRONT_val0.npz").write_bytes(b"not a zip")
-    with pytest.raises(InvalidSourceError, match=r"tracks/validation/waymo_seg0_FRONT_val0.npz: not a readable .npz"):
-        publish_release(badnpz, tmp_path / "store", "1.0.0")
+    (badnpz / "tracks" / "validation" / "waymo_vseg0_FRONT_val0.npz").write_bytes(b"not a zip")
+    with pytest.raises(InvalidSourceError, match=r"tracks/validation/waymo_vseg0_FRONT_val0.npz: not a readable .npz"):
+        publish_release(badnpz, tmp_path / "store", "1.0.0", gate_report=gates_of(badnpz))
     assert not (tmp_path / "store").exists()
 
 
-def test_arbitrary_folder_without_run_json_or_stats(tmp_path):
+def test_arbitrary_folder_is_refused_naming_every_file(tmp_path):
+    # publish ships the output contract only (docs/release.md "What publish refuses")
     src = tmp_path / "plain"
     (src / "a").mkdir(parents=True)
     (src / "a" / "x.bin").write_bytes(b"\x00" * 10)
     (src / "top.txt").write_text("hello")
     (src / "empty.dat").write_bytes(b"")
-    publish_release(src, tmp_path / "store", "0.1.0")
-    m = read_manifest(tmp_path / "store", "0.1.0")
-    assert m["run"] is None and m["segments"] == [] and m["statistics"] == {}
-    assert verify_release(tmp_path / "store", "0.1.0").ok
-    assert sha256sum_check(tmp_path / "store" / DS / "0.1.0").returncode == 0
+    with pytest.raises(InvalidSourceError) as info:
+        publish_release(src, tmp_path / "store", "0.1.0")
+    assert all(f"{p}: not a release member" in str(info.value) for p in ("a/x.bin", "top.txt", "empty.dat"))
+    assert not (tmp_path / "store").exists()
 
 
 def test_verify_reports_missing_extra_and_corrupt(output, tmp_path):
     store = tmp_path / "store"
-    publish_release(output, store, "1.0.0")
+    publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     vdir = store / DS / "1.0.0"
     victim = vdir / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"
     os.chmod(victim, 0o644)
     data = bytearray(victim.read_bytes())
     data[100] ^= 0xFF  # same size, different content
     victim.write_bytes(bytes(data))
-    short = vdir / "tracks" / "validation" / "waymo_seg1_FRONT_val1.npz"
+    short = vdir / "tracks" / "validation" / "waymo_vseg1_FRONT_val1.npz"
     os.chmod(short, 0o644)
     short.write_bytes(short.read_bytes()[:-1])
     (vdir / "stats" / "segments.parquet").unlink()
@@ -232,21 +296,22 @@ def test_verify_reports_missing_extra_and_corrupt(output, tmp_path):
     assert report.missing == ["stats/segments.parquet"]
     assert report.extra == ["tracks/training/intruder.npz"]
     assert [(c["path"], c["problem"]) for c in report.corrupt] == [
-        ("tracks/training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("tracks/validation/waymo_seg1_FRONT_val1.npz", "size")]
+        ("tracks/training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("tracks/validation/waymo_vseg1_FRONT_val1.npz", "size")]
     assert sha256sum_check(vdir).returncode != 0
     assert cli(["verify", str(store), "--version", "1.0.0"]) == 1
 
 
 def test_concurrent_publishes_of_one_version_exactly_one_wins(tmp_path):
     store = tmp_path / "store"
-    sources = [make_output(tmp_path / f"src{i}", seed=i, n_clips=3) for i in range(4)]
+    sources = [make_output(tmp_path / f"src{i}") for i in range(4)]
     barrier = threading.Barrier(len(sources))
     outcomes: list = [None] * len(sources)
 
     def attempt(i):
         barrier.wait()
         try:
-            outcomes[i] = publish_release(sources[i], store, "2.0.0", workers=2)
+            outcomes[i] = publish_release(sources[i], store, "2.0.0", workers=2,
+                                          gate_report=gates_of(sources[i]))
         except PublishConflictError as e:
             outcomes[i] = e
 
@@ -271,7 +336,7 @@ def test_concurrent_publishes_of_different_versions_all_indexed(output, tmp_path
 
     def attempt(v):
         try:
-            publish_release(output, store, v, workers=1)
+            publish_release(output, store, v, workers=1, gate_report=gates_of(output))
         except Exception as e:  # noqa: BLE001 - reported below
             errors.append(e)
 
@@ -356,7 +421,7 @@ def test_write_error_interrupts_cleanly_then_gc_and_republish(output, tmp_path):
             (blocker / "tracks").write_text("in the way")
 
     with pytest.raises(PublishInterruptedError) as err:
-        publish_release(output, store, "1.0.0", workers=1, progress=block)
+        publish_release(output, store, "1.0.0", workers=1, progress=block, gate_report=gates_of(output))
     msg = str(err.value)
     assert "uploading" in msg and "tracks/" in msg and "No version is visible" in msg
     assert "drivetrack gc" in msg
@@ -368,7 +433,7 @@ def test_write_error_interrupts_cleanly_then_gc_and_republish(output, tmp_path):
     report = gc(store, DS, older_than_s=0)
     assert any("claim" in a for a in report.actions)
     assert not list((store / DS).glob("_txn/*")) and not list((store / DS).glob("_staging/*"))
-    publish_release(output, store, "1.0.0")
+    publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     assert verify_release(store, "1.0.0").ok
 
 
@@ -383,11 +448,11 @@ def test_interrupted_publish_can_be_resumed(output, tmp_path):
             raise Crash("simulated crash before commit")
 
     with pytest.raises(PublishInterruptedError, match="simulated crash"):
-        publish_release(output, store, "1.0.0", progress=crash_after_promotion)
+        publish_release(output, store, "1.0.0", progress=crash_after_promotion, gate_report=gates_of(output))
     # The files are in the version folder but without a manifest there is no version.
     assert (store / DS / "1.0.0" / "SHA256SUMS").exists() and list_versions(store) == []
     assert cli(["verify", str(store), "--version", "1.0.0"]) == 2
-    result = publish_release(output, store, "1.0.0", resume=True)
+    result = publish_release(output, store, "1.0.0", resume=True, gate_report=gates_of(output))
     assert result.reused_files == sum(1 for p in output.rglob("*") if p.is_file())
     assert verify_release(store, "1.0.0").ok
     assert [v["version"] for v in list_versions(store)] == ["1.0.0"]
@@ -402,7 +467,7 @@ def test_staged_object_corrupted_before_check_is_caught(output, tmp_path):
             p.write_bytes(p.read_bytes().replace(b"nearest", b"NEAREST"))
 
     with pytest.raises(PublishInterruptedError) as err:
-        publish_release(output, store, "1.0.0", progress=corrupt)
+        publish_release(output, store, "1.0.0", progress=corrupt, gate_report=gates_of(output))
     assert isinstance(err.value.__cause__, StagingCheckError)
     assert "run.json" in str(err.value) and "sha256" in str(err.value)
     assert list_versions(store) == [] and not (store / DS / "1.0.0" / "manifest.json").exists()
@@ -410,7 +475,7 @@ def test_staged_object_corrupted_before_check_is_caught(output, tmp_path):
 
 def test_gc_keeps_recent_claims_and_repairs_index(output, tmp_path):
     store = tmp_path / "store"
-    publish_release(output, store, "1.0.0")
+    publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     (store / DS / "versions.json").unlink()
     (store / DS / "latest.json").unlink()
     (store / DS / "_txn").mkdir(exist_ok=True)
@@ -425,14 +490,22 @@ def test_gc_keeps_recent_claims_and_repairs_index(output, tmp_path):
 def test_diff_versions(tmp_path):
     store = tmp_path / "store"
     a = make_output(tmp_path / "a", seed=0, n_clips=2)
-    publish_release(a, store, "1.0.0")
-    np.savez(a / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz", tracks=np.zeros((2, 3, 2), np.float32))
-    (a / "tracks" / "validation" / "waymo_seg1_FRONT_val1.npz").unlink()
-    np.savez(a / "tracks" / "validation" / "waymo_seg9_FRONT_val9.npz", tracks=np.zeros((1, 3, 2), np.float32))
-    publish_release(a, store, "1.1.0")
+    publish_release(a, store, "1.0.0", gate_report=gates_of(a))
+    from drivetrack.gates import run_gates
+    from drivetrack.storage import write_npz
+
+    write_npz(str(a / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"),
+              _clip_arrays(np.random.default_rng(9), 60, T_FRAMES)["tracks"])
+    (a / "tracks" / "validation" / "waymo_vseg1_FRONT_val1.npz").unlink()
+    write_npz(str(a / "tracks" / "validation" / "waymo_vseg0_FRONT_val9.npz"),
+              _clip_arrays(np.random.default_rng(9), 20, T_FRAMES)["tracks"])
+    # gates run on a copy (same content, so the report binds to a) to keep a's validation/ as it was
+    shutil.copytree(a, tmp_path / "a2")
+    report = run_gates(str(tmp_path / "a2"), data_docs=False).to_dict()
+    publish_release(a, store, "1.1.0", gate_report=report, accept_failed_gates="test: clips edited by hand")
     d = diff_versions(store, "1.0.0", "1.1.0")
-    assert d.added == ["tracks/validation/waymo_seg9_FRONT_val9.npz"]
-    assert d.removed == ["tracks/validation/waymo_seg1_FRONT_val1.npz"]
+    assert d.added == ["tracks/validation/waymo_vseg0_FRONT_val9.npz"]
+    assert d.removed == ["tracks/validation/waymo_vseg1_FRONT_val1.npz"]
     assert d.changed == ["tracks/training/waymo_seg0_FRONT_tra0.npz"]
     assert "counts.files" not in d.deltas  # one removed, one added: unchanged values are not listed
     bytes_old = read_manifest(store, "1.0.0")["counts"]["bytes"]
@@ -444,10 +517,14 @@ def test_diff_versions(tmp_path):
 
 def test_cli_publish_versions_diff_verify_gc(output, tmp_path, capsys):
     store = str(tmp_path / "store")
+    forged = tmp_path / "forged.json"
+    forged.write_text(json.dumps({"success": True, "results": []}))
+    assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(forged)]) == 1
+    assert "binding" in capsys.readouterr().err
     report = tmp_path / "gates.json"
-    report.write_text(json.dumps({"success": False, "results": [{"gate": "visible_fraction", "success": False}]}))
+    report.write_text(json.dumps(failing_report(output)))
     assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report)]) == 3
-    assert "visible_fraction" in capsys.readouterr().err
+    assert "object.visible_inside_image" in capsys.readouterr().err
     assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report),
                 "--accept-failed-gates", "reviewed by hand"]) == 0
     assert cli(["publish", str(output), "--store", store, "--version", "1.0.0", "--gate-report", str(report),

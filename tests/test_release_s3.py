@@ -9,7 +9,7 @@ import threading
 
 import pytest
 from s3server import S3Server, s3_server, s3_store  # noqa: F401 - fixtures
-from test_release import make_output
+from test_release import gates_of, make_output
 
 from drivetrack.cli import main as cli
 from drivetrack.release import (ConcurrentPublishError, PublishConflictError, PublishInterruptedError,
@@ -23,7 +23,7 @@ DS = "drivetrack-waymo"
 def test_publish_to_s3_verifies_with_drivetrack_and_sha256sum(tmp_path, s3_server, s3_store):
     url, opts = s3_store
     src = make_output(tmp_path / "out", n_clips=1)
-    result = publish_release(src, url, "1.0.0", storage_options=opts)
+    result = publish_release(src, url, "1.0.0", storage_options=opts, gate_report=gates_of(src))
     assert verify_release(url, "1.0.0", storage_options=opts).ok
     # Download the release folder and check it with the standard tool.
     store = open_store(url, opts)
@@ -39,11 +39,13 @@ def test_publish_to_s3_verifies_with_drivetrack_and_sha256sum(tmp_path, s3_serve
 
 def test_s3_second_publish_fails_without_touching_first(tmp_path, s3_store):
     url, opts = s3_store
-    publish_release(make_output(tmp_path / "a", n_clips=1), url, "1.0.0", storage_options=opts)
+    a = make_output(tmp_path / "a", n_clips=1)
+    publish_release(a, url, "1.0.0", storage_options=opts, gate_report=gates_of(a))
     store = open_store(url, opts)
     before = {p: store.read_bytes(f"{DS}/1.0.0/{p}") for p in store.find(f"{DS}/1.0.0")}
     with pytest.raises(VersionExistsError, match="already published"):
-        publish_release(make_output(tmp_path / "b", seed=9, n_clips=1), url, "1.0.0", storage_options=opts)
+        b = make_output(tmp_path / "b", seed=9, n_clips=1)
+        publish_release(b, url, "1.0.0", storage_options=opts, gate_report=gates_of(b))
     after = {p: store.read_bytes(f"{DS}/1.0.0/{p}") for p in store.find(f"{DS}/1.0.0")}
     assert after == before
 
@@ -67,14 +69,15 @@ def test_s3_conditional_writes(s3_store):
 
 def test_s3_concurrent_publishes_exactly_one_wins(tmp_path, s3_store):
     url, opts = s3_store
-    sources = [make_output(tmp_path / f"src{i}", seed=i, n_clips=1) for i in range(3)]
+    sources = [make_output(tmp_path / f"src{i}", n_clips=1) for i in range(3)]
     barrier = threading.Barrier(len(sources))
     outcomes: list = [None] * len(sources)
 
     def attempt(i):
         barrier.wait()
         try:
-            outcomes[i] = publish_release(sources[i], url, "3.0.0", storage_options=opts, workers=4)
+            outcomes[i] = publish_release(sources[i], url, "3.0.0", storage_options=opts, workers=4,
+                                          gate_report=gates_of(sources[i]))
         except PublishConflictError as e:
             outcomes[i] = e
 
@@ -91,7 +94,8 @@ def test_s3_concurrent_publishes_exactly_one_wins(tmp_path, s3_store):
 
 def test_s3_object_corrupted_after_publish_is_reported(tmp_path, s3_server, s3_store, capsys):
     url, opts = s3_store
-    publish_release(make_output(tmp_path / "out", n_clips=1), url, "1.0.0", storage_options=opts)
+    src = make_output(tmp_path / "out", n_clips=1)
+    publish_release(src, url, "1.0.0", storage_options=opts, gate_report=gates_of(src))
     bucket = url.removeprefix("s3://").split("/")[0]
     key = f"releases/{DS}/1.0.0/tracks/training/waymo_seg0_FRONT_tra0.npz"
     client = s3_server.client()
@@ -124,7 +128,7 @@ def test_server_stopped_mid_publish_leaves_nothing_visible_then_resume(tmp_path)
 
         with pytest.raises(PublishInterruptedError) as err:
             publish_release(src, url, "1.0.0", storage_options=server.storage_options(fail_fast=True),
-                            workers=1, progress=stop_after_three)
+                            workers=1, progress=stop_after_three, gate_report=gates_of(src))
         msg = str(err.value)
         assert "interrupted" in msg and "No version is visible" in msg and "--resume" in msg
         server.start()  # a new port, same in-memory buckets
@@ -135,8 +139,8 @@ def test_server_stopped_mid_publish_leaves_nothing_visible_then_resume(tmp_path)
         store = open_store(url, opts)
         assert store.find(f"{DS}/_staging/1.0.0")  # staged files left for the resume
         with pytest.raises(ConcurrentPublishError, match="being published"):
-            publish_release(src, url, "1.0.0", storage_options=opts)
-        result = publish_release(src, url, "1.0.0", storage_options=opts, resume=True)
+            publish_release(src, url, "1.0.0", storage_options=opts, gate_report=gates_of(src))
+        result = publish_release(src, url, "1.0.0", storage_options=opts, resume=True, gate_report=gates_of(src))
         assert result.reused_files >= 3
         assert verify_release(url, "1.0.0", storage_options=opts).ok
         latest = json.loads(store.read_bytes(f"{DS}/latest.json"))
@@ -154,11 +158,11 @@ def test_s3_gc_cleans_an_interrupted_publish(tmp_path, s3_store):
             raise RuntimeError("simulated crash after staging")
 
     with pytest.raises(PublishInterruptedError, match="simulated crash"):
-        publish_release(src, url, "1.0.0", storage_options=opts, progress=crash)
+        publish_release(src, url, "1.0.0", storage_options=opts, progress=crash, gate_report=gates_of(src))
     store = open_store(url, opts)
     assert store.find(f"{DS}/_staging/1.0.0") and store.exists(f"{DS}/_txn/1.0.0.json")
     report = gc(url, DS, older_than_s=0, storage_options=opts)
     assert report.removed_objects > 0
     assert not store.find(f"{DS}/_staging") and not store.find(f"{DS}/_txn") and not store.find(f"{DS}/1.0.0")
-    publish_release(src, url, "1.0.0", storage_options=opts)
+    publish_release(src, url, "1.0.0", storage_options=opts, gate_report=gates_of(src))
     assert verify_release(url, "1.0.0", storage_options=opts).ok

@@ -15,13 +15,16 @@ def add_parser(sub) -> None:
                        description="Stage, check and commit DIR as {STORE}/{dataset}/{version}/ "
                                    "(manifest.json written last; latest/versions updated by compare-and-swap).",
                        epilog=EXIT_CODES_HELP)
-    p.add_argument("dir", help="annotation output folder (run.json, tracks/{split}/*.npz, stats/*.parquet, ...)")
+    p.add_argument("dir", help="annotation output folder (run.json, tracks/{split}/*.npz, stats/*.parquet, ...); "
+                               "links, hidden files and files outside the output contract are refused")
     p.add_argument("--store", default="./store", help="store URL: folder, s3://bucket/prefix or gs://bucket/prefix")
     p.add_argument("--version", required=True, dest="release_version", help="semantic version, e.g. 1.0.0")
     p.add_argument("--config", default=None, help="YAML/JSON file recorded in the manifest (key 'card' overrides card fields)")
     p.add_argument("--gates-config", default=None, help="gate configuration for drivetrack.gates (default infra/gates.yaml)")
     p.add_argument("--gate-report", default=None,
-                   help="use this gate report JSON (e.g. DIR/validation/gates.json) instead of running the gates")
+                   help="use this gate report JSON (DIR/validation/gates.json written by `drivetrack gates DIR`) "
+                        "instead of running the gates; refused unless its binding (sha256 of the statistics "
+                        "tables and of every clip file) matches DIR")
     p.add_argument("--accept-failed-gates", default=None, metavar="REASON",
                    help="publish even if gates failed; REASON is recorded in the manifest and the card")
     p.add_argument("--resume", action="store_true", help="resume an interrupted publish of this version")
@@ -44,16 +47,14 @@ def _load_config(path: str | None) -> dict | None:
     return cfg
 
 
-def _run_gates(dir: str, args) -> dict:
-    """The gate report to publish with: ``--gate-report FILE`` if given, else run drivetrack.gates."""
-    if args.gate_report:
-        report = json.loads(Path(args.gate_report).read_text())
-        if not isinstance(report, dict):
-            raise ValueError(f"{args.gate_report}: a gate report must be a JSON object")
-        return report
-    from drivetrack.gates import run_gates
-
-    return run_gates(str(dir), config=args.gates_config).to_dict()
+def _gate_report(args) -> dict | None:
+    """``--gate-report FILE`` if given; None makes publish_release run the gates itself."""
+    if not args.gate_report:
+        return None
+    report = json.loads(Path(args.gate_report).read_text())
+    if not isinstance(report, dict):
+        raise ValueError(f"{args.gate_report}: a gate report must be a JSON object")
+    return report
 
 
 def run(args) -> int:
@@ -77,10 +78,10 @@ def _run(args) -> int:
     from drivetrack.release import publish_release
 
     config = _load_config(args.config)
-    report = _run_gates(args.dir, args)
     result = publish_release(
         args.dir, args.store, args.release_version, dataset=args.dataset,
-        storage_options=storage_options(args), gate_report=report,
+        storage_options=storage_options(args), gate_report=_gate_report(args),
+        gates_config=args.gates_config,
         accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
         workers=args.workers)
     if args.json:

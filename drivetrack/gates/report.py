@@ -76,6 +76,9 @@ class GateReport:
     created_utc: str
     tables: dict[str, str]
     seconds: float = 0.0
+    #: What was validated (:mod:`drivetrack.gates.binding`): sha256 of each statistics table, the
+    #: clip files (path, size, sha256) and the configuration fingerprint. Publish checks it.
+    binding: dict | None = None
 
     @property
     def failures(self) -> list[GateResult]:
@@ -102,6 +105,7 @@ class GateReport:
             "summary": self.summary(),
             "failures": [r.to_dict() for r in self.failures],
             "results": [r.to_dict() for r in self.results],
+            "binding": self.binding,
         })
 
 

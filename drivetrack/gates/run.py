@@ -3,7 +3,9 @@
 ``run_gates(out_dir, config)`` reads the statistics tables, builds one GX suite per (level, table)
 from the configuration, validates them in an ephemeral context and writes:
 
-  OUT/validation/gates.json            GateReport.to_dict(): verdict, failures, every gate
+  OUT/validation/gates.json            GateReport.to_dict(): verdict, failures, every gate, and the
+                                       binding to the content validated (drivetrack.gates.binding:
+                                       sha256 of the tables and of every clip file, config sha256)
   OUT/validation/report.html           self-contained page (inline CSS, no script, no network)
   OUT/validation/gx_results/<suite>.json   the raw GX validation results (JSON-safe)
   OUT/validation/data_docs/index.html  GX Data Docs, made to render offline (CDN links removed,
@@ -29,6 +31,7 @@ import fsspec
 from fsspec.implementations.local import LocalFileSystem
 import pandas as pd
 
+from drivetrack.gates.binding import folder_clips, make_binding
 from drivetrack.gates.config import config_sha256, load_gate_config
 from drivetrack.gates.report import (MAX_FAILING_LISTED, GateReport, GateResult, plain,
                                      report_html)
@@ -274,6 +277,8 @@ def run_gates(out_dir: str, config: str | dict | None = None, *,
     cfg = load_gate_config(config)
     tables = read_gate_tables(out_dir, cfg)
     specs = build_specs(cfg, tables)
+    fs, root = fsspec.core.url_to_fs(str(out_dir))
+    binding = make_binding(tables.sha256, folder_clips(fs, root), config_sha256(cfg))
     with tempfile.TemporaryDirectory(prefix="drivetrack-gates-") as tmp:
         staged = Path(tmp) / "validation"
         (staged / "gx_results").mkdir(parents=True)
@@ -283,7 +288,7 @@ def run_gates(out_dir: str, config: str | dict | None = None, *,
             success=all(r.success for r in results), out_dir=str(out_dir), results=results,
             config=cfg, config_sha256=config_sha256(cfg), gx_version=gx_version,
             created_utc=datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            tables=tables.files)
+            tables=tables.files, binding=binding)
         report.seconds = time.perf_counter() - t0
         (staged / "gates.json").write_text(json.dumps(report.to_dict(), indent=1, allow_nan=False))
         (staged / "report.html").write_text(report_html(report))

@@ -7,6 +7,8 @@ Layout (docs/architecture.md): ``OUT/stats/objects.parquet`` (one row per annota
 """
 from __future__ import annotations
 
+import hashlib
+import io
 import posixpath
 from dataclasses import dataclass, field
 
@@ -64,10 +66,14 @@ class GateTables:
     splits: pd.DataFrame
     rejection_reasons: list[str] = field(default_factory=list)
     files: dict[str, str] = field(default_factory=dict)  # table name -> path read
+    #: ``stats/{name}.parquet`` -> sha256 of the bytes the gates validated (the report's binding)
+    sha256: dict[str, str] = field(default_factory=dict)
 
 
-def _read_table(fs, root: str, name: str, required: tuple[str, ...],
+def _read_table(fs, root: str, name: str, required: tuple[str, ...], digests: dict[str, str],
                 optional: bool = False) -> tuple[pd.DataFrame | None, str]:
+    """Read ``stats/{name}.parquet`` once (its bytes are hashed into ``digests`` and parsed, so
+    the sha256 is that of exactly what is validated)."""
     path = posixpath.join(root, "stats", f"{name}.parquet")
     if not fs.exists(path):
         if optional:
@@ -75,7 +81,10 @@ def _read_table(fs, root: str, name: str, required: tuple[str, ...],
         raise GateInputError(f"statistics table {path} does not exist (expected layout: "
                              f"OUT/stats/{name}.parquet, see docs/architecture.md)")
     try:
-        table = pq.read_table(path, filesystem=fs)
+        with fs.open(path, "rb") as f:
+            data = f.read()
+        digests[f"stats/{name}.parquet"] = hashlib.sha256(data).hexdigest()
+        table = pq.read_table(io.BytesIO(data))
     except Exception as exc:  # pyarrow raises several types for corrupt files
         raise GateInputError(f"statistics table {path} cannot be read as parquet: {exc}") from exc
     missing = [c for c in required if c not in table.column_names]
@@ -119,10 +128,11 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     root = root.rstrip("/") or "/"
     if not fs.isdir(root):
         raise GateInputError(f"annotation output folder {out_dir} does not exist")
-    objects, objects_path = _read_table(fs, root, "objects", OBJECT_COLUMNS)
-    segments, segments_path = _read_table(fs, root, "segments", SEGMENT_COLUMNS)
+    digests: dict[str, str] = {}
+    objects, objects_path = _read_table(fs, root, "objects", OBJECT_COLUMNS, digests)
+    segments, segments_path = _read_table(fs, root, "segments", SEGMENT_COLUMNS, digests)
     check_rej = bool(cfg["segment"]["check_rejections_table"]["value"])
-    rejections, rejections_path = _read_table(fs, root, "rejections", REJECTION_COLUMNS,
+    rejections, rejections_path = _read_table(fs, root, "rejections", REJECTION_COLUMNS, digests,
                                               optional=not check_rej)
 
     for col in ("split", "segment", "camera", "object_id", "file"):
@@ -183,4 +193,4 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     if rejections is not None:
         paths["rejections"] = rejections_path
     return GateTables(objects=objects, segments=segments, splits=splits,
-                      rejection_reasons=reasons, files=paths)
+                      rejection_reasons=reasons, files=paths, sha256=digests)

@@ -2,7 +2,7 @@
 dataset cards (Hugging Face + Croissant 1.1), verify, diff and gc. See docs/release.md."""
 from drivetrack.release.catalog import (DiffReport, GcReport, VerifyReport, diff_versions, gc, list_versions,
                                         read_manifest, verify_release)
-from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GatesFailedError,
+from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GateBindingError, GatesFailedError,
                                        InvalidSourceError, InvalidVersionError, LockTimeoutError, ManifestError,
                                        PublishConflictError, PublishInterruptedError, ReleaseError,
                                        StagingCheckError, UnsupportedStoreError, VersionExistsError,
@@ -12,7 +12,8 @@ from drivetrack.release.publish import DEFAULT_DATASET, PublishResult, check_gat
 from drivetrack.release.store import Store, open_store
 
 __all__ = [
-    "CasConflictError", "ConcurrentPublishError", "DEFAULT_DATASET", "DiffReport", "GatesFailedError", "GcReport",
+    "CasConflictError", "ConcurrentPublishError", "DEFAULT_DATASET", "DiffReport", "GateBindingError",
+    "GatesFailedError", "GcReport",
     "InvalidSourceError", "InvalidVersionError", "LockTimeoutError", "ManifestError", "PublishConflictError",
     "PublishInterruptedError", "PublishResult", "ReleaseError", "SemVer", "StagingCheckError", "Store",
     "UnsupportedStoreError", "VerifyReport", "VersionExistsError", "VersionNotFoundError", "check_gate_report",

@@ -97,7 +97,12 @@ class ArraySpec:
 
 
 def describe_npz(f, where: str) -> list[ArraySpec]:
-    """Names, dtypes and shapes of the arrays in an ``.npz`` (reads headers only, not the data)."""
+    """Names, dtypes and shapes of the arrays in an ``.npz`` (reads headers only, not the data).
+
+    Refuses object arrays. Publish checks clips with the stricter
+    :func:`drivetrack.release.contents.check_clip_npz` (declared members, dtypes and shapes)."""
+    from drivetrack.release.contents import _read_header
+
     out: list[ArraySpec] = []
     try:
         with zipfile.ZipFile(f) as zf:
@@ -105,13 +110,11 @@ def describe_npz(f, where: str) -> list[ArraySpec]:
                 if not info.filename.endswith(".npy"):
                     continue
                 with zf.open(info) as member:
-                    version = np.lib.format.read_magic(member)
-                    if version == (1, 0):
-                        shape, _fortran, dtype = np.lib.format.read_array_header_1_0(member)
-                    else:
-                        shape, _fortran, dtype = np.lib.format.read_array_header_2_0(member)
-                out.append(ArraySpec(info.filename[:-4], dtype.str, tuple(int(s) for s in shape)))
-    except (zipfile.BadZipFile, ValueError, OSError) as e:
+                    shape, _fortran, dtype, _offset = _read_header(member)
+                if dtype.hasobject:  # never declared in a card: loading it means unpickling
+                    raise ValueError(f"member {info.filename[:-4]!r} has dtype {dtype.str} (Python objects)")
+                out.append(ArraySpec(info.filename[:-4], dtype.str, shape))
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
         from drivetrack.release.errors import InvalidSourceError
 
         raise InvalidSourceError(f"{where}: not a readable .npz file ({e})") from e
@@ -154,6 +157,8 @@ def _id(text: str) -> str:
 
 def _croissant_type(dtype: str) -> str:
     kind = np.dtype(dtype).kind
+    if np.dtype(dtype).hasobject:
+        raise ValueError(f"dtype {dtype} (Python objects) cannot be declared in croissant.json")
     return {"f": "sc:Float", "i": "sc:Integer", "u": "sc:Integer", "b": "sc:Boolean"}.get(kind, "sc:Text")
 
 
@@ -364,6 +369,10 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
         verdict = "passed" if gates["success"] else "FAILED"
         lines.append(f"Gates {verdict}: {gates['passed']} passed, {gates['failed']} failed "
                      f"(full reports under `validation/` when present).")
+        if gates.get("binding_sha256"):
+            lines += ["", f"The gate report is bound to this release's content (binding "
+                      f"`{gates['binding_sha256'][:16]}`: sha256 of the statistics tables and of every "
+                      f"clip file, checked at publish; gates run by: {gates.get('ran_by', 'report')})."]
         if gates.get("accepted_failure_reason"):
             lines += ["", f"**Published despite failed gates.** Reason given: {gates['accepted_failure_reason']}"]
         if gates["results"]:

@@ -29,6 +29,12 @@ class GatesFailedError(ReleaseError):
     """The quality gates failed and no reason to accept the failure was given; nothing was written."""
 
 
+class GateBindingError(ReleaseError, ValueError):
+    """The gate report cannot vouch for the folder being published: it has no or an edited content
+    binding, contradicts itself, or validated other content (the message names the files that
+    differ). ``--accept-failed-gates`` does not override this; nothing was published."""
+
+
 class PublishConflictError(ReleaseError):
     """Base of the errors raised when a publish loses against another publish of the same version."""
 

@@ -10,13 +10,19 @@ Store layout for dataset ``D`` (all paths relative to the store root)::
 
 A publish (write-audit-publish):
 
-0. checks the version string and the gate report, before anything is written
-   (:class:`GatesFailedError` if the gates failed and no reason to accept was given);
+0. before anything is written: checks the version string; lists the source without following
+   links and refuses anything that is not a regular file of the output contract
+   (:mod:`drivetrack.release.contents`); runs the gates when no report is given; checks the gate
+   report (:class:`GatesFailedError` if the gates failed and no reason to accept was given,
+   :class:`GateBindingError` if it does not name this content); checks every clip's ``.npz``
+   headers against the declared formats, the statistics tables' schemas, and that no clip
+   belongs to a segment not recorded as done;
 1. refuses a version that already has a manifest (:class:`VersionExistsError`);
 2. claims the version by creating ``_txn/{version}.json`` exclusively: of two publishes of one
    version, exactly one gets the claim, the other fails with :class:`ConcurrentPublishError`;
 3. uploads and hashes every file concurrently into ``_staging/{version}/`` (streamed in 8 MiB
-   chunks), then re-reads every staged object and checks size and sha256;
+   chunks), then re-reads every staged object and checks size and sha256, and checks that the
+   staged statistics tables and clips are byte for byte those the gate report validated;
 4. writes README.md, croissant.json and SHA256SUMS into staging, moves everything into
    ``{version}/`` (rename locally, server-side copy on S3) and checks sizes;
 5. commits by creating ``{version}/manifest.json`` exclusively (a version exists exactly when its
@@ -43,11 +49,14 @@ from typing import Callable
 
 import fsspec
 
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clips_of
+from drivetrack.gates.binding import binding_problems, check_binding_shape
+from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clips_of, parse_clip_path
 from drivetrack.release import cards as _cards
-from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GatesFailedError,
-                                       InvalidSourceError, PublishConflictError, PublishInterruptedError,
-                                       ReleaseError, StagingCheckError, VersionExistsError)
+from drivetrack.release import contents as _contents
+from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GateBindingError,
+                                       GatesFailedError, InvalidSourceError, PublishConflictError,
+                                       PublishInterruptedError, ReleaseError, StagingCheckError,
+                                       VersionExistsError)
 from drivetrack.release.manifest import (CARD_NAME, CROISSANT_NAME, MANIFEST_FORMAT, MANIFEST_NAME,
                                          RESERVED_NAMES, SUMS_NAME, FileEntry, SemVer, check_dataset,
                                          check_release_path, check_version, code_version,
@@ -58,8 +67,6 @@ from drivetrack.release.store import Store, iter_chunks, open_store
 
 DEFAULT_DATASET = "drivetrack-waymo"
 DEFAULT_WORKERS = 8
-NPZ_SAMPLE = 64
-"""How many .npz files per layout are opened to describe their arrays in croissant.json."""
 
 Progress = Callable[[str, dict], None]
 """``progress(event, info)``: events ``uploaded`` (per file), ``staged``, ``checked``, ``promoted``,
@@ -127,24 +134,23 @@ class _Source:
         self.url = src
 
     def list(self) -> dict[str, int]:
-        out: dict[str, int] = {}
+        """``{relative path: size}`` of the release members; refuses (:class:`InvalidSourceError`,
+        naming every offending path) links, hidden and special files and unknown files."""
         if self.local:
             if not os.path.isdir(self.root):
                 raise InvalidSourceError(f"source folder {self.root} does not exist or is not a folder")
-            for dirpath, dirs, files in os.walk(self.root, followlinks=True):
-                dirs.sort()
-                for name in files:
-                    full = os.path.join(dirpath, name)
-                    out[os.path.relpath(full, self.root).replace(os.sep, "/")] = os.stat(full).st_size
-        else:
-            for p, info in self.fs.find(self.root, detail=True).items():
-                if info.get("type") != "directory":
-                    out[p[len(self.root.rstrip("/")):].lstrip("/")] = int(info["size"])
-        return dict(sorted(out.items()))
+            return _contents.list_local_folder(self.root)
+        found = self.fs.find(self.root, detail=True, withdirs=True)
+        base = self.root.rstrip("/")
+        entries = {p[len(base):].lstrip("/"): info for p, info in found.items()}
+        entries.pop("", None)
+        _contents.check_listed(self.url, {rel: str(info.get("type")) for rel, info in entries.items()})
+        return dict(sorted((rel, int(info["size"])) for rel, info in entries.items()
+                           if info.get("type") == "file"))
 
     def open(self, rel: str):
         if self.local:
-            return open(os.path.join(self.root, rel), "rb", buffering=0)
+            return _contents.open_local_nofollow(self.root, rel)
         return self.fs.open(f"{self.root.rstrip('/')}/{rel}", "rb")
 
     def read(self, rel: str) -> bytes:
@@ -157,17 +163,47 @@ class _Source:
 
 # ---- checks before anything is written -------------------------------------------------------
 
-def check_gate_report(gate_report: dict | None, accept_failed_gates: str | None) -> None:
-    """Raise :class:`GatesFailedError` if the gates failed and no acceptance reason is given."""
+def check_gate_report(gate_report: dict, accept_failed_gates: str | None) -> None:
+    """Check a gate report on its own (its binding to the data is checked by the publish).
+
+    Raises :class:`GateBindingError` for a report that is not one ``run_gates`` wrote (no or an
+    edited binding, no gate evaluated, a verdict that contradicts its results, a configuration
+    that does not hash to its fingerprint) and :class:`GatesFailedError` if the gates failed and
+    no acceptance reason is given.
+    """
     if accept_failed_gates is not None and not str(accept_failed_gates).strip():
         raise ValueError("accept_failed_gates must be a non-empty reason (it is recorded in the release)")
     if gate_report is None:
-        return
+        raise ValueError("gate_report is None: publish_release runs the gates itself when it gets no "
+                         "report; check_gate_report needs the report")
     if not isinstance(gate_report, dict) or "success" not in gate_report or \
             not isinstance(gate_report.get("results"), list):
-        raise ValueError("gate_report must be a dict with 'success' (bool) and 'results' (list); got "
-                         f"{type(gate_report).__name__} with keys "
-                         f"{sorted(gate_report) if isinstance(gate_report, dict) else None}")
+        raise GateBindingError("gate_report must be a dict with 'success' (bool) and 'results' (list); got "
+                               f"{type(gate_report).__name__} with keys "
+                               f"{sorted(gate_report) if isinstance(gate_report, dict) else None}")
+    problems = check_binding_shape(gate_report.get("binding"), "gate report")
+    results = gate_report["results"]
+    if not results:
+        problems.append("gate report: no gate was evaluated ('results' is empty)")
+    elif not all(isinstance(r, dict) and isinstance(r.get("success"), bool) for r in results):
+        problems.append("gate report: every result must be an object with a boolean 'success'")
+    elif bool(gate_report["success"]) != all(r["success"] for r in results):
+        problems.append(f"gate report: 'success' is {gate_report['success']} but "
+                        f"{sum(not r['success'] for r in results)} of {len(results)} results failed")
+    if not problems:
+        from drivetrack.gates.config import config_sha256
+
+        cfg, fp = gate_report.get("config"), gate_report.get("config_sha256")
+        try:
+            found = config_sha256(cfg) if isinstance(cfg, dict) else None
+        except Exception:  # noqa: BLE001 - any unhashable config is a mismatch
+            found = None
+        if found is None or found != fp or gate_report["binding"].get("config_sha256") != fp:
+            problems.append(f"gate report: config_sha256 {fp} does not match its configuration (hashes to "
+                            f"{found}) or its binding ({gate_report['binding'].get('config_sha256')})")
+    if problems:
+        raise GateBindingError("the gate report cannot be trusted for this publish; run `drivetrack gates "
+                               "OUT` (or publish without --gate-report):\n  " + "\n  ".join(problems))
     if not gate_report["success"] and not accept_failed_gates:
         summary = _cards.summarize_gates(gate_report, None)
         failed = [r["name"] for r in summary["results"] if r["success"] is False]
@@ -279,21 +315,29 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
                     gate_report: dict | None = None, accept_failed_gates: str | None = None,
                     config: dict | None = None, card: dict | None = None, resume: bool = False,
                     workers: int = DEFAULT_WORKERS, progress: Progress | None = None,
-                    source_storage_options: dict | None = None) -> PublishResult:
+                    source_storage_options: dict | None = None,
+                    gates_config: str | dict | None = None) -> PublishResult:
     """Publish the folder ``source_dir`` as ``{store_url}/{dataset}/{version}/`` (see module doc).
 
+    ``gate_report``: the report of ``drivetrack.gates.run_gates`` on this content
+    (``GateReport.to_dict()`` or ``validation/gates.json``); its binding must match what is
+    staged. ``None`` runs the gates now (``run_gates(source_dir, gates_config)``, which writes
+    ``source_dir/validation/``); there is no publish without gates. ``accept_failed_gates``:
+    publish although gates failed, with this reason recorded in the manifest and the card.
     ``config`` is recorded in the manifest (``config.publish``); ``card`` (or ``config["card"]``)
     overrides the card defaults (:data:`drivetrack.release.cards.DEFAULT_CARD`).
     """
-    # 0. checks that need no storage
+    # 0. checks before anything is written
     check_version(version)
     check_dataset(dataset)
-    check_gate_report(gate_report, accept_failed_gates)
+    if accept_failed_gates is not None and not str(accept_failed_gates).strip():
+        raise ValueError("accept_failed_gates must be a non-empty reason (it is recorded in the release)")
     card_opts = {**_cards.DEFAULT_CARD, **((config or {}).get("card") or {}), **(card or {})}
     source = _Source(source_dir, source_storage_options)
     sizes = source.list()
     if not sizes:
         raise InvalidSourceError(f"source folder {source.where('')} holds no files: nothing to publish")
+    # the content: names, npz headers, tables, finished segments (refused before the gates run)
     for rel in sizes:
         check_release_path(rel, source.where(rel))
         if rel in RESERVED_NAMES:
@@ -302,13 +346,40 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     run = read_run_json(source.read("run.json") if "run.json" in sizes else None, source.where("run.json"))
     stats_files = {p.split("/", 1)[1]: source.read(p) for p in sizes
                    if p.startswith("stats/") and p.count("/") == 1 and p.endswith(".parquet")}
-    statistics = statistics_from_parquet(stats_files)
+    for name, data in stats_files.items():
+        _contents.check_stats_table(name.rsplit(".", 1)[0], data, source.where(f"stats/{name}"))
     paths = list(sizes)
-    # Reads only .npz headers; a bad clip file fails here, before anything is written.
-    npz_configs = _describe_npz_configs(source, paths, splits_from_paths(paths))
+    clips = [p for p in paths if parse_clip_path(p)]
+    _contents.refuse(source.where(""), _contents.clips_of_unfinished_segments(
+        clips, stats_files.get("segments.parquet"), "stats/segments.parquet"),
+        "clips of segments not recorded as done in stats/segments.parquet; delete them or annotate "
+        "those segments again")
+    # Reads the .npy headers of every clip; a bad clip file fails here, before anything is written.
+    npz_configs = _check_clips(source, paths, splits_from_paths(paths), workers)
+
+    # the gates: the given report, or a run now; either way bound to this content
+    gates_ran_by = "report"
+    if gate_report is None:
+        from drivetrack.gates import run_gates
+
+        gate_report = run_gates(source.url, gates_config).to_dict()
+        gates_ran_by = "publish"
+        before = {p: n for p, n in sizes.items() if not p.startswith("validation/")}
+        sizes = source.list()  # the gates wrote validation/
+        after = {p: n for p, n in sizes.items() if not p.startswith("validation/")}
+        if after != before:
+            changed = sorted(set(before.items()) ^ set(after.items()))
+            raise InvalidSourceError(f"{source.where('')}: files changed while the gates ran "
+                                     f"({', '.join(p for p, _ in changed[:10])}); nothing was published")
+    check_gate_report(gate_report, accept_failed_gates)
+    # The binding without hashing the clips: the same tables (sha256 of the bytes read above), the
+    # same clip paths and sizes. The clips' sha256 are compared on the staged bytes (step 3).
+    _check_binding(gate_report, {f"stats/{n}": sha256_bytes(d) for n, d in stats_files.items()},
+                   {p: (sizes[p], None) for p in clips}, source.where(""))
+    statistics = statistics_from_parquet(stats_files)
 
     store = open_store(store_url, storage_options)
-    vpre, spre, claim = version_prefix(dataset, version), staging_prefix(dataset, version), claim_path(dataset, version)
+    vpre, claim = version_prefix(dataset, version), claim_path(dataset, version)
     manifest_rel = f"{vpre}/{MANIFEST_NAME}"
 
     # 1. never overwrite a published version
@@ -363,10 +434,10 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
         result = _publish_claimed(
             store=store, source=source, sizes=sizes, dataset=dataset, version=version, created=created,
             run=run, statistics=statistics, stats_files=stats_files, npz_configs=npz_configs,
-            config=config, card_opts=card_opts,
+            config=config, card_opts=card_opts, gates_ran_by=gates_ran_by,
             gate_report=gate_report, accept_failed_gates=accept_failed_gates, resume=resume,
             workers=workers, progress=progress, still_ours=still_ours)
-    except (PublishConflictError, InvalidSourceError):
+    except (PublishConflictError, InvalidSourceError, GateBindingError):
         raise
     except Exception as e:
         raise PublishInterruptedError(
@@ -379,8 +450,8 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
 
 def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], dataset: str, version: str,
                      created: str, run: dict | None, statistics: dict, stats_files: dict, npz_configs: dict,
-                     config: dict | None,
-                     card_opts: dict, gate_report: dict | None, accept_failed_gates: str | None,
+                     config: dict | None, gates_ran_by: str,
+                     card_opts: dict, gate_report: dict, accept_failed_gates: str | None,
                      resume: bool, workers: int, progress: Progress | None, still_ours) -> PublishResult:
     vpre, spre = version_prefix(dataset, version), staging_prefix(dataset, version)
     claim = claim_path(dataset, version)
@@ -442,6 +513,15 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
         raise StagingCheckError(f"{len(problems)} staged object(s) do not match the upload: "
                                 + "; ".join(problems[:5]))
     t_data = time.perf_counter() - t0
+    # the gate report's binding against exactly the staged bytes
+    try:
+        _check_binding(gate_report, {e.path: e.sha256 for e in entries if e.path.startswith("stats/")},
+                       {e.path: (e.size, e.sha256) for e in entries if parse_clip_path(e.path)},
+                       source.where(""))
+    except GateBindingError:
+        store.delete_tree(spre)
+        store.delete(claim)
+        raise
     emit("checked", {"files": len(entries)})
 
     # 4. cards and checksums, staged then promoted with the data
@@ -449,6 +529,8 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     splits = splits_from_paths(paths)
     counts = counts_from_files(entries, splits)
     gates = _cards.summarize_gates(gate_report, accept_failed_gates)
+    gates["ran_by"] = gates_ran_by
+    gates["binding_sha256"] = gate_report["binding"]["sha256"]
     code = code_version()
     parquet_columns = _parquet_columns(stats_files)
     croissant = _cards.croissant_bytes(_cards.build_croissant(
@@ -585,20 +667,33 @@ def _finish_committed(store: Store, source: _Source, sizes: dict[str, int], data
         reused_files=len(manifest["files"]), warnings=warnings)
 
 
-def _describe_npz_configs(source: _Source, paths: list[str], splits: list[str]):
-    layouts = {layout: ([clip_glob(layout, s) for s in splits],
-                        [c for s in splits for c in clips_of(paths, layout, s)])
-               for layout in (DRIVETRACK, TAPVID3D)}
+def _check_binding(gate_report: dict, tables: dict[str, str], clips: dict[str, tuple[int, str | None]],
+                   where: str) -> None:
+    problems = binding_problems(gate_report["binding"], tables, clips)
+    if problems:
+        raise GateBindingError(
+            f"{where}: the gate report does not describe this content (binding "
+            f"{gate_report['binding']['sha256'][:16]}); nothing was published. Run the gates on this "
+            f"folder again (`drivetrack gates OUT`, or publish without --gate-report):\n  "
+            + "\n  ".join(problems))
+
+
+def _check_clips(source: _Source, paths: list[str], splits: list[str], workers: int):
+    """Check every clip's ``.npz`` headers (:func:`drivetrack.release.contents.check_clip_npz`);
+    returns the Croissant record sets ``{layout: (globs, merged array specs)}``."""
     out = {}
-    for name, (patterns, files) in layouts.items():
+    for layout in (DRIVETRACK, TAPVID3D):
+        files = [c for s in splits for c in clips_of(paths, layout, s)]
         if not files:
             continue
-        step = max(1, len(files) // NPZ_SAMPLE)
-        specs = []
-        for rel in files[::step][:NPZ_SAMPLE]:
+
+        def check(rel: str, layout=layout):
             with source.open(rel) as f:
-                specs.append(_cards.describe_npz(f, source.where(rel)))
-        out[name] = (patterns, _cards.merge_specs(specs))
+                return [_cards.ArraySpec(name, dtype.str, shape)
+                        for name, dtype, shape in _contents.check_clip_npz(f, source.where(rel), layout)]
+
+        specs = _run_pool(check, files, workers)
+        out[layout] = ([clip_glob(layout, s) for s in splits], _cards.merge_specs(specs))
     return out
 
 
