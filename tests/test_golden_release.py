@@ -9,7 +9,8 @@ carry run-specific values are compared after normalisation, and only those value
 - wall-clock times (ISO timestamps, Great Expectations run ids, ``*seconds`` fields and timings),
 - sha256 digests and byte sizes inside JSON/Markdown (they hash the files above, which carry
   run-specific values themselves; the data files' own digests are compared directly),
-- the code fingerprint (it changes with every code change by design), random ids (uuid4).
+- the code fingerprint and git commit (they change with every commit by design), random ids
+  (uuid4), the folder the package is installed in (the gate config's path).
 
 Great Expectations' Data Docs HTML is compared by file name only (its pages embed run ids).
 Regenerate after an intended output change with ``DRIVETRACK_UPDATE_GOLDEN=1 pytest
@@ -33,6 +34,7 @@ GOLDEN = Path(__file__).parent / "golden" / "release.json"
 
 _TS = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?Z?|\d{8}T\d{6}\.\d+Z")
 _HEX64 = re.compile(r"\b[0-9a-f]{64}\b")
+_GIT = re.compile(r"\b(git [0-9a-f]{7,40}|\+g[0-9a-f]{7,40})(\.dirty)?\b")
 _UUID = re.compile(r"\b[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}\b")
 _VOLATILE_KEY = re.compile(r"(second|timing|(^|_)size$|bytes|contentsize|^created|published|^code(_version)?$"
                            r"|fingerprint|run_id|run_time|time_utc|_utc$|^time$|duration)", re.I)
@@ -44,6 +46,7 @@ def _mask_text(text: str, bases: dict[str, str]) -> str:
     for base, name in bases.items():
         text = text.replace(f"file://{base}", name).replace(base, name)
     text = _TS.sub("<time>", text)
+    text = _GIT.sub("<git>", text)
     text = _UUID.sub("<uuid>", text)
     return _HEX64.sub("<sha256>", text)
 
@@ -97,8 +100,11 @@ def test_golden_release_is_unchanged(synth_source, annotated_output, tmp_path, c
     assert main(["gates", str(out)]) == 0
     assert main(["publish", str(out), "--store", str(store), "--version", "0.1.0"]) == 0
     capsys.readouterr()
+    import drivetrack
+
+    package = str(Path(drivetrack.__file__).resolve().parent)
     bases = {str(out): "<out>", str(store): "<store>", str(annotated_output): "<out>",
-             str(synth_source): "<source>"}
+             str(synth_source): "<source>", package: "<package>", str(Path(package).parent): "<checkout>"}
     digest = {"out": _digest_tree(out, bases), "store": _digest_tree(store, bases)}
     if os.environ.get("DRIVETRACK_UPDATE_GOLDEN"):
         GOLDEN.parent.mkdir(exist_ok=True)
