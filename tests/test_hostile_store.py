@@ -139,13 +139,14 @@ def test_gc_does_not_delete_through_a_symlinked_dataset_folder(tmp_path):
 
 
 def test_gc_never_deletes_committed_files_named_like_locks_or_temporaries(tmp_path):
+    # Publish ships only members of the output contract (no '*.lock' can be one); a Data Docs page
+    # may still carry '.tmp-' in its name.
     src = make_output(tmp_path / "out", n_clips=1)
-    (src / "notes").mkdir()
-    (src / "notes" / "build.lock").write_text("a release file, not a lock")
-    (src / "notes" / "x.tmp-1").write_text("a release file, not a temporary")
+    (src / "validation" / "data_docs").mkdir(parents=True, exist_ok=True)
+    (src / "validation" / "data_docs" / "x.tmp-1.html").write_text("a release file, not a temporary")
     store = tmp_path / "store"
     publish_release(src, store, "1.0.0")
-    for p in (store / DS / "1.0.0" / "notes").iterdir():
+    for p in (store / DS / "1.0.0" / "validation" / "data_docs").iterdir():
         os.utime(p, (OLD, OLD))
     from drivetrack.release import gc
 
@@ -163,8 +164,7 @@ def test_names_with_a_trailing_newline_are_refused(tmp_path, capsys):
     with pytest.raises(ValueError, match="dataset name"):
         publish_release(src, store, "1.0.0", dataset="dsx\n")
     assert not store.exists() or not any(store.iterdir())
-    gates = tmp_path / "gates.json"
-    gates.write_text(json.dumps({"success": True, "results": []}))
+    gates = src / "validation" / "gates.json"  # the folder's own report, bound to its content
     for argv in (["--version", "1.0.0\n"], ["--version", "1.0.0", "--dataset", "dsx\n"]):
         assert cli(["publish", str(src), "--store", str(store), "--gate-report", str(gates)] + argv) != 0
     capsys.readouterr()
@@ -207,6 +207,8 @@ DRIVER = textwrap.dedent('''
     from drivetrack.release.store import LocalConditional
 
     src, stores, mode = sys.argv[1], sys.argv[2], sys.argv[3]
+    with open(os.path.join(src, "validation", "gates.json")) as f:
+        REPORT = json.load(f)  # the folder's own gate report, bound to its content
     OPS = ("link", "replace", "rename", "unlink", "rmdir", "mkdir", "chmod", "open")
 
 
@@ -246,20 +248,20 @@ DRIVER = textwrap.dedent('''
         root = os.path.join(stores, "count")
         log = []
         install(root, 0, log)
-        publish_release(src, root, "1.0.0", workers=1)
+        publish_release(src, root, "1.0.0", workers=1, gate_report=REPORT)
         print(json.dumps(log))
     else:
         points = json.loads(sys.argv[4])
         # One publish first, so that the forked children do not each import pandas/pyarrow lazily.
-        publish_release(src, os.path.join(stores, "warm"), "1.0.0", workers=1)
+        publish_release(src, os.path.join(stores, "warm"), "1.0.0", workers=1, gate_report=REPORT)
         out = {}
         for k in points:
             root = os.path.join(stores, f"k{k}")
-            killed = child(lambda: (install(root, k, []), publish_release(src, root, "1.0.0", workers=1)))
+            killed = child(lambda: (install(root, k, []), publish_release(src, root, "1.0.0", workers=1, gate_report=REPORT)))
 
             def resume():
                 LocalConditional.lock_timeout_s = 0.3  # a lock left by the killed process: wait 0.3 s, not 10
-                publish_release(src, root, "1.0.0", workers=1, resume=True)
+                publish_release(src, root, "1.0.0", workers=1, resume=True, gate_report=REPORT)
             out[k] = {"killed": killed, "resume": child(resume) if mode == "kill+resume" else None}
         print(json.dumps(out))
 ''')
@@ -313,8 +315,7 @@ def test_cli_resume_after_a_kill_inside_the_manifest_commit(tmp_path):
     # Just before the unlink of the manifest's temporary: linked (committed), temporary still there.
     k = next(i for i, (op, p) in enumerate(log) if op == "link" and "manifest.json" in p) + 2
     assert run_driver(tmp_path, src, stores, "kill", json.dumps([k]))[str(k)]["killed"] == 137
-    gates = tmp_path / "gates.json"
-    gates.write_text(json.dumps({"success": True, "results": []}))
+    gates = src / "validation" / "gates.json"  # the folder's own report, bound to its content
     root = stores / f"k{k}"
     done = subprocess.run([sys.executable, "-m", "drivetrack.cli", "publish", str(src), "--store", str(root),
                            "--version", "1.0.0", "--gate-report", str(gates), "--resume"],
@@ -355,8 +356,7 @@ def closed_endpoint(monkeypatch):
 def test_unreachable_store_is_one_line_and_exit_code_4(tmp_path, closed_endpoint, capsys):
     url = "s3://no-bucket/releases"
     src = make_output(tmp_path / "out", n_clips=1)
-    gates = tmp_path / "gates.json"
-    gates.write_text(json.dumps({"success": True, "results": []}))
+    gates = src / "validation" / "gates.json"  # the folder's own report, bound to its content
     ep = ["--endpoint-url", closed_endpoint]
     commands = [
         ["verify", url, "--version", "1.0.0"] + ep,
