@@ -293,7 +293,7 @@ def test_bad_config_raises():
 def test_capped_selection_equals_the_cap_over_all_candidates():
     """The per-frame cap screens candidates in priority order; it must pick exactly the ``cap``
     lowest-priority returns inside the box of each frame, also where the screen holds too few."""
-    from drivetrack.refine import _Selection
+    from drivetrack.refine.select import _Selection
 
     rng = np.random.default_rng(3)
     t_count, cap = 4, 10
@@ -360,8 +360,8 @@ def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
 def test_numba_kernels_match_the_numpy_reference(noisy):
     from scipy.spatial import cKDTree
 
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _normals
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.terms import _normals
     exact, labels, wfv, pts, frame, ts, refined = noisy
     q = pts[:3000]
     dist, index = refine_kernel.knn(q, 12)
@@ -387,7 +387,7 @@ def test_cholesky_kernel_matches_scipy_on_dense_and_envelope_matrices():
     positive definite."""
     import scipy.linalg
 
-    from drivetrack import refine_kernel
+    from drivetrack.refine import kernel as refine_kernel
     rng = np.random.default_rng(6)
     n = 60
     a = rng.normal(size=(n, n))
@@ -412,8 +412,8 @@ def test_solve_spd_picks_lapack_or_the_envelope_kernel_with_the_same_result():
     kernel; either way the result is scipy's, and NaN when the matrix is not positive definite."""
     import scipy.linalg
 
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _solve_spd
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.solver import _solve_spd
 
     rng = np.random.default_rng(8)
     n = 120
@@ -444,7 +444,7 @@ def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
     neighbours and distances as cKDTree (continuous random coordinates: no ties)."""
     from scipy.spatial import cKDTree
 
-    from drivetrack import refine_kernel
+    from drivetrack.refine import kernel as refine_kernel
     rng = np.random.default_rng(4)
     q = np.concatenate([rng.normal(0.0, 0.05, (300, 3)), rng.normal(1.0, 0.3, (300, 3)),
                         rng.uniform(-4.0, 4.0, (20, 3))])
@@ -455,8 +455,8 @@ def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
 
 
 def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _gather_numpy
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.scene import _gather_numpy
     rng = np.random.default_rng(5)
     t_count, per_frame = 4, 3000
     points = rng.uniform(-20.0, 20.0, (t_count * per_frame, 3))
@@ -536,7 +536,8 @@ def test_boxes_without_tilt_are_unchanged_and_with_tilt_carried():
 
 
 def test_six_dof_jacobian_matches_finite_differences():
-    from drivetrack.refine import _body_points, _point_jacobian
+    from drivetrack.refine.select import _body_points
+    from drivetrack.refine.terms import _point_jacobian
 
     rng = np.random.default_rng(1)
     x, n = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
