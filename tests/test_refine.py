@@ -456,7 +456,7 @@ def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
 
 def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
     from drivetrack.refine import kernel as refine_kernel
-    from drivetrack.refine.scene import _gather_numpy
+    from drivetrack.boxes import gather_candidates
     rng = np.random.default_rng(5)
     t_count, per_frame = 4, 3000
     points = rng.uniform(-20.0, 20.0, (t_count * per_frame, 3))
@@ -469,7 +469,7 @@ def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
     for lasers, returns in ((None, None), ((1, 3), (1,))):
         args = (points, laser, return_index, lasers, returns, offsets, box_frame, box_center, box_radius)
         index, owner = refine_kernel.gather(*args)
-        ref_index, ref_owner = _gather_numpy(*args)
+        ref_index, ref_owner = gather_candidates(*args)
         np.testing.assert_array_equal(index, ref_index)
         np.testing.assert_array_equal(owner, ref_owner)
         expect_index, expect_owner = [], []

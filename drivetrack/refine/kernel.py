@@ -16,7 +16,7 @@ tree, each with the numpy/scipy reference it must reproduce:
   frame (reference: ``drivetrack.refine.select._Selection.select``).
 - :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
   envelope (reference: ``scipy.linalg.cho_solve``).
-- :func:`gather`: the candidate returns of every box (reference: ``drivetrack.refine.scene._gather_numpy``).
+- :func:`gather`: the candidate returns of every box (reference: ``drivetrack.boxes.gather_candidates``).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -319,7 +319,7 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     (``box_frame`` int [B], ``box_center`` float64 [B, 3], ``box_radius`` float64 [B], metres): the
     rows i of its frame with ``|points[i] - box_center[b]| <= box_radius[b]`` on every axis, in
     (box, row) order; ``owner`` is b. One pass over each box's frame, no sort of all returns.
-    Reference: ``drivetrack.refine.scene._gather_numpy``."""
+    Reference: ``drivetrack.boxes.gather_candidates``."""
     def table(values):
         ok = np.zeros(256, np.bool_)
         if values is None:

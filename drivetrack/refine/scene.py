@@ -3,45 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivetrack.boxes import gather_candidates, inside_box
 from drivetrack.refine.config import RefineConfig, _use_kernel
 from drivetrack.refine.poses import refine_object_poses
 from drivetrack.refine.rotations import _from_body
 from drivetrack.refine.select import _body_points
 
 __all__ = ["refine_scene_boxes"]
-
-
-def _gather_numpy(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lasers, returns,
-                  frame_offsets: np.ndarray, box_frame: np.ndarray, box_center: np.ndarray,
-                  box_radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reference of ``drivetrack.refine.kernel.gather`` (same arguments, same result): the
-    selected returns sorted once by (frame, vehicle x), so a box's candidates are a contiguous run
-    (a searchsorted on x), then tested on y and z."""
-    frame = np.repeat(np.arange(frame_offsets.size - 1), np.diff(frame_offsets))
-    selected = np.ones(points.shape[0], dtype=bool)
-    if lasers is not None:
-        selected &= np.isin(laser, np.asarray(lasers))
-    if returns is not None:
-        selected &= np.isin(return_index, np.asarray(returns))
-    chosen = np.flatnonzero(selected)
-    x = points[chosen, 0]
-    reach = float(np.abs(box_center[:, 0]).max(initial=0.0)) + float(box_radius.max(initial=0.0))
-    span = 2.0 * (max(float(np.abs(x).max(initial=0.0)), reach) + 1.0)      # frames never overlap
-    key = frame[chosen].astype(np.float64) * span + x                         # increasing in (frame, x)
-    order = np.argsort(key, kind="stable")
-    chosen, key = chosen[order], key[order]
-    box_frame = np.asarray(box_frame, dtype=np.int64)
-    # the runs are widened by a millimetre (the key's rounding), the exact test follows
-    lo = np.searchsorted(key, box_frame * span + box_center[:, 0] - box_radius - 1e-3, side="left")
-    hi = np.searchsorted(key, box_frame * span + box_center[:, 0] + box_radius + 1e-3, side="right")
-    length = np.maximum(hi - lo, 0)
-    owner = np.repeat(np.arange(box_frame.size), length)
-    first = np.concatenate([[0], np.cumsum(length)[:-1]]).astype(np.int64)
-    index = chosen[np.repeat(lo, length) + np.arange(owner.size) - first[owner]]
-    near = np.all(np.abs(points[index] - box_center[owner]) <= box_radius[owner, None], axis=-1)
-    index, owner = index[near], owner[near]
-    order = np.lexsort((index, owner))
-    return index[order].astype(np.int64), owner[order].astype(np.int64)
 
 
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
@@ -92,7 +60,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
     all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
     radius_all = 0.5 * np.linalg.norm(boxes.size[all_rows], axis=-1) + config.candidate_margin_m
-    gather = _gather_numpy
+    gather = gather_candidates
     if _use_kernel(config):
         from drivetrack.refine.kernel import gather
     index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
@@ -113,7 +81,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             r = rows[owner]
             local = points_box_at_capture(p, offsets[index], boxes.center[r], boxes.heading[r], box_velocity[r],
                                           box_yaw_rate[r], *(boxes.tilt(r)))
-        inside = np.all(np.abs(local) <= boxes.size[rows][owner] / 2.0 + config.candidate_margin_m, axis=-1)
+        inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
         if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time
             local, owner = local[inside], owner[inside]
             p = _from_body(local, boxes.heading[rows][owner], None if row_tilt is None else row_tilt[owner]) \
