@@ -8,10 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivetrack.geometry import (box_from_center_heading, invert_rigid, rigid_from_rotation_translation,
-                                 rotation_from_rpy, rotation_z)
-from drivetrack.refine import (REFINE_REASONS, RefineConfig, RefinedPoses, center_heading_from_poses,
-                               refine_object_poses)
+from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, invert_rigid,
+                                 rigid_from_rotation_translation, rotation_from_rpy, rotation_z)
+from drivetrack.refine import REFINE_REASONS, RefineConfig, RefinedPoses, refine_object_poses
 
 SIZE = np.array([4.6, 1.9, 1.6])
 SENSOR_HEIGHT = 2.0
@@ -500,7 +499,7 @@ def test_box_transform_convention_with_pitch_and_roll():
     both = box_from_center_heading(center, np.array([np.pi / 2]), np.array([np.pi / 6]), np.array([0.2]))[0]
     np.testing.assert_allclose(both[:3, 0], [0.0, np.cos(np.pi / 6), -0.5], atol=1e-15)
     np.testing.assert_allclose(both[:3, 3], center[0])
-    from drivetrack.refine import tilt_from_poses
+    from drivetrack.geometry import tilt_from_poses
     np.testing.assert_allclose(tilt_from_poses(both[None])[0], [np.pi / 6, 0.2], atol=1e-12)
     assert np.arctan2(both[1, 0], both[0, 0]) == pytest.approx(np.pi / 2)        # heading is still the yaw
     np.testing.assert_array_equal(tilt_from_poses(yaw_only), np.zeros((1, 2)))
@@ -572,7 +571,7 @@ def tilted():
 
 
 def test_six_dof_recovers_pitch_and_roll_and_beats_four_dof(tilted):
-    from drivetrack.refine import tilt_from_poses
+    from drivetrack.geometry import tilt_from_poses
     exact, labels, wfv, pts, frame, ts, six, four = tilted
     assert six.refined and four.refined
     truth = tilt_from_poses(exact)                                       # [T, 2] (pitch, roll)

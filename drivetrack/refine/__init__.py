@@ -43,9 +43,10 @@ Modules: :mod:`.config` (``RefineConfig``, ``RefineReason``), :mod:`.poses` (one
 association, normal equations), :mod:`.motion` (motion model), :mod:`.solver` (SPD solve),
 :mod:`.kernel` (the numba kernels of the inner loop).
 """
+# the pose helpers live in drivetrack.geometry; re-exported here because docs/refinement.md documents them here
+from drivetrack.geometry import center_heading_from_poses, poses_from_center_heading, tilt_from_poses
 from drivetrack.refine.config import REFINE_REASONS, RefineConfig, RefineReason
 from drivetrack.refine.poses import RefinedPoses, refine_object_poses
-from drivetrack.refine.rotations import center_heading_from_poses, poses_from_center_heading, tilt_from_poses
 from drivetrack.refine.scene import refine_scene_boxes
 
 __all__ = ["RefineConfig", "RefineReason", "RefinedPoses", "refine_object_poses", "refine_scene_boxes",

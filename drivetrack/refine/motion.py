@@ -3,9 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import box_from_center_heading
+from drivetrack.geometry import box_from_center_heading, tilt_from_poses
 from drivetrack.refine.config import RefineConfig
-from drivetrack.refine.rotations import tilt_from_poses
 
 
 def _world_tilt_offset(world_from_vehicle: np.ndarray, heading: np.ndarray) -> np.ndarray:

@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.geometry import box_from_center_heading
+from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, tilt_from_poses, vectors_from_box,
+                                 wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.motion import _motion_operator
-from drivetrack.refine.rotations import _from_body, _wrap, center_heading_from_poses, tilt_from_poses
 from drivetrack.refine.select import _body_points, _inside, _Selection
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
@@ -142,9 +142,9 @@ def _result(center, heading, label_center, label_heading, world_from_vehicle, ti
     tilt = np.zeros((heading.shape[0], 2)) if tilt is None else tilt
     return RefinedPoses(
         vehicle_from_box=vehicle_from_box, world_from_box=world_from_vehicle @ vehicle_from_box,
-        center_vehicle=center, heading=_wrap(heading), pitch=tilt[:, 0].copy(), roll=tilt[:, 1].copy(),
+        center_vehicle=center, heading=wrap_angle(heading), pitch=tilt[:, 0].copy(), roll=tilt[:, 1].copy(),
         correction_translation_m=center - label_center,
-        correction_rotation_deg=np.rad2deg(_wrap(heading - label_heading)), **kw)
+        correction_rotation_deg=np.rad2deg(wrap_angle(heading - label_heading)), **kw)
 
 
 def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_from_vehicle: np.ndarray,
@@ -297,7 +297,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         per_frame_residual = np.where(cnt > 0, np.sqrt(sq / np.maximum(cnt, 1)), np.nan)
 
     translation = np.linalg.norm(center - label_center, axis=-1)
-    rotation = np.rad2deg(np.abs(_wrap(heading - label_heading)))
+    rotation = np.rad2deg(np.abs(wrap_angle(heading - label_heading)))
     if six:      # the tilt's correction counts towards the rotation bound as well
         rotation = np.maximum(rotation, np.rad2deg(np.max(np.abs(tilt - label_tilt), axis=1)))
     if not (np.all(np.isfinite(center)) and np.all(np.isfinite(heading)) and np.isfinite(residual)
@@ -335,7 +335,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         grow_lo[2] = 0.0
         if np.any(grow_hi > 0) or np.any(grow_lo > 0):
             offset = (grow_hi - grow_lo) / 2.0                                   # body frame
-            center = center + _from_body(np.broadcast_to(offset, (t_count, 3)), heading, tilt)
+            center = center + vectors_from_box(np.broadcast_to(offset, (t_count, 3)), heading,
+                                               *((None, None) if tilt is None else (tilt[:, 0], tilt[:, 1])))
             size_out = size + (grow_hi + grow_lo)
             extent_detail = (f"; box grown to the registered returns by {np.round(grow_lo * 100, 1).tolist()} / "
                              f"{np.round(grow_hi * 100, 1).tolist()} cm (-x -y -z / +x +y +z)")

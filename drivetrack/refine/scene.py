@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.boxes import gather_candidates, inside_box
+from drivetrack.geometry import vectors_from_box
 from drivetrack.refine.config import RefineConfig, _use_kernel
 from drivetrack.refine.poses import refine_object_poses
-from drivetrack.refine.rotations import _from_body
 from drivetrack.refine.select import _body_points
 
 __all__ = ["refine_scene_boxes"]
@@ -84,7 +84,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
         if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time
             local, owner = local[inside], owner[inside]
-            p = _from_body(local, boxes.heading[rows][owner], None if row_tilt is None else row_tilt[owner]) \
+            tilt_o = (None, None) if row_tilt is None else (row_tilt[owner, 0], row_tilt[owner, 1])
+            p = vectors_from_box(local, boxes.heading[rows][owner], *tilt_o) \
                 + boxes.center[rows][owner]
             inside = np.ones(owner.size, dtype=bool)
         result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],

@@ -3,14 +3,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.refine.rotations import _to_body
+from drivetrack.geometry import vectors_to_box
 
 
 def _body_points(center: np.ndarray, heading: np.ndarray, points: np.ndarray, frame: np.ndarray,
                  tilt: np.ndarray | None = None) -> np.ndarray:
     """float64 [M, 3]: ``box_from_vehicle(s_frame) x`` for points x [M, 3] of frames ``frame``
     (tilt [T, 2] = per-frame (pitch, roll), None: yaw-only boxes)."""
-    return _to_body(points - center[frame], heading[frame], None if tilt is None else tilt[frame])
+    if tilt is None:
+        return vectors_to_box(points - center[frame], heading[frame])
+    return vectors_to_box(points - center[frame], heading[frame], tilt[frame, 0], tilt[frame, 1])
 
 
 def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) -> np.ndarray:
