@@ -1,4 +1,7 @@
-"""Rigid transforms, boxes and the Waymo camera model, vectorised in numpy.
+"""Rigid transforms, rotations, boxes and the Waymo camera model, vectorised in numpy.
+
+Every rotation helper of the project lives here (box poses from centre, heading, pitch and roll
+and back; rotations of vectors into and out of a box frame).
 
 Conventions, stated once for the whole project:
 
@@ -19,8 +22,9 @@ import numpy as np
 
 __all__ = [
     "transform_points", "invert_rigid", "matrix_from_flat", "rotation_z", "rotation_from_rpy",
-    "rigid_from_rotation_translation", "box_from_center_heading", "points_in_box_mask",
-    "CameraModel", "MAX_TRUSTED_DISTORTION", "MIN_TRUSTED_DISTORTION",
+    "rigid_from_rotation_translation", "box_from_center_heading", "points_in_box_mask", "wrap_angle",
+    "vectors_to_box", "vectors_from_box", "poses_from_center_heading", "center_heading_from_poses",
+    "tilt_from_poses", "CameraModel", "MAX_TRUSTED_DISTORTION", "MIN_TRUSTED_DISTORTION",
 ]
 
 #: Waymo treats a radial distortion factor outside this range as untrusted (the point lies where
@@ -132,6 +136,65 @@ def points_in_box_mask(points_box: np.ndarray, size: np.ndarray, margin: float =
     """
     half = np.asarray(size, dtype=np.float64)[..., None, :] / 2.0 + margin
     return np.all(np.abs(points_box) <= half, axis=-1)
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """float64 [...]: angles (radians) wrapped to (-pi, pi]."""
+    return -((-np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi)
+
+
+def vectors_to_box(vectors: np.ndarray, heading: np.ndarray, pitch: np.ndarray | None = None,
+                   roll: np.ndarray | None = None) -> np.ndarray:
+    """float64 [N, 3] ``R^T v`` of vectors float [N, 3] (e.g. ``x - center``: body points), per row
+    ``R = Rz(heading) Ry(pitch) Rx(roll)`` (:func:`box_from_center_heading`'s rotation), angles
+    float [N] radians. ``pitch`` and ``roll`` None: yaw only (exactly ``Rz(heading)^T v``); one
+    of them None: 0. Elementwise (no matrices), so cheap on many rows."""
+    c, s = np.cos(heading), np.sin(heading)
+    u = np.stack([c * vectors[:, 0] + s * vectors[:, 1], -s * vectors[:, 0] + c * vectors[:, 1], vectors[:, 2]],
+                 axis=-1)
+    if pitch is None and roll is None:
+        return u
+    pitch = np.zeros(u.shape[0]) if pitch is None else pitch
+    roll = np.zeros(u.shape[0]) if roll is None else roll
+    ct, st, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    vx, vz = ct * u[:, 0] - st * u[:, 2], st * u[:, 0] + ct * u[:, 2]                 # Ry^T u
+    return np.stack([vx, cr * u[:, 1] + sr * vz, -sr * u[:, 1] + cr * vz], axis=-1)   # Rx^T v
+
+
+def vectors_from_box(vectors: np.ndarray, heading: np.ndarray, pitch: np.ndarray | None = None,
+                     roll: np.ndarray | None = None) -> np.ndarray:
+    """float64 [N, 3] ``R v``: the inverse of :func:`vectors_to_box` (same arguments)."""
+    if pitch is not None or roll is not None:
+        pitch = np.zeros(vectors.shape[0]) if pitch is None else pitch
+        roll = np.zeros(vectors.shape[0]) if roll is None else roll
+        ct, st, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+        vy, vz = cr * vectors[:, 1] - sr * vectors[:, 2], sr * vectors[:, 1] + cr * vectors[:, 2]     # Rx v
+        vectors = np.stack([ct * vectors[:, 0] + st * vz, vy, -st * vectors[:, 0] + ct * vz], axis=-1)  # Ry
+    c, s = np.cos(heading), np.sin(heading)
+    return np.stack([c * vectors[:, 0] - s * vectors[:, 1], s * vectors[:, 0] + c * vectors[:, 1], vectors[:, 2]],
+                    axis=-1)
+
+
+def poses_from_center_heading(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
+    """float64 [T, 4, 4] ``vehicle_from_box`` of centres [T, 3] and headings [T] (radians)."""
+    return box_from_center_heading(center, heading)
+
+
+def center_heading_from_poses(vehicle_from_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre float64 [T, 3], heading float64 [T]) of yaw-dominant box poses [T, 4, 4].
+
+    The heading is the yaw of the box x axis projected on the vehicle xy plane (the convention
+    ``lidar_box`` labels use); roll and pitch, if any, are dropped.
+    """
+    vehicle_from_box = np.asarray(vehicle_from_box, dtype=np.float64)
+    return vehicle_from_box[..., :3, 3].copy(), np.arctan2(vehicle_from_box[..., 1, 0], vehicle_from_box[..., 0, 0])
+
+
+def tilt_from_poses(vehicle_from_box: np.ndarray) -> np.ndarray:
+    """float64 [T, 2] (pitch, roll) radians of box poses [T, 4, 4] with rotation
+    ``Rz(heading) Ry(pitch) Rx(roll)``; exactly 0 for yaw-only poses."""
+    r = np.asarray(vehicle_from_box, dtype=np.float64)[..., :3, :3]
+    return np.stack([-np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0)), np.arctan2(r[..., 2, 1], r[..., 2, 2])], axis=-1)
 
 
 @dataclass(frozen=True)

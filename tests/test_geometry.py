@@ -135,3 +135,39 @@ def test_inside_image_half_open_pixel_convention():
     cam = _camera()
     pix = np.array([[0.0, 0.0], [1919.999, 1279.999], [1920.0, 5.0], [-0.001, 5.0], [np.nan, 1.0]])
     np.testing.assert_array_equal(cam.inside_image(pix), [True, True, False, False, False])
+
+
+def test_vectors_to_and_from_box_are_the_box_rotation_and_its_inverse():
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(7, 3))
+    heading, pitch, roll = rng.uniform(-3, 3, 7), rng.uniform(-1, 1, 7), rng.uniform(-1, 1, 7)
+    rotation = g.rotation_from_rpy(roll, pitch, heading)                          # [7, 3, 3]
+    np.testing.assert_allclose(g.vectors_from_box(v, heading, pitch, roll), np.einsum("nij,nj->ni", rotation, v),
+                               atol=1e-12)
+    np.testing.assert_allclose(g.vectors_to_box(v, heading, pitch, roll), np.einsum("nji,nj->ni", rotation, v),
+                               atol=1e-12)
+    np.testing.assert_allclose(g.vectors_from_box(g.vectors_to_box(v, heading, pitch, roll), heading, pitch, roll),
+                               v, atol=1e-12)
+    # yaw only: exactly the tilt-free rotation, and a missing pitch or roll is 0
+    yaw_only = g.vectors_to_box(v, heading)
+    np.testing.assert_array_equal(yaw_only, g.vectors_to_box(v, heading, np.zeros(7), np.zeros(7)))
+    np.testing.assert_array_equal(g.vectors_to_box(v, heading, pitch), g.vectors_to_box(v, heading, pitch, np.zeros(7)))
+    np.testing.assert_allclose(yaw_only, np.einsum("nji,nj->ni", g.rotation_z(heading), v), atol=1e-12)
+    np.testing.assert_allclose(g.vectors_to_box(np.array([[1.0, 0.0, 0.0]]), np.array([math.pi / 2])),
+                               [[0.0, -1.0, 0.0]], atol=1e-15)
+    assert g.vectors_to_box(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0)).shape == (0, 3)
+    assert g.vectors_from_box(np.zeros((0, 3)), np.zeros(0)).shape == (0, 3)
+
+
+def test_pose_helpers_round_trip_and_wrap_angle():
+    center, heading = np.array([[1.0, 2.0, 3.0], [-4.0, 0.5, 0.0]]), np.array([0.3, -2.9])
+    poses = g.poses_from_center_heading(center, heading)
+    c, h = g.center_heading_from_poses(poses)
+    np.testing.assert_allclose(c, center)
+    np.testing.assert_allclose(h, heading, atol=1e-15)
+    np.testing.assert_array_equal(g.tilt_from_poses(poses), np.zeros((2, 2)))
+    tilted = g.box_from_center_heading(center, heading, np.array([0.1, -0.2]), np.array([0.05, 0.3]))
+    np.testing.assert_allclose(g.tilt_from_poses(tilted), [[0.1, 0.05], [-0.2, 0.3]], atol=1e-12)
+    np.testing.assert_allclose(g.center_heading_from_poses(tilted)[1], heading, atol=1e-12)
+    np.testing.assert_allclose(g.wrap_angle(np.array([0.0, math.pi, -math.pi, 1.5 * math.pi, -4.0])),
+                               [0.0, math.pi, math.pi, -0.5 * math.pi, 2 * math.pi - 4.0], atol=1e-12)

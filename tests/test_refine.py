@@ -8,10 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivetrack.geometry import (box_from_center_heading, invert_rigid, rigid_from_rotation_translation,
-                                 rotation_from_rpy, rotation_z)
-from drivetrack.refine import (REFINE_REASONS, RefineConfig, RefinedPoses, center_heading_from_poses,
-                               refine_object_poses)
+from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, invert_rigid,
+                                 rigid_from_rotation_translation, rotation_from_rpy, rotation_z)
+from drivetrack.refine import REFINE_REASONS, RefineConfig, RefinedPoses, refine_object_poses
 
 SIZE = np.array([4.6, 1.9, 1.6])
 SENSOR_HEIGHT = 2.0
@@ -293,7 +292,7 @@ def test_bad_config_raises():
 def test_capped_selection_equals_the_cap_over_all_candidates():
     """The per-frame cap screens candidates in priority order; it must pick exactly the ``cap``
     lowest-priority returns inside the box of each frame, also where the screen holds too few."""
-    from drivetrack.refine import _Selection
+    from drivetrack.refine.select import _Selection
 
     rng = np.random.default_rng(3)
     t_count, cap = 4, 10
@@ -360,8 +359,8 @@ def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
 def test_numba_kernels_match_the_numpy_reference(noisy):
     from scipy.spatial import cKDTree
 
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _normals
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.terms import _normals
     exact, labels, wfv, pts, frame, ts, refined = noisy
     q = pts[:3000]
     dist, index = refine_kernel.knn(q, 12)
@@ -387,7 +386,7 @@ def test_cholesky_kernel_matches_scipy_on_dense_and_envelope_matrices():
     positive definite."""
     import scipy.linalg
 
-    from drivetrack import refine_kernel
+    from drivetrack.refine import kernel as refine_kernel
     rng = np.random.default_rng(6)
     n = 60
     a = rng.normal(size=(n, n))
@@ -412,8 +411,8 @@ def test_solve_spd_picks_lapack_or_the_envelope_kernel_with_the_same_result():
     kernel; either way the result is scipy's, and NaN when the matrix is not positive definite."""
     import scipy.linalg
 
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _solve_spd
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.solver import _solve_spd
 
     rng = np.random.default_rng(8)
     n = 120
@@ -444,7 +443,7 @@ def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
     neighbours and distances as cKDTree (continuous random coordinates: no ties)."""
     from scipy.spatial import cKDTree
 
-    from drivetrack import refine_kernel
+    from drivetrack.refine import kernel as refine_kernel
     rng = np.random.default_rng(4)
     q = np.concatenate([rng.normal(0.0, 0.05, (300, 3)), rng.normal(1.0, 0.3, (300, 3)),
                         rng.uniform(-4.0, 4.0, (20, 3))])
@@ -455,8 +454,8 @@ def test_knn_kernel_is_exact_on_clustered_and_sparse_points(cell_m):
 
 
 def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
-    from drivetrack import refine_kernel
-    from drivetrack.refine import _gather_numpy
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.boxes import gather_candidates
     rng = np.random.default_rng(5)
     t_count, per_frame = 4, 3000
     points = rng.uniform(-20.0, 20.0, (t_count * per_frame, 3))
@@ -469,7 +468,7 @@ def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
     for lasers, returns in ((None, None), ((1, 3), (1,))):
         args = (points, laser, return_index, lasers, returns, offsets, box_frame, box_center, box_radius)
         index, owner = refine_kernel.gather(*args)
-        ref_index, ref_owner = _gather_numpy(*args)
+        ref_index, ref_owner = gather_candidates(*args)
         np.testing.assert_array_equal(index, ref_index)
         np.testing.assert_array_equal(owner, ref_owner)
         expect_index, expect_owner = [], []
@@ -500,7 +499,7 @@ def test_box_transform_convention_with_pitch_and_roll():
     both = box_from_center_heading(center, np.array([np.pi / 2]), np.array([np.pi / 6]), np.array([0.2]))[0]
     np.testing.assert_allclose(both[:3, 0], [0.0, np.cos(np.pi / 6), -0.5], atol=1e-15)
     np.testing.assert_allclose(both[:3, 3], center[0])
-    from drivetrack.refine import tilt_from_poses
+    from drivetrack.geometry import tilt_from_poses
     np.testing.assert_allclose(tilt_from_poses(both[None])[0], [np.pi / 6, 0.2], atol=1e-12)
     assert np.arctan2(both[1, 0], both[0, 0]) == pytest.approx(np.pi / 2)        # heading is still the yaw
     np.testing.assert_array_equal(tilt_from_poses(yaw_only), np.zeros((1, 2)))
@@ -536,7 +535,8 @@ def test_boxes_without_tilt_are_unchanged_and_with_tilt_carried():
 
 
 def test_six_dof_jacobian_matches_finite_differences():
-    from drivetrack.refine import _body_points, _point_jacobian
+    from drivetrack.refine.select import _body_points
+    from drivetrack.refine.terms import _point_jacobian
 
     rng = np.random.default_rng(1)
     x, n = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
@@ -571,7 +571,7 @@ def tilted():
 
 
 def test_six_dof_recovers_pitch_and_roll_and_beats_four_dof(tilted):
-    from drivetrack.refine import tilt_from_poses
+    from drivetrack.geometry import tilt_from_poses
     exact, labels, wfv, pts, frame, ts, six, four = tilted
     assert six.refined and four.refined
     truth = tilt_from_poses(exact)                                       # [T, 2] (pitch, roll)

@@ -314,6 +314,26 @@ def test_ground_points_are_removed():
     assert np.isclose(z, 0.5).any() and not np.isclose(z, 0.1).any()
 
 
+def test_returns_in_boxes_equal_a_brute_force_box_test():
+    """drivetrack.boxes.returns_in_boxes (the plan's per-box selection): its x-slab pre-filter
+    loses nothing against testing every return of the frame against the box."""
+    from drivetrack.boxes import returns_in_boxes
+
+    b = SceneBuilder()
+    b.add_object("car", world_center(b, 10.0), extra_local=[[-1.0, 0.0, -0.65], [-1.0, 0.0, -0.25]])
+    b.add_object("near", world_center(b, 6.0, 2.0))
+    scene = b.build()
+    boxes, lidar = scene.boxes, scene.lidar
+    rows = np.arange(len(boxes))
+    offsets, index = returns_in_boxes(scene, rows, None, None, 0.0, 0.2, compensate_sweep_motion=False)
+    for row in rows:
+        part = lidar.of_frame(int(boxes.frame[row]))
+        local = transform_points(invert_rigid(boxes.vehicle_from_box(row)), lidar.points_vehicle[part])
+        ok = np.all(np.abs(local) <= boxes.size[row] / 2.0, axis=-1) & (local[:, 2] >= -boxes.size[row, 2] / 2 + 0.2)
+        np.testing.assert_array_equal(index[offsets[row]:offsets[row + 1]], np.arange(part.start, part.stop)[ok])
+    assert index.size > 0
+
+
 def test_duplicate_box_is_an_error_naming_object_and_frame():
     b = SceneBuilder()
     b.add_object("car", world_center(b, 10.0))

@@ -13,12 +13,14 @@ from typing import Any
 from drivetrack.gates.config import PERCENTILES, gate_reason, gate_value
 from drivetrack.gates.tables import (OBJECT_KEYS, REACHED_PREFIX, REFINE_SPEED_ERR_INCREASE, REJECTED_PREFIX,
                                      SEGMENT_KEYS, SHARE_PREFIX, SPEED_ERR_COLUMNS, SPLIT_KEYS, GateTables)
+from drivetrack.refine.config import RefineReason
 
 LEVELS = ("object", "segment", "release")
 
 
-#: Outcomes of the pose refinement (drivetrack.refine) that are not a sign of trouble.
-TRUSTED_REFINE_OUTCOMES = ("refined", "labels_consistent", "too_few_points", "disabled")
+#: Outcomes of the pose refinement (drivetrack.refine) that are not a sign of trouble (plain str values).
+TRUSTED_REFINE_OUTCOMES = tuple(reason.value for reason in (RefineReason.REFINED, RefineReason.LABELS_CONSISTENT,
+                                                            RefineReason.TOO_FEW_POINTS, RefineReason.DISABLED))
 
 
 @dataclass(frozen=True)

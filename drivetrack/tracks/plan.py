@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivetrack.boxes import returns_in_boxes
 from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.scene import Scene
 from drivetrack.tracks.config import TrackConfig
-from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["REJECTION_REASONS", "CameraGeometry", "ObjectJob", "SegmentPlan", "plan_segment",
@@ -202,59 +202,13 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
     A return belongs to a box when it is of a selected laser and return index, lies inside the
     box grown by ``box_margin_m`` and at least ``ground_clearance_m`` above the box bottom. With
     ``config.compensate_sweep_motion`` and ``lidar.capture_offset_s``, the box is moved to each
-    return's capture time first (:func:`drivetrack.tracks.sweep.points_box_at_capture`).
-    Per frame, returns are sorted by x once; each box then tests only the slab of returns whose
-    x is within its horizontal radius.
+    return's capture time first. See :func:`drivetrack.boxes.returns_in_boxes`.
 
     Returns:
         ``(offsets int64 [K + 1], index int64 [P])`` (rows not in ``rows`` get no points).
     """
-    lidar, boxes = scene.lidar, scene.boxes
-    k = len(boxes)
-    selected = np.isin(lidar.laser, config.laser_values) & np.isin(lidar.return_index, config.returns)
-    rows = np.unique(np.asarray(rows, dtype=np.int64))
-    per_row: dict[int, np.ndarray] = {}
-    grow = max(config.box_margin_m, 0.0)
-    offsets_s = lidar.capture_offset_s if config.compensate_sweep_motion else None
-    if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep.py)
-        velocity, yaw_rate = scene_box_motion(scene)
-    for t in np.unique(boxes.frame[rows]):
-        part = lidar.of_frame(int(t))
-        frame_index = np.arange(part.start, part.stop)[selected[part]]
-        if frame_index.size == 0:
-            continue
-        points = lidar.points_vehicle[frame_index]
-        order = np.argsort(points[:, 0], kind="stable")
-        xs = points[order, 0]
-        dt = None if offsets_s is None else offsets_s[frame_index]
-        max_dt = 0.0 if dt is None else float(np.max(np.abs(dt)))
-        for row in rows[boxes.frame[rows] == t]:
-            center, size = boxes.center[row], boxes.size[row]
-            radius = 0.5 * float(np.hypot(size[0], size[1]) if boxes.pitch is None and boxes.roll is None
-                                 else np.linalg.norm(size)) + grow          # a tilted box reaches further
-            if dt is not None:
-                radius += max_dt * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance
-            lo, hi = np.searchsorted(xs, [center[0] - radius, center[0] + radius], side="left")
-            candidates = order[lo:hi]
-            near = np.abs(points[candidates, 1] - center[1]) <= radius
-            candidates = candidates[near]
-            if dt is None:
-                box_from_vehicle = invert_rigid(boxes.vehicle_from_box(row))
-                local = transform_points(box_from_vehicle, points[candidates])
-            else:
-                local = points_box_at_capture(points[candidates], dt[candidates], center, boxes.heading[row],
-                                              velocity[row], yaw_rate[row], *boxes.tilt(row))
-            half = size / 2.0 + config.box_margin_m
-            inside = np.all(np.abs(local) <= half, axis=-1)
-            inside &= local[:, 2] >= -size[2] / 2.0 + config.ground_clearance_m
-            per_row[int(row)] = np.sort(frame_index[candidates[inside]])
-    counts = np.zeros(k, dtype=np.int64)
-    for row, index in per_row.items():
-        counts[row] = index.size
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    index = (np.concatenate([per_row[r] for r in sorted(per_row)]).astype(np.int64)
-             if per_row else np.zeros(0, dtype=np.int64))
-    return offsets, index
+    return returns_in_boxes(scene, rows, config.laser_values, config.returns, config.box_margin_m,
+                            config.ground_clearance_m, config.compensate_sweep_motion)
 
 
 def _unit_grid(n: int) -> np.ndarray:

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivetrack.geometry import vectors_to_box
+
 __all__ = ["box_motion_world", "scene_box_motion", "points_box_at_capture"]
 
 
@@ -125,14 +127,7 @@ def points_box_at_capture(points_vehicle: np.ndarray, offset_s: np.ndarray | Non
         centre = centre + np.broadcast_to(np.asarray(velocity_vehicle, np.float64), (n, 3)) * dt[:, None]
     if yaw_rate is not None:
         yaw = yaw + np.broadcast_to(np.asarray(yaw_rate, np.float64), (n,)) * dt
-    d = points - centre
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    u = np.stack([cos * d[:, 0] + sin * d[:, 1], -sin * d[:, 0] + cos * d[:, 1], d[:, 2]], axis=-1)
-    if pitch is None and roll is None:
-        return u
-    # then R^T = Rx(roll)^T Ry(pitch)^T Rz(heading)^T (geometry.box_from_center_heading)
-    theta = np.broadcast_to(np.asarray(0.0 if pitch is None else pitch, dtype=np.float64), (n,))
-    phi = np.broadcast_to(np.asarray(0.0 if roll is None else roll, dtype=np.float64), (n,))
-    ct, st, cr, sr = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
-    vx, vz = ct * u[:, 0] - st * u[:, 2], st * u[:, 0] + ct * u[:, 2]
-    return np.stack([vx, cr * u[:, 1] + sr * vz, -sr * u[:, 1] + cr * vz], axis=-1)
+    if pitch is not None or roll is not None:     # R^T = Rx(roll)^T Ry(pitch)^T Rz(heading)^T
+        pitch, roll = (np.broadcast_to(np.asarray(0.0 if a is None else a, dtype=np.float64), (n,))
+                       for a in (pitch, roll))
+    return vectors_to_box(points - centre, yaw, pitch, roll)

@@ -8,15 +8,15 @@ tree, each with the numpy/scipy reference it must reproduce:
   voxel grid (the object's points fill a few metres) searched in growing Chebyshev shells until the
   k-th distance is inside the searched block; ties are broken by the lower index.
 - :func:`normals`: PCA normals and planarity of neighbour lists, the same closed-form 3x3 eigen
-  decomposition as ``drivetrack.refine._normals`` (same formulas, same order of operations).
+  decomposition as ``drivetrack.refine.terms._normals`` (same formulas, same order of operations).
 - :func:`normal_equations`: the dense [DT, DT] normal equations and gradient of weighted
   point-to-plane pairs (2 x D Jacobian non-zeros per pair; D = 4: centre and heading, D = 6: and
-  pitch, roll), as ``drivetrack.refine._pair_terms`` assembles them with ``np.bincount``.
+  pitch, roll), as ``drivetrack.refine.terms._pair_terms`` assembles them with ``np.bincount``.
 - :func:`select`: the capped per-frame point selection with the body points, in one pass per
-  frame (reference: ``drivetrack.refine._Selection.select``).
+  frame (reference: ``drivetrack.refine.select._Selection.select``).
 - :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
   envelope (reference: ``scipy.linalg.cho_solve``).
-- :func:`gather`: the candidate returns of every box (reference: ``drivetrack.refine._gather_numpy``).
+- :func:`gather`: the candidate returns of every box (reference: ``drivetrack.boxes.gather_candidates``).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -204,7 +204,7 @@ def _normals_kernel(model, neighbours, normal, planarity):
 
 def normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals float64 [P, 3] and planarity float64 [P] of neighbour lists int [P, k] into
-    ``model`` [*, 3]; see ``drivetrack.refine._normals`` (the reference)."""
+    ``model`` [*, 3]; see ``drivetrack.refine.terms._normals`` (the reference)."""
     neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
     normal = np.empty((neighbours.shape[0], 3))
     planarity = np.empty(neighbours.shape[0])
@@ -228,7 +228,7 @@ def _normal_equations_kernel(n, qa, qb, fa, fb, trig, dof, w, r, hessian, gradie
                 jac[o + 1] = -sign * (s * n[i, 0] + c * n[i, 1])
                 jac[o + 2] = -sign * n[i, 2]
                 jac[o + 3] = sign * (n[i, 0] * q[i, 1] - n[i, 1] * q[i, 0])
-            else:                               # same formulas as refine._point_jacobian
+            else:                               # same formulas as refine.terms._point_jacobian
                 ct, st, cr, sr = trig[f, 2], trig[f, 3], trig[f, 4], trig[f, 5]
                 vy, vz = cr * q[i, 1] - sr * q[i, 2], sr * q[i, 1] + cr * q[i, 2]
                 ux, uy = ct * q[i, 0] + st * vz, vy
@@ -256,7 +256,7 @@ def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, fa: np.ndarr
     """(hessian float64 [DT, DT], gradient float64 [DT]) of pairs with body normals n [C, 3] and
     body points qa, qb [C, 3] of frames fa, fb [C], weights w [C] and residuals r [C], at the
     per-frame headings ``heading`` [T] (radians) and, for D = 6, tilts ``tilt`` [T, 2] = (pitch,
-    roll) radians (None: D = 4, centre and heading); see ``drivetrack.refine._pair_terms`` (the
+    roll) radians (None: D = 4, centre and heading); see ``drivetrack.refine.terms._pair_terms`` (the
     reference). Sines and cosines are taken once per frame."""
     dof = 4 if tilt is None else 6
     t_count = heading.shape[0]
@@ -319,7 +319,7 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     (``box_frame`` int [B], ``box_center`` float64 [B, 3], ``box_radius`` float64 [B], metres): the
     rows i of its frame with ``|points[i] - box_center[b]| <= box_radius[b]`` on every axis, in
     (box, row) order; ``owner`` is b. One pass over each box's frame, no sort of all returns.
-    Reference: ``drivetrack.refine._gather_numpy``."""
+    Reference: ``drivetrack.boxes.gather_candidates``."""
     def table(values):
         ok = np.zeros(256, np.bool_)
         if values is None:
@@ -377,7 +377,7 @@ def select(points: np.ndarray, start: np.ndarray, counts: np.ndarray, half: np.n
     metres; each frame's rows in priority order) that lie inside the box (centre [T, 3], heading
     [T], tilt [T, 2] = (pitch, roll) or None, half-size ``half`` [T, 3]) grown by ``margin`` and at
     least ``clearance`` above its bottom, in row order. Reference:
-    ``drivetrack.refine._Selection.select`` (the same subset and body points)."""
+    ``drivetrack.refine.select._Selection.select`` (the same subset and body points)."""
     t_count = start.shape[0]
     size = int(min(points.shape[0], cap * t_count))
     q = np.empty((size, 3))

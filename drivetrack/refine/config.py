@@ -1,0 +1,172 @@
+"""Configuration and outcomes of the pose refinement: :class:`RefineConfig`, :class:`RefineReason`."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from enum import StrEnum
+
+import numpy as np
+
+__all__ = ["RefineConfig", "RefineReason", "REFINE_REASONS"]
+
+
+class RefineReason(StrEnum):
+    """``RefinedPoses.reason`` values (``refine_reason`` in the objects table). ``refined``: refined
+    poses returned; ``disabled``: refinement off by configuration; ``labels_consistent``: the labels
+    are already as consistent with the LiDAR as the refined poses (within ``min_improvement``), so
+    they are kept unchanged; the others are fallbacks to the labels (``used_fallback``)."""
+    REFINED = "refined"
+    DISABLED = "disabled"
+    LABELS_CONSISTENT = "labels_consistent"
+    TOO_FEW_POINTS = "too_few_points"
+    LARGE_RESIDUAL = "large_residual"
+    LARGE_CORRECTION = "large_correction"
+    NOT_FINITE = "not_finite"
+
+
+#: The values of :class:`RefineReason`, in its order.
+REFINE_REASONS = tuple(reason.value for reason in RefineReason)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Every knob of the pose refinement (defaults tuned on synthetic scenes, see benchmarks).
+
+    Attributes:
+        enabled: refine (True) or return the labels unchanged with reason ``disabled``.
+        iterations: maximum Gauss-Newton iterations (each re-associates correspondences).
+        candidate_margin_m: (``refine_scene_boxes``) candidates are the returns inside the label
+            box grown by this much.
+        inlier_margin_m: a return takes part when inside the *current* box grown by this.
+        ground_clearance_m: returns less than this above the current box bottom are ignored.
+        max_correspondence_m, min_correspondence_m: point-to-point gate of a correspondence,
+            shrinking geometrically from the first to the second over the iterations.
+        huber_k: Huber threshold in units of the robust residual scale.
+        point_sigma_floor_m: floor of the robust residual scale (LiDAR noise), metres.
+        normal_neighbours: model points in the PCA giving each model normal.
+        min_planarity: a correspondence's weight is scaled by the planarity of its model
+            neighbourhood ((l2 - l1) / l3 of the PCA eigenvalues) over this, capped at 1: points
+            on a scan line or an edge, whose normal is undefined, count less or not at all.
+        association_neighbours: nearest model points examined to find one from another frame.
+        max_points_per_frame: at most this many returns per frame take part (a fixed
+            pseudo-random subset, deterministic); bounds the cost on near objects.
+        label_sigma_m, label_sigma_deg: the labels' per-frame noise (prior strength).
+        accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
+            stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
+            of a roof, so z is the least observed direction) and yaw acceleration.
+        pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
+            parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
+            roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
+            labels: level in the vehicle frame); refined boxes then carry ``pitch``/``roll``.
+        pitch_roll_accel_sigma_radps2: (6 DOF) motion model stiffness of the box's pitch and
+            roll in the *world* (the ego's own pitch and roll are taken out with its pose).
+        min_points_total, min_frames_with_points, min_points_per_frame: fallback
+            ``too_few_points`` unless the labels select at least ``min_points_total`` returns and
+            at least ``min_frames_with_points`` frames have ``min_points_per_frame`` returns.
+        max_residual_m: fallback ``large_residual`` when the final robust point-to-plane
+            residual (1.4826 x median |r|) exceeds this.
+        max_correction_m, max_correction_deg: fallback ``large_correction`` beyond these.
+        min_improvement: keep the labels (reason ``labels_consistent``) unless the refined robust
+            residual is lower than the labels' by more than this fraction.
+        early_stop_iteration: after this many iterations keep the labels (``labels_consistent``)
+            unless the robust residual has already dropped by ``min_improvement`` below the
+            labels' (0: never stop early). It is measured at that iteration's tighter gate, which
+            only flatters it, so the stop is conservative: consistent labels cost this many
+            iterations instead of all; noisy labels drop their residual within 1-2 iterations.
+        tolerance_m, tolerance_deg: stop (at the finest gate) when the RMS over frames of an
+            iteration's centre / heading step is below these.
+        fit_extent: grow a refined object's box (size and centre, the same body-frame change in
+            every frame; never shrunk, bottom kept) so that it holds the registered returns of
+            all frames plus ``extent_margin_m``, by at most ``max_extent_growth_m`` per face.
+            Relative poses, hence carried tracks, are unchanged; what changes is which returns
+            the track stage selects (see docs/refinement.md, "Box extent").
+        kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
+            kernels of ``drivetrack.refine.kernel``) or ``numpy`` (the scipy/numpy reference,
+            same results up to floating-point rounding and ties).
+    """
+    enabled: bool = True
+    iterations: int = 10
+    candidate_margin_m: float = 0.4
+    inlier_margin_m: float = 0.15
+    ground_clearance_m: float = 0.2
+    max_correspondence_m: float = 0.3
+    min_correspondence_m: float = 0.06
+    huber_k: float = 2.0
+    point_sigma_floor_m: float = 0.005
+    normal_neighbours: int = 12
+    min_planarity: float = 0.3
+    association_neighbours: int = 12
+    max_points_per_frame: int = 120
+    label_sigma_m: float = 0.05
+    label_sigma_deg: float = 1.0
+    accel_sigma_mps2: float = 2.0
+    vertical_accel_sigma_mps2: float = 0.3
+    yaw_accel_sigma_radps2: float = 1.0
+    pitch_roll_sigma_deg: float | None = 1.0
+    pitch_roll_accel_sigma_radps2: float = 0.1
+    min_points_total: int = 60
+    min_frames_with_points: int = 3
+    min_points_per_frame: int = 10
+    max_residual_m: float = 0.05
+    max_correction_m: float = 0.5
+    max_correction_deg: float = 10.0
+    min_improvement: float = 0.15
+    early_stop_iteration: int = 2
+    tolerance_m: float = 1e-3
+    tolerance_deg: float = 0.02
+    fit_extent: bool = True
+    extent_margin_m: float = 0.02
+    max_extent_growth_m: float = 0.1
+    kernel: str = "numba"
+
+    def __post_init__(self):
+        positive = ("iterations", "max_correspondence_m", "min_correspondence_m", "huber_k",
+                    "point_sigma_floor_m", "min_planarity", "label_sigma_m", "label_sigma_deg", "accel_sigma_mps2",
+                    "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "pitch_roll_accel_sigma_radps2",
+                    "max_residual_m", "max_correction_m",
+                    "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg")
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
+        for name in ("extent_margin_m", "max_extent_growth_m", "candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
+                     "min_improvement", "early_stop_iteration"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"RefineConfig.{name} must be >= 0, got {value!r}")
+        if self.pitch_roll_sigma_deg is not None and not (np.isfinite(self.pitch_roll_sigma_deg)
+                                                          and self.pitch_roll_sigma_deg > 0):
+            raise ValueError(f"RefineConfig.pitch_roll_sigma_deg must be a positive number or None (4 DOF), "
+                             f"got {self.pitch_roll_sigma_deg!r}")
+        if self.normal_neighbours < 3:
+            raise ValueError(f"RefineConfig.normal_neighbours must be >= 3, got {self.normal_neighbours}")
+        if self.association_neighbours < 2:
+            raise ValueError(f"RefineConfig.association_neighbours must be >= 2, got {self.association_neighbours}")
+        if self.min_frames_with_points < 2:
+            raise ValueError(f"RefineConfig.min_frames_with_points must be >= 2 (registration needs another "
+                             f"frame), got {self.min_frames_with_points}")
+        if self.kernel not in ("numba", "numpy"):
+            raise ValueError(f"RefineConfig.kernel must be 'numba' or 'numpy', got {self.kernel!r}")
+        if self.min_correspondence_m > self.max_correspondence_m:
+            raise ValueError(f"RefineConfig.min_correspondence_m ({self.min_correspondence_m}) exceeds "
+                             f"max_correspondence_m ({self.max_correspondence_m})")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "RefineConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise, naming them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"RefineConfig: unknown keys {unknown}")
+        return cls(**values)
+
+
+def _use_kernel(config: RefineConfig) -> bool:
+    """Whether the numba kernels run (``config.kernel == "numba"`` and numba importable)."""
+    if config.kernel != "numba":
+        return False
+    from drivetrack.numba_compat import NUMBA_AVAILABLE
+
+    return NUMBA_AVAILABLE

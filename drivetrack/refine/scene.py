@@ -1,0 +1,104 @@
+"""Refinement of every object of a scene: candidate returns per box, then one object at a time."""
+from __future__ import annotations
+
+import numpy as np
+
+from drivetrack.boxes import gather_candidates, inside_box
+from drivetrack.geometry import vectors_from_box
+from drivetrack.refine.config import RefineConfig, _use_kernel
+from drivetrack.refine.poses import refine_object_poses
+from drivetrack.refine.select import _body_points
+
+__all__ = ["refine_scene_boxes"]
+
+
+def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
+                       returns=None, compensate_sweep_motion: bool = True):
+    """Refine every object of ``scene`` over its labelled frames; returns boxes usable as labels.
+
+    For each object (``object_ids`` or all), the candidates are the returns (of ``lasers`` /
+    ``returns`` when given: ``LaserName`` values and return indices 1|2) inside each label box
+    grown by ``config.candidate_margin_m``; :func:`refine_object_poses` runs on them. When the
+    scene carries per-return capture times (``LidarReturns.capture_offset_s``) and
+    ``compensate_sweep_motion`` holds, candidates are first moved to the frame time with the
+    labels' motion, as the track stage does.
+
+    Returns:
+        ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
+        the ``center``, ``heading``, ``size`` (and, with 6 DOF, ``pitch`` and ``roll``: 0 on the
+        rows of objects not refined) of refined objects, and ``{object_id: RefinedPoses}``.
+        Passing ``boxes`` as the scene's labels makes the track stage select points with, and
+        carry them by, the refined poses.
+    """
+    from drivetrack.scene import Boxes
+
+    config = config or RefineConfig()
+    boxes, lidar = scene.boxes, scene.lidar
+    object_id = boxes.object_id.astype(str)
+    ids = sorted(set(object_id.tolist())) if object_ids is None else [str(i) for i in object_ids]
+    timestamps_s = (scene.timestamps_micros - scene.timestamps_micros[0]) * 1e-6
+    center, heading, size = boxes.center.copy(), boxes.heading.copy(), boxes.size.copy()
+    pitch_all, roll_all = boxes.tilt()
+    tilted = pitch_all is not None or config.pitch_roll_sigma_deg is not None
+    pitch = (np.zeros(len(boxes)) if pitch_all is None else pitch_all.copy()) if tilted else None
+    roll = (np.zeros(len(boxes)) if roll_all is None else roll_all.copy()) if tilted else None
+    # Returns of moving objects are captured during the sweep, boxes describe the frame time:
+    # move each candidate to where its surface was at the frame time (with the labels' motion)
+    # before registering, as the track stage does (drivetrack.tracks.sweep).
+    offsets = getattr(lidar, "capture_offset_s", None) if compensate_sweep_motion else None
+    if offsets is not None:
+        from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
+
+        box_velocity, box_yaw_rate = scene_box_motion(scene)
+    object_rows = []
+    for oid in ids:
+        rows = np.flatnonzero(object_id == oid)
+        if rows.size == 0:
+            raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
+        object_rows.append(rows[np.argsort(boxes.frame[rows], kind="stable")])
+    # Candidates of every box of every object at once: the returns of the box's frame within its
+    # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
+    all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
+    radius_all = 0.5 * np.linalg.norm(boxes.size[all_rows], axis=-1) + config.candidate_margin_m
+    gather = gather_candidates
+    if _use_kernel(config):
+        from drivetrack.refine.kernel import gather
+    index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
+                                  lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
+    row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
+    bounds = np.searchsorted(owner_all, row_start)
+    results = {}
+    for k, (oid, rows) in enumerate(zip(ids, object_rows)):
+        frames = boxes.frame[rows].astype(np.int64)
+        vehicle_from_box = boxes.vehicle_from_box(rows)
+        row_tilt = None if pitch_all is None and roll_all is None else np.stack(boxes.tilt(rows), axis=-1)  # [R, 2]
+        index = index_all[bounds[k]:bounds[k + 1]]
+        owner = owner_all[bounds[k]:bounds[k + 1]] - row_start[k]               # [N] index into rows
+        p = lidar.points_vehicle[index]
+        if offsets is None:
+            local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner, row_tilt)
+        else:
+            r = rows[owner]
+            local = points_box_at_capture(p, offsets[index], boxes.center[r], boxes.heading[r], box_velocity[r],
+                                          box_yaw_rate[r], *(boxes.tilt(r)))
+        inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
+        if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time
+            local, owner = local[inside], owner[inside]
+            tilt_o = (None, None) if row_tilt is None else (row_tilt[owner, 0], row_tilt[owner, 1])
+            p = vectors_from_box(local, boxes.heading[rows][owner], *tilt_o) \
+                + boxes.center[rows][owner]
+            inside = np.ones(owner.size, dtype=bool)
+        result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
+                                     p[inside], owner[inside], timestamps_s[frames], config,
+                                     name=f"{scene.segment}/{oid}")
+        results[oid] = result
+        if result.refined:
+            center[rows] = result.center_vehicle
+            heading[rows] = result.heading
+            size[rows] = result.size
+            if tilted:
+                pitch[rows], roll[rows] = result.pitch, result.roll
+    refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
+    refined.center, refined.heading, refined.size = center, heading, size
+    refined.pitch, refined.roll = pitch, roll
+    return refined, results
