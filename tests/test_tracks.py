@@ -497,7 +497,7 @@ def test_unsafe_object_id_is_refused_by_the_writer(tmp_path):
     b = SceneBuilder()
     b.add_object("a/b", world_center(b, 10.0), spacing=0.3)
     _, results = annotate(b.build())
-    with pytest.raises(ValueError, match="object_id 'a/b'"):
+    with pytest.raises(ValueError, match="object_id name 'a/b'"):
         write_object_outputs(str(tmp_path), "validation", results["a/b"])
 
 
