@@ -31,7 +31,10 @@ def run(args: argparse.Namespace) -> int:
                                   run_gates)
 
     try:
-        report = run_gates(args.out, args.config, data_docs=not args.no_data_docs)
+        from drivetrack.commands._progress import progress_bar
+
+        with progress_bar("gates", unit="steps") as progress:
+            report = run_gates(args.out, args.config, data_docs=not args.no_data_docs, progress=progress)
     except (GateConfigError, GateInputError) as exc:
         print(f"drivetrack gates: {exc}", file=sys.stderr)
         return 2

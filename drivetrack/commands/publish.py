@@ -77,13 +77,16 @@ def run(args) -> int:
 def _run(args) -> int:
     from drivetrack.release import publish_release
 
+    from drivetrack.commands._progress import progress_bar
+
     config = _load_config(args.config)
-    result = publish_release(
-        args.dir, args.store, args.release_version, dataset=args.dataset,
-        storage_options=storage_options(args), gate_report=_gate_report(args),
-        gates_config=args.gates_config,
-        accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
-        workers=args.workers)
+    with progress_bar("publish", enabled=not args.json) as progress:
+        result = publish_release(
+            args.dir, args.store, args.release_version, dataset=args.dataset,
+            storage_options=storage_options(args), gate_report=_gate_report(args),
+            gates_config=args.gates_config,
+            accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
+            workers=args.workers, progress=progress)
     if args.json:
         print_json(result.__dict__)
     else:

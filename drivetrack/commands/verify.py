@@ -28,8 +28,12 @@ def _run(args) -> int:
     from drivetrack.release import verify_release
 
     check_dataset_arg(args)
-    report = verify_release(args.store, args.release_version, args.dataset,
-                            storage_options=storage_options(args), workers=args.workers)
+    from drivetrack.commands._progress import progress_bar
+
+    with progress_bar("verify", enabled=not args.json) as progress:
+        report = verify_release(args.store, args.release_version, args.dataset,
+                                storage_options=storage_options(args), workers=args.workers,
+                                progress=progress)
     if args.json:
         print_json(report.to_json())
     else:

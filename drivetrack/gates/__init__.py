@@ -16,11 +16,11 @@ from drivetrack.gates.tables import GateInputError
 
 
 def run_gates(out_dir: str, config: "str | dict | None" = None, *,
-              data_docs: bool = True) -> GateReport:
-    """See :func:`drivetrack.gates.run.run_gates`."""
+              data_docs: bool = True, progress=None) -> GateReport:
+    """See :func:`drivetrack.gates.run.run_gates` (imported lazily: Great Expectations is slow to import)."""
     from drivetrack.gates.run import run_gates as _run
 
-    return _run(out_dir, config, data_docs=data_docs)
+    return _run(out_dir, config, data_docs=data_docs, progress=progress)
 
 
 __all__ = ["run_gates", "card_summary", "failure_lines", "load_gate_config", "GateReport",

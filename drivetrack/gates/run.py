@@ -175,7 +175,7 @@ def _make_offline(docs: Path, pages: list[tuple[str, str]]) -> None:
 
 
 def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results_dir: Path,
-              data_docs: bool = True):
+              data_docs: bool = True, progress=None):
     gx, gxe = _import_gx()
     from great_expectations.core.run_identifier import RunIdentifier
     from great_expectations.data_context.types.base import ProgressBarsConfig
@@ -197,6 +197,8 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
         by_suite.setdefault(spec.suite, []).append(spec)
     results: list[GateResult] = []
     suite_ok: dict[str, bool] = {}
+    emit = progress or (lambda event, info: None)
+    emit("planned", {"steps": len(by_suite) + (1 if data_docs else 0)})
     for suite_name, suite_specs in by_suite.items():
         table = suite_specs[0].table
         frame = frames[table]
@@ -226,6 +228,7 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
             expectation_suite_identifier=ExpectationSuiteIdentifier(name=suite_name),
             run_id=run_id, batch_identifier=suite_name)
         ctx.validation_results_store.set(key, validation)
+        emit("validated", {"suite": suite_name, "success": validation.success})
     if data_docs:
         ctx.build_data_docs(site_names=[DOCS_SITE])
         pages = []
@@ -236,6 +239,7 @@ def _validate(specs: list[GateSpec], tables: GateTables, docs_dir: Path, results
             elif rel != "index.html":
                 pages.append((rel, "(expectation suite)"))
         _make_offline(docs_dir, pages)
+        emit("data_docs", {"pages": len(pages)})
     order = {s.gate: i for i, s in enumerate(specs)}
     results.sort(key=lambda r: order[r.gate])
     return results, gx.__version__
@@ -264,11 +268,13 @@ def _publish_dir(staged: Path, out_dir: str) -> None:
 
 
 def run_gates(out_dir: str, config: str | dict | None = None, *,
-              data_docs: bool = True) -> GateReport:
+              data_docs: bool = True, progress=None) -> GateReport:
     """Validate the statistics of the annotation output folder ``out_dir`` against the gates.
 
     ``config``: None (``infra/gates.yaml``), a YAML path or a dict merged over the defaults.
     ``data_docs=False`` skips the GX Data Docs (about 2 s), for quick local checks only.
+    ``progress(event, info)``: ``planned`` ({"steps"}), then ``validated`` ({"suite", "success"})
+    per expectation suite and ``data_docs`` ({"pages"}) once; for progress display.
     Writes ``out_dir/validation/`` (see module docstring) and returns the :class:`GateReport`;
     ``report.success`` is False when any gate failed. Raises ``GateConfigError`` for a bad
     configuration and ``GateInputError`` for missing tables or columns.
@@ -283,7 +289,7 @@ def run_gates(out_dir: str, config: str | dict | None = None, *,
         staged = Path(tmp) / "validation"
         (staged / "gx_results").mkdir(parents=True)
         results, gx_version = _validate(specs, tables, staged / "data_docs", staged / "gx_results",
-                                        data_docs)
+                                        data_docs, progress)
         report = GateReport(
             success=all(r.success for r in results), out_dir=str(out_dir), results=results,
             config=cfg, config_sha256=config_sha256(cfg), gx_version=gx_version,

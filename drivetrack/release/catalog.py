@@ -141,8 +141,12 @@ class VerifyReport:
 
 
 def verify_release(store: Store | str, version: str, dataset: str = DEFAULT_DATASET, *,
-                   storage_options: dict | None = None, workers: int = DEFAULT_WORKERS) -> VerifyReport:
+                   storage_options: dict | None = None, workers: int = DEFAULT_WORKERS,
+                   progress=None) -> VerifyReport:
     """Re-hash every file of a release (streamed, concurrently) against its manifest.
+
+    ``progress(event, info)``: ``planned`` ({"files", "bytes"}) once, then ``checked``
+    ({"path", "bytes"}) per file hashed, from the hashing threads; for progress display.
 
     Raises :class:`VersionNotFoundError` / :class:`ManifestError` if there is no valid manifest;
     otherwise reports missing, extra and corrupt (size or sha256 mismatch) files.
@@ -159,7 +163,15 @@ def verify_release(store: Store | str, version: str, dataset: str = DEFAULT_DATA
     missing = sorted(p for p in expected if p not in present)
     extra = sorted(p for p in present if p not in expected)
 
+    emit = progress or (lambda event, info: None)
+
     def check(path: str) -> dict | None:
+        try:
+            return _check(path)
+        finally:
+            emit("checked", {"path": path, "bytes": expected[path].size})
+
+    def _check(path: str) -> dict | None:
         e = expected[path]
         if present[path] != e.size:
             return {"path": path, "problem": "size", "expected": e.size, "found": present[path]}
@@ -177,6 +189,7 @@ def verify_release(store: Store | str, version: str, dataset: str = DEFAULT_DATA
     to_check = [p for p in expected if p in present]
     # Largest first, so one big file does not finish alone at the end.
     to_check.sort(key=lambda p: -expected[p].size)
+    emit("planned", {"files": len(to_check), "bytes": sum(expected[p].size for p in to_check)})
     if to_check:
         with ThreadPoolExecutor(max_workers=max(1, min(workers, len(to_check)))) as pool:
             results = list(pool.map(check, to_check))

@@ -69,8 +69,8 @@ DEFAULT_DATASET = "drivetrack-waymo"
 DEFAULT_WORKERS = 8
 
 Progress = Callable[[str, dict], None]
-"""``progress(event, info)``: events ``uploaded`` (per file), ``staged``, ``checked``, ``promoted``,
-``committed``. Used for progress display and, in tests, to inject faults between steps."""
+"""``progress(event, info)``: events ``planned`` ({"files", "bytes"}), ``uploaded`` (per file),
+``staged``, ``checked``, ``promoted``, ``committed``. Used for progress display and, in tests, to inject faults between steps."""
 
 
 # ---- layout ------------------------------------------------------------------------------
@@ -490,6 +490,7 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
         emit("uploaded", {"path": rel, "bytes": n, "reused": False})
         return FileEntry(rel, n, h.hexdigest()), "uploaded"
 
+    emit("planned", {"files": len(sizes), "bytes": sum(sizes.values())})
     uploaded = _run_pool(upload, list(sizes), workers)
     entries = [e for e, _ in uploaded]
     state = {e.path: s for e, s in uploaded}
