@@ -45,6 +45,7 @@ from drivetrack import faults
 from drivetrack.layout import LAYOUTS, CLIP_PREFIX
 from drivetrack.names import check_name
 from drivetrack.scene import Scene
+from drivetrack.storage import write_json
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
                                object_stats, plan_segment, prepare_segment, rejection_stats,
                                run_object_job, segment_stats, sparse_depth, write_object_outputs,
@@ -477,11 +478,7 @@ def write_run_json(out_url: str, source: str, config: AnnotateConfig, results: l
            "config": config.to_dict(), "config_fingerprint": config.fingerprint(),
            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
            "segments": [r.summary() for r in results], **(extra or {})}
-    fs, path = fsspec.core.url_to_fs(f"{out_url.rstrip('/')}/run.json")
-    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    with fs.open(path, "w") as handle:
-        json.dump(run, handle, indent=2, sort_keys=True)
-    return f"{out_url.rstrip('/')}/run.json"
+    return write_json(f"{out_url.rstrip('/')}/run.json", run, indent=2, sort_keys=True)
 
 
 def _annotate_one(args):

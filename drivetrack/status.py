@@ -720,19 +720,19 @@ def render_index_html(dataset: str, store: str, rows: list[dict]) -> str:
 def write_status(out_url: str, status: ReleaseStatus, *, storage_options: dict | None = None,
                  refresh_s: int | None = None, quality: ReleaseQuality | None = None) -> tuple[str, str]:
     """Write ``status.json`` and ``status.html`` (with ``quality`` beside the states when given)
-    into the folder ``out_url`` (any fsspec URL), each through a temporary name then a move, so
-    that a reader never sees half a file. Returns both URLs."""
+    into the folder ``out_url`` (any fsspec URL), each atomically
+    (:func:`drivetrack.storage.write_bytes`), so that a reader never sees half a file. Returns
+    both paths."""
+    from drivetrack.storage import write_bytes
+
     fs, root = fsspec.core.url_to_fs(str(out_url), **(storage_options or {}))
     root = root.rstrip("/")
-    fs.makedirs(root, exist_ok=True)
+    base = str(out_url).rstrip("/")
     out = []
     for name, text in ((STATUS_JSON, status.to_json()), (STATUS_HTML, render_status_html(status, refresh_s=refresh_s,
                                                                                    quality=quality))):
-        path, tmp = f"{root}/{name}", f"{root}/.{name}.tmp"
-        with fs.open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
-        fs.mv(tmp, path)
-        out.append(path)
+        write_bytes(f"{base}/{name}", text.encode("utf-8"), storage_options)
+        out.append(f"{root}/{name}")
     return out[0], out[1]
 
 
@@ -771,5 +771,8 @@ def read_release_status(store_url: str, version: str = "latest", dataset: str = 
         if not store.exists(rel):
             raise FileNotFoundError(f"{store.url_of(rel)} does not exist: release {v} was not built by the "
                                     f"release flow (no status page)")
-    doc = json.loads(store.read_bytes(rel_json))
+    try:
+        doc = json.loads(store.read_bytes(rel_json))
+    except ValueError as e:   # JSONDecodeError, UnicodeDecodeError
+        raise StatusError(f"{store.url_of(rel_json)}: not valid JSON ({e})") from e
     return v, store.read_bytes(rel_html), ReleaseStatus.from_dict(doc, where=store.url_of(rel_json))

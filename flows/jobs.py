@@ -14,12 +14,12 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
-import inspect
-import json
 import time
 import traceback
 
 import fsspec
+
+from drivetrack import storage
 
 DONE = "_done.json"
 TRANSIENT_ERRNOS = {errno.ECONNRESET, errno.ECONNREFUSED, errno.ETIMEDOUT, errno.EAGAIN, errno.EPIPE,
@@ -62,33 +62,25 @@ def progress_path(work: str, split: str, segment: str) -> str:
     return f"{str(work).rstrip('/')}/progress/{split}/{segment}.json"
 
 
-def write_json(url: str, doc: dict, storage_options: dict | None = None) -> None:
-    """Write through a temporary name and a move (a reader never sees half a record)."""
-    fs, path = _fs(url, storage_options)
-    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    tmp = f"{path}.{time.time_ns()}.tmp"
-    with fs.open(tmp, "w") as f:
-        json.dump(doc, f, indent=1, default=str)
-    fs.mv(tmp, path)
+def write_record(url: str, doc: dict, storage_options: dict | None = None) -> str:
+    """Write a work-folder record (completion, progress, checksum memo) atomically
+    (:func:`drivetrack.storage.write_json`: a reader never sees half a record)."""
+    return storage.write_json(url, doc, indent=1, default=str, storage_options=storage_options)
 
 
-def read_json(url: str, storage_options: dict | None = None) -> dict | None:
-    fs, path = _fs(url, storage_options)
-    try:
-        with fs.open(path, "r") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        return None
-    except json.JSONDecodeError:
-        return None
+def read_record(url: str, storage_options: dict | None = None) -> dict | None:
+    """A work-folder record, or None when it does not exist. A record that is not valid JSON
+    raises ValueError naming the file (records are written whole, so it was damaged)."""
+    return storage.read_json(url, storage_options, missing_ok=True)
 
 
 def completion_record(work: str, split: str, segment: str, key: str,
                       storage_options: dict | None = None) -> dict | None:
     """The record of a finished job with this key, if it exists, matches the key and every file
-    it lists is present with its size; else None (the segment must be computed)."""
+    it lists is present with its size; else None (the segment must be computed). A damaged
+    record (not JSON) raises ValueError naming it."""
     seg_dir = segment_dir(work, split, segment, key)
-    rec = read_json(f"{seg_dir}/{DONE}", storage_options)
+    rec = read_record(f"{seg_dir}/{DONE}", storage_options)
     if not rec or rec.get("key") != key or rec.get("status") != "done":
         return None
     fs, root = _fs(seg_dir, storage_options)
@@ -113,7 +105,7 @@ class _Recorder:
     def _flush(self):
         self.doc["updated"] = time.time()
         try:
-            write_json(self.url, self.doc, self.so)
+            write_record(self.url, self.doc, self.so)
         except OSError:  # progress is advisory; the job's result is what counts
             pass
 
@@ -132,13 +124,6 @@ class _Recorder:
         info.update(state="done", finished=time.time())
         info["seconds"] = info["finished"] - info["started"]
         self._flush()
-
-
-def _len(x) -> int | None:
-    try:
-        return len(x)
-    except TypeError:
-        return None
 
 
 def _dask_client():
@@ -278,18 +263,8 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     sizes = {p[len(root) + 1:]: int(i.get("size") or 0) for p, i in fs.find(root, detail=True).items()}
     record = {"status": "done", "key": key, "split": split, "segment": segment, "files": sizes,
               "stages": rec.doc["stages"], "finished": time.time()}
-    write_json(f"{out}/{DONE}", record)
+    write_record(f"{out}/{DONE}", record)
     return record
-
-
-def _count_objects(result) -> int | None:
-    for name in ("num_object_clips_annotated", "objects", "clips"):
-        v = getattr(result, name, None)
-        if isinstance(v, int):
-            return v
-        if v is not None and _len(v) is not None:
-            return _len(v)
-    return None
 
 
 def failure_summary(exc: BaseException) -> str:

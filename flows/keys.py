@@ -16,6 +16,7 @@ from pathlib import Path
 import fsspec
 
 import drivetrack
+from drivetrack.storage import is_local
 from drivetrack.waymo.schema import COMPONENTS
 
 PACKAGE = Path(drivetrack.__file__).resolve().parent
@@ -62,7 +63,7 @@ def source_checksums(source: str, split: str, segment: str, *, storage_options: 
     Raises FileNotFoundError naming the segment when no component file exists."""
     fs, base = fsspec.core.url_to_fs(str(source), **(storage_options or {}))
     base = base.rstrip("/")
-    local = "file" in (fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,))
+    local = is_local(fs)
     memo = {} if memo is None else memo
     out = {}
     for comp in COMPONENTS:

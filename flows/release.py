@@ -70,14 +70,14 @@ def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: s
     """Per segment: source checksums and content key, and its completion record if one exists."""
     memo_url = f"{work}/checksums.json"
     storage_options = resolve_options(storage_options)
-    memo = {k: tuple(v) for k, v in (jobs.read_json(memo_url) or {}).items()}
+    memo = {k: tuple(v) for k, v in (jobs.read_record(memo_url) or {}).items()}
     plan = []
     for split, seg in pairs:
         sums = keys.source_checksums(source, split, seg, storage_options=storage_options, memo=memo)
         key = keys.segment_key(split, seg, sums, config_fp, code_fp)
         plan.append({"split": split, "segment": seg, "key": key, "checksums": sums,
                      "record": jobs.completion_record(work, split, seg, key)})
-    jobs.write_json(memo_url, memo)
+    jobs.write_record(memo_url, memo)
     return plan
 
 
@@ -335,11 +335,11 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         pending = set(pending)
         for p in (futures[f] for f in pending):
             board.merge_progress(p["split"], p["segment"],
-                                 jobs.read_json(jobs.progress_path(work, p["split"], p["segment"])))
+                                 jobs.read_record(jobs.progress_path(work, p["split"], p["segment"])))
         for f in done:
             p = futures[f]
             split, seg = p["split"], p["segment"]
-            progress = jobs.read_json(jobs.progress_path(work, split, seg))
+            progress = jobs.read_record(jobs.progress_path(work, split, seg))
             res = f.result(raise_on_failure=False)  # the record, or the exception of a failed run
             state = f.state
             if isinstance(res, dict) and res.get("status") == "done" and \

@@ -105,12 +105,22 @@ def test_completion_records_detect_missing_or_changed_files(tmp_path):
     d = Path(jobs.segment_dir(work, "training", "s1", "k" * 64))
     (d / "training").mkdir(parents=True)
     (d / "training" / "clip.npz").write_bytes(b"12345")
-    jobs.write_json(str(d / jobs.DONE), {"status": "done", "key": "k" * 64,
+    jobs.write_record(str(d / jobs.DONE), {"status": "done", "key": "k" * 64,
                                          "files": {"training/clip.npz": 5}})
     assert jobs.completion_record(work, "training", "s1", "k" * 64)["status"] == "done"
     assert jobs.completion_record(work, "training", "s1", "j" * 64) is None
     (d / "training" / "clip.npz").write_bytes(b"123")
     assert jobs.completion_record(work, "training", "s1", "k" * 64) is None
+
+
+def test_a_damaged_completion_record_is_an_error_naming_it_not_a_recompute(tmp_path):
+    work = str(tmp_path / "work")
+    d = Path(jobs.segment_dir(work, "training", "s1", "k" * 64))
+    d.mkdir(parents=True)
+    (d / jobs.DONE).write_text('{"status": "done", "key": "kk')
+    with pytest.raises(ValueError, match=r"s1/kkkk.*_done\.json: not a valid JSON"):
+        jobs.completion_record(work, "training", "s1", "k" * 64)
+    assert jobs.completion_record(work, "training", "s2", "k" * 64) is None   # absent: compute it
 
 
 def test_transient_errors_are_retried_and_data_errors_are_not():

@@ -167,3 +167,18 @@ def test_quality_of_a_folder_with_a_corrupt_table_names_the_file(tmp_path):
     with pytest.raises(StatusError, match=r"stats/segments.parquet: not a readable parquet table"):
         read_quality(str(tmp_path))
     assert read_quality(str(tmp_path / "nothing-here")) == ReleaseQuality()
+
+
+def test_a_published_status_json_that_is_not_json_is_an_error_naming_it(tmp_path):
+    from drivetrack.release import publish_release
+    from drivetrack.status import read_release_status
+
+    src = tmp_path / "src"
+    st = hostile_status()
+    write_status(str(src), st)
+    (src / "run.json").write_text(json.dumps({"config": {}, "segments": []}))
+    publish_release(str(src), str(tmp_path / "store"), st.version)
+    published = next((tmp_path / "store").glob(f"*/{st.version}/status.json"))
+    published.write_bytes(b'{"dataset": "d", "vers')   # damaged at rest
+    with pytest.raises(StatusError, match=rf"{st.version}/status.json: not valid JSON"):
+        read_release_status(str(tmp_path / "store"), st.version, published.parent.parent.name)
