@@ -40,10 +40,10 @@ import fsspec
 import numpy as np
 import pandas as pd
 
-import drivetrack
 from drivetrack import faults
 from drivetrack.layout import LAYOUTS, CLIP_PREFIX
 from drivetrack.names import check_name
+from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
 from drivetrack.storage import write_json
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
@@ -54,10 +54,8 @@ from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
            "complete_depth_batch", "refine_scene", "track_segment", "segment_tables", "write_segment_outputs", "write_tables",
-           "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version",
+           "write_run_json", "annotate_segment", "annotate",
            "remove_partial_files", "remove_segment_clips", "MAX_ATTEMPTS"]
-
-_HASH_CHUNK = 8 << 20
 
 #: A segment whose worker process dies is run again in a fresh process, at most this many times
 #: in all; a deterministic failure (an error the segment reports) is not retried.
@@ -70,24 +68,6 @@ PARTIAL_PREFIX = ".partial-"
 #: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
 #: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
 REFINE_BY_DEFAULT = True
-
-
-def code_version() -> str:
-    """``drivetrack.__version__`` (plus the git commit when run from a checkout)."""
-    import subprocess
-    from pathlib import Path
-
-    version = drivetrack.__version__
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, timeout=5, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip()
-        if commit:
-            version += f"+g{commit}" + (".dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return version
 
 
 @dataclass(frozen=True)
@@ -204,22 +184,6 @@ class SegmentResult:
                 "source_stats": dict(self.source_stats), "attempts": self.attempts,
                 "worker_deaths": list(self.worker_deaths),
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()}}
-
-
-def source_checksums(source_files: dict[str, str], storage_options: dict | None = None) -> dict[str, str]:
-    """sha256 of each source file (component -> hex digest), streamed in 8 MiB chunks."""
-    out = {}
-    for component, url in sorted(source_files.items()):
-        fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
-        digest = hashlib.sha256()
-        try:
-            with fs.open(path, "rb") as handle:
-                while chunk := handle.read(_HASH_CHUNK):
-                    digest.update(chunk)
-        except OSError as error:
-            raise OSError(f"could not hash source file {url} (component {component}): {error}") from error
-        out[component] = digest.hexdigest()
-    return out
 
 
 def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig,
@@ -474,7 +438,7 @@ def write_tables(out_url: str, results: list[SegmentResult]) -> dict[str, str]:
 def write_run_json(out_url: str, source: str, config: AnnotateConfig, results: list[SegmentResult],
                    extra: dict | None = None) -> str:
     """``run.json``: configuration, code version, source and every segment with its checksums."""
-    run = {"format": "drivetrack-run/1", "code_version": code_version(), "source": source,
+    run = {"format": "drivetrack-run/1", "code_version": code_version_text(), "source": source,
            "config": config.to_dict(), "config_fingerprint": config.fingerprint(),
            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
            "segments": [r.summary() for r in results], **(extra or {})}

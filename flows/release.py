@@ -6,7 +6,7 @@ queue, per-object tracks, writing), statistics, gates, publish - staged by Prefe
 
 Tasks are thin and coarse: one Prefect task per segment (fine work fans out on Dask inside it,
 see :mod:`flows.jobs`); the release-wide steps are one task each. Segment results are keyed on
-content (:mod:`flows.keys`): a re-run after an interruption or a change recomputes only the
+content (:mod:`drivetrack.release.keys`): a re-run after an interruption or a change recomputes only the
 segments whose key has no completion record. A failed segment is reported with its error and
 does not stop the others; the gates decide whether the release publishes.
 """
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,9 +25,12 @@ from prefect.artifacts import (create_markdown_artifact, create_progress_artifac
                                update_progress_artifact)
 from prefect.futures import wait  # noqa: E402
 
-from drivetrack.status import (SEGMENT_STAGES, ReleaseStatus, StageStatus, read_quality, reused_markdown,  # noqa: E402
-                               segment_markdown, write_status)
-from flows import jobs, keys  # noqa: E402
+from drivetrack.release import keys, work as workdir  # noqa: E402
+from drivetrack.release.catalog import next_version  # noqa: E402
+from drivetrack.release.status import (ReleaseStatus, mark_failed, mark_from_record, merge_progress,  # noqa: E402
+                                       write_status)
+from drivetrack.release.status_pages import read_quality, reused_markdown, segment_markdown  # noqa: E402
+from flows import jobs  # noqa: E402
 from flows.credentials import guarded_flow, resolve_options  # noqa: E402
 from flows.runtime import ClusterConfig, dask_cluster, prefect_api  # noqa: E402
 
@@ -70,14 +72,14 @@ def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: s
     """Per segment: source checksums and content key, and its completion record if one exists."""
     memo_url = f"{work}/checksums.json"
     storage_options = resolve_options(storage_options)
-    memo = {k: tuple(v) for k, v in (jobs.read_record(memo_url) or {}).items()}
+    memo = {k: tuple(v) for k, v in (workdir.read_record(memo_url) or {}).items()}
     plan = []
     for split, seg in pairs:
-        sums = keys.source_checksums(source, split, seg, storage_options=storage_options, memo=memo)
+        sums = keys.segment_checksums(source, split, seg, storage_options=storage_options, memo=memo)
         key = keys.segment_key(split, seg, sums, config_fp, code_fp)
         plan.append({"split": split, "segment": seg, "key": key, "checksums": sums,
-                     "record": jobs.completion_record(work, split, seg, key)})
-    jobs.write_record(memo_url, memo)
+                     "record": workdir.completion_record(work, split, seg, key)})
+    workdir.write_record(memo_url, memo)
     return plan
 
 
@@ -93,7 +95,7 @@ def segment_task(source: str, split: str, segment: str, key: str, work: str, con
                  storage_options: dict | None = None) -> dict:
     """One segment: a thin wrapper around :func:`flows.jobs.run_segment` (reuses a completion
     record with the same content key)."""
-    rec = jobs.completion_record(work, split, segment, key)
+    rec = workdir.completion_record(work, split, segment, key)
     if rec is not None:
         return rec
     return jobs.run_segment(source, split, segment, key, work, config, storage_options)
@@ -103,7 +105,7 @@ def segment_task(source: str, split: str, segment: str, key: str, work: str, con
 def statistics_task(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
     """Assemble the release folder: every done segment's files, merged stats tables (failed
     segments as ``status=failed`` rows), ``run.json``."""
-    from flows.assemble import assemble_release_folder
+    from drivetrack.release.assemble import assemble_release_folder
 
     return assemble_release_folder(out, records, failed, run, work)
 
@@ -203,40 +205,6 @@ class _Board:
         return (f"{self.status.dataset} {self.status.version}: " + ", ".join(f"{k} {v}" for k, v in c.items() if v)
                 + (f". {self.status.message}" if self.status.message else ""))
 
-    def merge_progress(self, split: str, segment: str, doc: dict | None) -> None:
-        """Copy a job's live stage states (``WORK/progress``) into the status."""
-        if not doc:
-            return
-        for name, info in (doc.get("stages") or {}).items():
-            if name in SEGMENT_STAGES:
-                fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
-                self.status.update(split, segment, name, info["state"], **fields)
-
-
-def _mark_from_record(status: ReleaseStatus, split: str, segment: str, rec: dict, cached: bool) -> None:
-    for name in SEGMENT_STAGES:
-        info = (rec.get("stages") or {}).get(name, {})
-        fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
-        status.update(split, segment, name, "done", cached=cached, **fields)
-
-
-def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict | None, error: str) -> str:
-    stages = (progress or {}).get("stages") or {}
-    failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") == "failed"), None)
-    if failed_at is None:  # failed before or between recorded stages
-        failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") != "done"), SEGMENT_STAGES[0])
-    after = False
-    for name in SEGMENT_STAGES:
-        if name == failed_at:
-            info = stages.get(name, {})
-            status.update(split, segment, name, "failed", error=error,
-                          **({"started": info["started"]} if info.get("started") else {}))
-            after = True
-        elif after:
-            status.update(split, segment, name, "skipped")
-    return failed_at
-
-
 def _latest_published(store: str, dataset: str, storage_options: dict | None) -> tuple[str | None, dict | None]:
     """(latest version, its run.json) or (None, None) when nothing is published."""
     from drivetrack.release import VersionNotFoundError, open_store
@@ -262,18 +230,6 @@ def _refuse_published(store: str, dataset: str, version: str, storage_options: d
                                  f"are immutable: choose a new version (or version='auto')")
 
 
-def next_version(latest: str | None) -> str:
-    """``auto`` versions: the next patch after the latest release, ``0.1.0`` for the first."""
-    if latest is None:
-        return "0.1.0"
-    core = latest.split("+")[0].split("-")[0]
-    try:
-        major, minor, patch = (int(x) for x in core.split("."))
-    except ValueError:
-        raise ValueError(f"latest version {latest!r} is not x.y.z: give an explicit version") from None
-    return f"{major}.{minor}.{patch + 1}"
-
-
 # ---- flows -------------------------------------------------------------------------------------
 
 @flow(name="release-build", log_prints=True)
@@ -282,7 +238,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
           skip_unchanged: bool, storage_options: dict | None, store_options: dict | None) -> dict:
     """The staged recipe; runs with the Dask task runner the ``release`` flow gives it."""
     from drivetrack.annotate import AnnotateConfig
-    from drivetrack.release.manifest import code_version
+    from drivetrack.provenance import code_version
 
     from prefect.runtime import flow_run
 
@@ -315,7 +271,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         status.add_segment(p["split"], p["segment"], p["key"])
     cached = [p for p in plan if p["record"]]
     for p in cached:
-        _mark_from_record(status, p["split"], p["segment"], p["record"], cached=True)
+        mark_from_record(status, p["split"], p["segment"], p["record"], cached=True)
     todo = [p for p in plan if not p["record"]]
     logger.info(f"{len(plan)} segments: {len(cached)} reused (same content key), {len(todo)} to compute")
     status.update_release("segments", "running")
@@ -334,18 +290,18 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
         done, pending = wait(list(pending), timeout=STATUS_EVERY_S)
         pending = set(pending)
         for p in (futures[f] for f in pending):
-            board.merge_progress(p["split"], p["segment"],
-                                 jobs.read_record(jobs.progress_path(work, p["split"], p["segment"])))
+            merge_progress(status, p["split"], p["segment"],
+                                 workdir.read_record(workdir.progress_path(work, p["split"], p["segment"])))
         for f in done:
             p = futures[f]
             split, seg = p["split"], p["segment"]
-            progress = jobs.read_record(jobs.progress_path(work, split, seg))
+            progress = workdir.read_record(workdir.progress_path(work, split, seg))
             res = f.result(raise_on_failure=False)  # the record, or the exception of a failed run
             state = f.state
             if isinstance(res, dict) and res.get("status") == "done" and \
-                    jobs.completion_record(work, split, seg, p["key"]) is not None:
+                    workdir.completion_record(work, split, seg, p["key"]) is not None:
                 records[(split, seg)] = res
-                _mark_from_record(status, split, seg, res, cached=state.name == "Cached")
+                mark_from_record(status, split, seg, res, cached=state.name == "Cached")
             elif isinstance(res, dict) and not p.get("refreshed"):
                 # Prefect's cache knew the key but the work folder lost the files: recompute
                 p["refreshed"] = True
@@ -358,7 +314,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
                 error = jobs.failure_summary(res) if isinstance(res, BaseException) else (
                     "the task reported done but its completion record is missing (work folder cleaned?): "
                     "run again" if isinstance(res, dict) else f"{state.name}: {state.message}")
-                stage = _mark_failed(status, split, seg, progress, error)
+                stage = mark_failed(status, split, seg, progress, error)
                 failed.append({"split": split, "segment": seg, "key": p["key"], "stage": stage, "error": error})
                 logger.error(f"segment {split}/{seg} failed: {error}")
         board.flush(table=bool(done))
@@ -382,7 +338,7 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     status.update_release("statistics", "running")
     board.flush()
     try:
-        stats = statistics_task(out, [records[k] | {"dir": jobs.segment_dir(work, *k, records[k]["key"])}
+        stats = statistics_task(out, [records[k] | {"dir": workdir.segment_dir(work, *k, records[k]["key"])}
                                       for k in sorted(records)], failed, run, work)
     except Exception as e:
         status.update_release("statistics", "failed", error=jobs.failure_summary(e))

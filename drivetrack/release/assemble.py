@@ -11,7 +11,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from drivetrack.storage import atomic_local_path, is_local, write_json, write_parquet
-from flows.jobs import DONE
+from drivetrack.release.work import DONE
 
 
 def assemble_release_folder(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
