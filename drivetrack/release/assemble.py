@@ -1,6 +1,7 @@
 """Assemble the release folder from the work folder: every done segment's files (hard links
 when local), the per-segment statistics tables merged into ``stats/*.parquet`` (failed segments
-added to ``stats/segments.parquet`` as ``status=failed`` rows with their error), ``run.json``."""
+added to ``stats/segments.parquet`` as ``status=failed`` rows with their error), ``run.json``
+(:func:`release_run_record`)."""
 from __future__ import annotations
 
 import os
@@ -12,6 +13,21 @@ import pyarrow.parquet as pq
 
 from drivetrack.storage import atomic_local_path, is_local, write_json, write_parquet
 from drivetrack.release.work import DONE
+
+
+def release_run_record(*, config: dict, config_fingerprint: str, code_fingerprint: str, release_fingerprint: str,
+                       dataset: str, version: str, source: str, splits: list[str], plan: list[dict],
+                       done: set, code_version: dict) -> dict:
+    """The release folder's ``run.json``: configuration, code, fingerprints and every planned
+    segment (``plan`` rows: split, segment, key, checksums) with ``done`` or ``failed`` (``done``:
+    the (split, segment) pairs that finished)."""
+    return {"config": config, "config_fingerprint": config_fingerprint, "code_version": code_version,
+            "code_fingerprint": code_fingerprint, "release_fingerprint": release_fingerprint, "dataset": dataset,
+            "version": version, "source": source, "splits": splits,
+            "segments": [{"split": p["split"], "segment": p["segment"], "key": p["key"],
+                          "source_checksums": p["checksums"],
+                          "status": "done" if (p["split"], p["segment"]) in done else "failed"}
+                         for p in plan]}
 
 
 def assemble_release_folder(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
 __all__ = ["STATES", "SEGMENT_STAGES", "RELEASE_STAGES", "StageStatus", "SegmentStatus", "ReleaseStatus",
            "write_status", "read_status", "read_release_status", "StatusError", "STATUS_JSON", "STATUS_HTML",
-           "mark_from_record", "mark_failed", "merge_progress"]
+           "mark_from_record", "mark_failed", "merge_progress", "gate_outcome"]
 
 STATES = ("pending", "running", "done", "failed", "skipped")
 SEGMENT_STAGES = ("ingest", "depth", "tracks", "write")
@@ -344,6 +344,17 @@ def mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict 
         elif after:
             status.update(split, segment, name, "skipped")
     return failed_at
+
+
+def gate_outcome(report: dict, accepted: str | None = None) -> dict:
+    """The ``gates`` release stage's state and fields from a gate report
+    (:meth:`drivetrack.gates.GateReport.to_dict`): ``done`` when it passed, else ``failed`` with
+    the number of failed gates (and the reason they were accepted, if any)."""
+    results = report.get("results", [])
+    n_failed = sum(1 for r in results if not r.get("success", True))
+    ok = bool(report.get("success"))
+    return {"state": "done" if ok else "failed", "count": len(results), "unit": "gates",
+            "error": None if ok else f"{n_failed} gates failed" + (f" (accepted: {accepted})" if accepted else "")}
 
 
 # ---- files -------------------------------------------------------------------------------------
