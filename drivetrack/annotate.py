@@ -40,11 +40,12 @@ import fsspec
 import numpy as np
 import pandas as pd
 
-import drivetrack
 from drivetrack import faults
 from drivetrack.layout import LAYOUTS, CLIP_PREFIX
 from drivetrack.names import check_name
+from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
+from drivetrack.storage import write_json
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
                                object_stats, plan_segment, prepare_segment, rejection_stats,
                                run_object_job, segment_stats, sparse_depth, write_object_outputs,
@@ -53,10 +54,8 @@ from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
            "complete_depth_batch", "refine_scene", "track_segment", "segment_tables", "write_segment_outputs", "write_tables",
-           "write_run_json", "annotate_segment", "annotate", "source_checksums", "code_version",
+           "write_run_json", "run_segment_stages", "STAGES", "annotate_segment", "annotate",
            "remove_partial_files", "remove_segment_clips", "MAX_ATTEMPTS"]
-
-_HASH_CHUNK = 8 << 20
 
 #: A segment whose worker process dies is run again in a fresh process, at most this many times
 #: in all; a deterministic failure (an error the segment reports) is not retried.
@@ -69,24 +68,6 @@ PARTIAL_PREFIX = ".partial-"
 #: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
 #: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
 REFINE_BY_DEFAULT = True
-
-
-def code_version() -> str:
-    """``drivetrack.__version__`` (plus the git commit when run from a checkout)."""
-    import subprocess
-    from pathlib import Path
-
-    version = drivetrack.__version__
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parent, timeout=5, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip()
-        if commit:
-            version += f"+g{commit}" + (".dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return version
 
 
 @dataclass(frozen=True)
@@ -203,22 +184,6 @@ class SegmentResult:
                 "source_stats": dict(self.source_stats), "attempts": self.attempts,
                 "worker_deaths": list(self.worker_deaths),
                 "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()}}
-
-
-def source_checksums(source_files: dict[str, str], storage_options: dict | None = None) -> dict[str, str]:
-    """sha256 of each source file (component -> hex digest), streamed in 8 MiB chunks."""
-    out = {}
-    for component, url in sorted(source_files.items()):
-        fs, path = fsspec.core.url_to_fs(url, **(storage_options or {}))
-        digest = hashlib.sha256()
-        try:
-            with fs.open(path, "rb") as handle:
-                while chunk := handle.read(_HASH_CHUNK):
-                    digest.update(chunk)
-        except OSError as error:
-            raise OSError(f"could not hash source file {url} (component {component}): {error}") from error
-        out[component] = digest.hexdigest()
-    return out
 
 
 def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig,
@@ -351,54 +316,115 @@ def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
     return written
 
 
-def annotate_segment(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig,
-                     storage_options: dict | None = None, keep_tracks: bool = False) -> SegmentResult:
-    """Ingest, complete depth, track and write one segment; failures come back as a result."""
+#: ``on_stage(stage, state, info)`` of :func:`run_segment_stages`: ``stage`` one of :data:`STAGES`,
+#: ``state`` ``running``, ``done`` or ``failed``; ``info`` what the stage reports (``count`` and
+#: ``unit`` when done, whatever the depth function adds, ``error`` when failed).
+StageCallback = Callable[[str, str, dict], None]
+
+#: The stages of one segment, in order (``refine`` runs only with ``config.refine_poses``).
+STAGES = ("ingest", "refine", "plan", "depth", "tracks", "write")
+
+
+def run_segment_stages(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig, *,
+                       storage_options: dict | None = None,
+                       map_fn: Callable[[Callable, list], Iterable[ObjectTracks]] | None = None,
+                       depth_fn: Callable[[list[DepthBatch]], tuple[list[DepthBatch], dict]] | None = None,
+                       on_stage: StageCallback | None = None, hash_sources: bool = True,
+                       write_segment_stats: bool = False, raise_errors: bool = False,
+                       keep_tracks: bool = False) -> SegmentResult:
+    """One segment through every stage (:data:`STAGES`): ingest, refine, plan, depth, tracks, write.
+
+    The one staged pipeline of a segment, for the CLI (:func:`annotate_segment`) and the release
+    flow's segment task, which injects where the work runs:
+
+    - ``map_fn(function, jobs)`` fans the per-object track jobs out (default: in process);
+    - ``depth_fn(sparse_batches) -> (dense_batches, info)`` completes the depth batches, in order
+      (default: :func:`complete_depth_batch` in process; the flow's GPU queue), ``info`` is
+      reported with the depth stage;
+    - ``on_stage(stage, state, info)`` hears every stage start, finish and failure (progress).
+
+    ``hash_sources``: record the sha256 of each source file (``run.json``). ``write_segment_stats``:
+    also write this segment's ``stats/*.parquet`` into ``out_url`` (a per-segment folder).
+    A failure comes back as a failed :class:`SegmentResult` naming the stage and the error; with
+    ``raise_errors`` the error itself is raised after ``on_stage`` heard it.
+    """
     result = SegmentResult(split=split, segment=segment, status="running")
     plan = None
     tracks: list[ObjectTracks] = []
-    stage = "ingest"
+    stage, start = "ingest", time.perf_counter()
+
+    def begin(name: str) -> None:
+        nonlocal stage, start
+        stage, start = name, time.perf_counter()
+        if on_stage:
+            on_stage(name, "running", {})
+
+    def end(info: dict) -> None:
+        result.timings_s[stage] = time.perf_counter() - start
+        if on_stage:
+            on_stage(stage, "done", info)
+
     try:
-        start = time.perf_counter()
+        begin("ingest")
         scene = load_scene_for(source, split, segment, config, storage_options, refine=False)
         result.source_files = dict(scene.source_files)
         result.source_stats = dict(scene.source_stats)
-        result.source_sha256 = source_checksums(scene.source_files, storage_options)
-        result.timings_s["ingest"] = time.perf_counter() - start
+        if hash_sources:
+            result.source_sha256 = source_checksums(scene.source_files, storage_options)
+        end({"count": int(scene.num_frames), "unit": "frames"})
 
         if config.refine_poses:
-            stage, start = "refine", time.perf_counter()
+            begin("refine")
             scene = refine_scene(scene, config)
-            result.timings_s["refine"] = time.perf_counter() - start
+            end({"count": len(scene.box_refinement), "unit": "objects"})
 
-        stage, start = "plan", time.perf_counter()
+        begin("plan")
         plan = plan_segment(scene, config.track)
-        result.timings_s["plan"] = time.perf_counter() - start
+        end({"count": len(plan.jobs), "unit": "object jobs"})
 
-        stage, start = "depth", time.perf_counter()
-        dense = [complete_depth_batch(b, config) for b in sparse_depth_batches(scene, config, plan)]
-        result.timings_s["depth"] = time.perf_counter() - start
+        begin("depth")
+        batches = sparse_depth_batches(scene, config, plan)
+        if depth_fn is None:
+            dense, info = [complete_depth_batch(b, config) for b in batches], {}
+        else:
+            dense, info = depth_fn(batches)
+        end({"count": len(batches), "unit": "depth batches", **info})
+        del batches
 
-        stage, start = "tracks", time.perf_counter()
-        tracks = track_segment(scene, dense, config, plan)
+        begin("tracks")
+        tracks = track_segment(scene, dense, config, plan, map_fn=map_fn)
         del dense
-        result.timings_s["tracks"] = time.perf_counter() - start
+        end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
-        stage, start = "write", time.perf_counter()
+        begin("write")
         written = write_segment_outputs(out_url, split, tracks, config.track.writers)
         result.files = [u for urls in written.values() for u in urls]
-        result.timings_s["write"] = time.perf_counter() - start
         result.objects, result.rejections, result.segment_row = segment_tables(out_url, scene, plan, tracks, written)
+        if write_segment_stats:
+            write_tables(out_url, [result])
         result.status, result.stage = "done", ""
-    except Exception as error:  # isolate the segment: report, never raise
+        end({"count": len(result.files), "unit": "files"})
+    except Exception as error:  # isolate the segment: report (and raise only when asked)
         result.status, result.stage = "failed", stage
         result.error = f"{type(error).__name__}: {error}"
         result.traceback = traceback.format_exc()  # type: ignore[attr-defined]
         result.segment_row = segment_stats(split, segment, plan if stage not in ("ingest", "refine", "plan") else None,
                                            (), status="failed", error=f"[{stage}] {result.error}")
+        if on_stage:
+            on_stage(stage, "failed", {"error": result.error})
+        if raise_errors:
+            raise
     if keep_tracks:
         result.tracks = tracks
     return result
+
+
+def annotate_segment(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig,
+                     storage_options: dict | None = None, keep_tracks: bool = False) -> SegmentResult:
+    """Ingest, complete depth, track and write one segment in this process
+    (:func:`run_segment_stages`); failures come back as a result."""
+    return run_segment_stages(source, split, segment, out_url, config, storage_options=storage_options,
+                              keep_tracks=keep_tracks)
 
 
 def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[ObjectTracks],
@@ -473,15 +499,11 @@ def write_tables(out_url: str, results: list[SegmentResult]) -> dict[str, str]:
 def write_run_json(out_url: str, source: str, config: AnnotateConfig, results: list[SegmentResult],
                    extra: dict | None = None) -> str:
     """``run.json``: configuration, code version, source and every segment with its checksums."""
-    run = {"format": "drivetrack-run/1", "code_version": code_version(), "source": source,
+    run = {"format": "drivetrack-run/1", "code_version": code_version_text(), "source": source,
            "config": config.to_dict(), "config_fingerprint": config.fingerprint(),
            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
            "segments": [r.summary() for r in results], **(extra or {})}
-    fs, path = fsspec.core.url_to_fs(f"{out_url.rstrip('/')}/run.json")
-    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    with fs.open(path, "w") as handle:
-        json.dump(run, handle, indent=2, sort_keys=True)
-    return f"{out_url.rstrip('/')}/run.json"
+    return write_json(f"{out_url.rstrip('/')}/run.json", run, indent=2, sort_keys=True)
 
 
 def _annotate_one(args):

@@ -596,13 +596,9 @@ def write_image(url: str, image: np.ndarray) -> str:
     ok, data = cv2.imencode(ext, np.ascontiguousarray(image[..., ::-1]))
     if not ok:
         raise OSError(f"{url}: OpenCV could not encode the image ({image.shape})")
-    fs, path = _fs(url)
-    parent = posixpath.dirname(path)
-    if parent:
-        fs.makedirs(parent, exist_ok=True)
-    with fs.open(path, "wb") as f:
-        f.write(data.tobytes())
-    return url
+    from drivetrack.storage import write_bytes
+
+    return write_bytes(url, data.tobytes())
 
 
 def write_video(url: str, images: list[np.ndarray], fps: float = 10.0) -> str:

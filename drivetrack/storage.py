@@ -8,6 +8,8 @@ reader never sees a half-written file (local: ``os.replace`` in the same folder;
 from __future__ import annotations
 
 import contextlib
+import io
+import json
 import math
 import os
 import tempfile
@@ -19,14 +21,16 @@ from typing import NamedTuple
 import fsspec
 import numpy as np
 
-__all__ = ["atomic_local_path", "write_npz", "StreamedArray", "NPZ_DATE_TIME", "NpyHeader", "NpzReader",
+__all__ = ["is_local", "atomic_local_path", "write_bytes", "write_json", "write_parquet", "read_json",
+           "write_npz", "StreamedArray", "NPZ_DATE_TIME", "NpyHeader", "NpzReader",
            "read_npz_headers"]
 
 #: Fixed timestamp of every npz member, so identical arrays give identical bytes (and sha256).
 NPZ_DATE_TIME = (1980, 1, 1, 0, 0, 0)
 
 
-def _is_local(fs) -> bool:
+def is_local(fs) -> bool:
+    """Whether the fsspec filesystem ``fs`` is the local disk (paths are OS paths)."""
     protocols = fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)
     return "file" in protocols or "local" in protocols
 
@@ -41,7 +45,7 @@ def atomic_local_path(url: str, suffix: str = "", storage_options: dict | None =
     """
     fs, path = fsspec.core.url_to_fs(str(url), **(storage_options or {}))
     parent = path.rsplit("/", 1)[0] if "/" in path else ""
-    local = _is_local(fs)
+    local = is_local(fs)
     if local:
         os.makedirs(parent or ".", exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=suffix, dir=parent or ".")
@@ -63,6 +67,66 @@ def atomic_local_path(url: str, suffix: str = "", storage_options: dict | None =
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def write_bytes(url: str, data: bytes, storage_options: dict | None = None) -> str:
+    """Write ``data`` at ``url`` (any fsspec URL) whole or not at all; returns ``url``.
+
+    Local: a temporary file in the same folder, then ``os.replace``; object stores: one
+    ``put_file`` of a complete local file. Parents are created; errors raise OSError naming ``url``.
+    """
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise TypeError(f"{url}: write_bytes needs bytes, got {type(data).__name__}")
+    with atomic_local_path(url, "", storage_options) as tmp:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+    return url
+
+
+def write_json(url: str, doc, *, indent: int | None = 1, sort_keys: bool = False, default=None,
+               storage_options: dict | None = None) -> str:
+    """Write ``doc`` as JSON text (``json.dumps`` with these options, UTF-8) at ``url``,
+    atomically (:func:`write_bytes`); returns ``url``. A value JSON cannot hold raises
+    ValueError naming ``url`` and nothing is written."""
+    try:
+        text = json.dumps(doc, indent=indent, sort_keys=sort_keys, default=default)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{url}: cannot be written as JSON ({type(error).__name__}: {error})") from error
+    return write_bytes(url, text.encode("utf-8"), storage_options)
+
+
+def write_parquet(url: str, table, storage_options: dict | None = None) -> str:
+    """Write a pandas DataFrame (without its index) or a pyarrow Table as parquet at ``url``,
+    atomically (:func:`write_bytes`); returns ``url``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    buffer = io.BytesIO()
+    try:
+        if isinstance(table, pa.Table):
+            pq.write_table(table, buffer)
+        else:
+            table.to_parquet(buffer, index=False)
+    except (TypeError, ValueError, pa.ArrowException) as error:
+        raise ValueError(f"{url}: cannot be written as parquet ({type(error).__name__}: {error})") from error
+    return write_bytes(url, buffer.getvalue(), storage_options)
+
+
+def read_json(url: str, storage_options: dict | None = None, *, missing_ok: bool = False):
+    """The JSON document at ``url``. A missing file: None with ``missing_ok``, else
+    FileNotFoundError naming ``url``. A file that is not valid UTF-8 JSON is an error, never
+    None: ValueError naming ``url`` (a record written by :func:`write_json` is never half there)."""
+    fs, path = fsspec.core.url_to_fs(str(url), **(storage_options or {}))
+    try:
+        data = fs.cat_file(path)
+    except FileNotFoundError:
+        if missing_ok:
+            return None
+        raise FileNotFoundError(f"{url} does not exist") from None
+    try:
+        return json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{url}: not a valid JSON document ({type(error).__name__}: {error})") from None
 
 
 @dataclass(frozen=True)

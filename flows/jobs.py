@@ -2,26 +2,20 @@
 jobs fanned out on the GPU queue, per-object track jobs, writing. Each step is one call of the
 pipeline API (``drivetrack.annotate``); this module only routes work and records progress.
 
-Work folder layout (any fsspec URL; shared storage when the cluster is remote)::
-
-    WORK/segments/{split}/{segment}/{key16}/      one segment's outputs for one content key
-        {split}/...npz, stats/*.parquet             (written by the pipeline API)
-        _done.json                                  completion record, written last
-    WORK/progress/{split}/{segment}.json          live stage states of the running job
+The work folder's layout and records are :mod:`drivetrack.release.work`.
 """
 from __future__ import annotations
 
 import contextlib
 import errno
 import functools
-import inspect
-import json
 import time
 import traceback
 
 import fsspec
 
-DONE = "_done.json"
+from drivetrack.release.work import DONE, progress_path, segment_dir, write_record
+
 TRANSIENT_ERRNOS = {errno.ECONNRESET, errno.ECONNREFUSED, errno.ETIMEDOUT, errno.EAGAIN, errno.EPIPE,
                     errno.EHOSTUNREACH, errno.ENETUNREACH, errno.EIO}
 
@@ -49,96 +43,51 @@ def is_transient(exc: BaseException | None) -> bool:
     return False
 
 
-def _fs(url: str, storage_options: dict | None):
-    fs, path = fsspec.core.url_to_fs(str(url), **(storage_options or {}))
-    return fs, path.rstrip("/")
-
-
-def segment_dir(work: str, split: str, segment: str, key: str) -> str:
-    return f"{str(work).rstrip('/')}/segments/{split}/{segment}/{key[:16]}"
-
-
-def progress_path(work: str, split: str, segment: str) -> str:
-    return f"{str(work).rstrip('/')}/progress/{split}/{segment}.json"
-
-
-def write_json(url: str, doc: dict, storage_options: dict | None = None) -> None:
-    """Write through a temporary name and a move (a reader never sees half a record)."""
-    fs, path = _fs(url, storage_options)
-    fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    tmp = f"{path}.{time.time_ns()}.tmp"
-    with fs.open(tmp, "w") as f:
-        json.dump(doc, f, indent=1, default=str)
-    fs.mv(tmp, path)
-
-
-def read_json(url: str, storage_options: dict | None = None) -> dict | None:
-    fs, path = _fs(url, storage_options)
-    try:
-        with fs.open(path, "r") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        return None
-    except json.JSONDecodeError:
-        return None
-
-
-def completion_record(work: str, split: str, segment: str, key: str,
-                      storage_options: dict | None = None) -> dict | None:
-    """The record of a finished job with this key, if it exists, matches the key and every file
-    it lists is present with its size; else None (the segment must be computed)."""
-    seg_dir = segment_dir(work, split, segment, key)
-    rec = read_json(f"{seg_dir}/{DONE}", storage_options)
-    if not rec or rec.get("key") != key or rec.get("status") != "done":
-        return None
-    fs, root = _fs(seg_dir, storage_options)
-    try:
-        sizes = {p[len(root) + 1:]: int(i.get("size") or 0) for p, i in fs.find(root, detail=True).items()}
-    except FileNotFoundError:
-        return None
-    for rel, size in (rec.get("files") or {}).items():
-        if sizes.get(rel) != size:
-            return None
-    return rec
+#: The release status's stage of each core stage (drivetrack.annotate.STAGES): refinement and
+#: planning are part of ingestion on the status board.
+BOARD_STAGE = {"ingest": "ingest", "refine": "ingest", "plan": "ingest", "depth": "depth", "tracks": "tracks",
+               "write": "write"}
 
 
 class _Recorder:
-    """Stage states of one segment job, mirrored to ``WORK/progress/...json`` as they change."""
+    """``on_stage`` of the segment job: stage states mirrored to ``WORK/progress/...json`` as
+    they change, under the status board's stage names (:data:`BOARD_STAGE`)."""
 
     def __init__(self, work, split, segment, key, storage_options):
         self.url = progress_path(work, split, segment)
         self.so = storage_options
         self.doc = {"split": split, "segment": segment, "key": key, "stages": {}, "updated": time.time()}
+        self.frames = None
 
     def _flush(self):
         self.doc["updated"] = time.time()
         try:
-            write_json(self.url, self.doc, self.so)
+            write_record(self.url, self.doc, self.so)
         except OSError:  # progress is advisory; the job's result is what counts
             pass
 
-    @contextlib.contextmanager
-    def stage(self, name: str):
-        info = {"state": "running", "started": time.time()}
-        self.doc["stages"][name] = info
+    def __call__(self, stage: str, state: str, info: dict) -> None:
+        name = BOARD_STAGE[stage]
+        now = time.time()
+        entry = self.doc["stages"].get(name)
+        if state == "running":
+            if entry is None:
+                self.doc["stages"][name] = {"state": "running", "started": now}
+                self._flush()
+            return
+        if stage == "ingest" and state == "done":
+            self.frames = info.get("count")   # the board's ingest count: frames, once planning is done
+            return
+        if state == "done" and stage in ("refine",):
+            return
+        entry.update(state=state, finished=now, seconds=now - entry["started"])
+        if state == "failed":
+            entry["error"] = info.get("error")
+        elif stage == "plan":
+            entry.update(count=self.frames, unit="frames")
+        else:
+            entry.update(info)
         self._flush()
-        try:
-            yield info
-        except BaseException as e:
-            info.update(state="failed", finished=time.time(), error=f"{type(e).__name__}: {e}")
-            info["seconds"] = info["finished"] - info["started"]
-            self._flush()
-            raise
-        info.update(state="done", finished=time.time())
-        info["seconds"] = info["finished"] - info["started"]
-        self._flush()
-
-
-def _len(x) -> int | None:
-    try:
-        return len(x)
-    except TypeError:
-        return None
 
 
 def _dask_client():
@@ -223,73 +172,62 @@ def dask_map_fn(client, min_jobs: int = 2):
     return map_fn
 
 
-def run_segment(source: str, split: str, segment: str, key: str, work: str, config: dict,
-                storage_options: dict | None = None, gpu_wait_s: float = 0.0) -> dict:
-    """Compute one segment into ``segment_dir(work, split, segment, key)`` and write its
-    completion record last. Returns the record (small, JSON-safe). Raises on failure after
-    recording the failed stage and its error in the progress file."""
-    from drivetrack import annotate as core
-    from drivetrack.tracks import plan_segment
+def gpu_depth_fn(cfg, segment: str, gpu_wait_s: float = 0.0):
+    """``depth_fn`` for :func:`drivetrack.annotate.run_segment_stages`: every batch is one job of
+    the GPU queue (:func:`depth_job`); the info names per batch which completer ran on which
+    device of which worker (docs/orchestration.md, Status)."""
     from flows.runtime import GPU, submit_resource_jobs
 
-    from flows.credentials import resolve_options
-
-    storage_options = resolve_options(storage_options)  # references resolved here, on the worker
-    cfg = core.AnnotateConfig.from_dict(config)
-    out = segment_dir(work, split, segment, key)
-    fs, root = _fs(out, storage_options=None)
-    if fs.exists(root):
-        fs.rm(root, recursive=True)  # leftovers of an interrupted attempt with this key
-    rec = _Recorder(work, split, segment, key, None)
-    with rec.stage("ingest") as st:
-        scene = core.load_scene_for(source, split, segment, cfg, storage_options=storage_options)
-        plan = plan_segment(scene, cfg.track)
-        st.update(count=int(scene.num_frames), unit="frames")
-    with rec.stage("depth") as st:
-        batches = core.sparse_depth_batches(scene, cfg, plan)
+    def depth_fn(batches):
+        done = []
         if batches:
             with _dask_client() as client:
                 futures = submit_resource_jobs(client, depth_job, batches, cfg, resource=GPU,
                                                key_prefix=f"depth-{segment[:24]}", wait_s=gpu_wait_s)
                 done = client.gather(futures)
-        else:
-            done = []
-        dense = [d[0][0] for d in done]
-        # per batch: which completer on which device of which worker (docs/orchestration.md, Status)
         per_batch = [{"camera": int(b.camera), "frames": int(len(b.frames)), "completer": info["completer"],
                       "device": info["device"], "worker": addr, "seconds": round(secs, 3)}
                      for b, ((_, info), addr, secs) in zip(batches, done)]
-        st.update(count=len(batches), unit="depth batches", worker=",".join(sorted({d[1] for d in done})) or None,
-                  completer=",".join(sorted({b["completer"] for b in per_batch})) or None,
-                  device=",".join(sorted({b["device"] for b in per_batch})) or None, batches=per_batch)
-        del batches
-    with rec.stage("tracks") as st:
-        with _dask_client() as client:
-            tracks = core.track_segment(scene, dense, cfg, plan, map_fn=dask_map_fn(client))
-        del dense
-        st.update(count=sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), unit="object clips")
-    with rec.stage("write") as st:
-        written = core.write_segment_outputs(out, split, tracks, cfg.track.writers)
-        objects, rejections, segment_row = core.segment_tables(out, scene, plan, tracks, written)
-        result = core.SegmentResult(split=split, segment=segment, status="done", objects=objects,
-                                    rejections=rejections, segment_row=segment_row)
-        core.write_tables(out, [result])
-        st.update(count=sum(len(v) for v in written.values()), unit="files")
+        return [d[0][0] for d in done], {
+            "worker": ",".join(sorted({d[1] for d in done})) or None,
+            "completer": ",".join(sorted({b["completer"] for b in per_batch})) or None,
+            "device": ",".join(sorted({b["device"] for b in per_batch})) or None, "batches": per_batch}
+    return depth_fn
+
+
+def cluster_map_fn(fn, items):
+    """``map_fn`` for :func:`drivetrack.annotate.run_segment_stages`: the object jobs fanned out
+    on the Dask cluster (:func:`dask_map_fn`) from inside the segment task."""
+    with _dask_client() as client:
+        return dask_map_fn(client)(fn, items)
+
+
+def run_segment(source: str, split: str, segment: str, key: str, work: str, config: dict,
+                storage_options: dict | None = None, gpu_wait_s: float = 0.0) -> dict:
+    """Compute one segment into ``segment_dir(work, split, segment, key)`` with the core's
+    staged pipeline (:func:`drivetrack.annotate.run_segment_stages`: depth on the GPU queue,
+    object jobs on the cluster, progress in ``WORK/progress``) and write its completion record
+    last. Returns the record (small, JSON-safe). Raises on failure after recording the failed
+    stage and its error in the progress file."""
+    from drivetrack.annotate import AnnotateConfig, run_segment_stages
+    from flows.credentials import resolve_options
+
+    storage_options = resolve_options(storage_options)  # references resolved here, on the worker
+    cfg = AnnotateConfig.from_dict(config)
+    out = segment_dir(work, split, segment, key)
+    fs, root = fsspec.core.url_to_fs(out)
+    root = root.rstrip("/")
+    if fs.exists(root):
+        fs.rm(root, recursive=True)  # leftovers of an interrupted attempt with this key
+    recorder = _Recorder(work, split, segment, key, None)
+    run_segment_stages(source, split, segment, out, cfg, storage_options=storage_options, map_fn=cluster_map_fn,
+                       depth_fn=gpu_depth_fn(cfg, segment, gpu_wait_s), on_stage=recorder, hash_sources=False,
+                       write_segment_stats=True, raise_errors=True)
     sizes = {p[len(root) + 1:]: int(i.get("size") or 0) for p, i in fs.find(root, detail=True).items()}
     record = {"status": "done", "key": key, "split": split, "segment": segment, "files": sizes,
-              "stages": rec.doc["stages"], "finished": time.time()}
-    write_json(f"{out}/{DONE}", record)
+              "stages": recorder.doc["stages"], "finished": time.time()}
+    write_record(f"{out}/{DONE}", record)
     return record
-
-
-def _count_objects(result) -> int | None:
-    for name in ("num_object_clips_annotated", "objects", "clips"):
-        v = getattr(result, name, None)
-        if isinstance(v, int):
-            return v
-        if v is not None and _len(v) is not None:
-            return _len(v)
-    return None
 
 
 def failure_summary(exc: BaseException) -> str:

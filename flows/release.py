@@ -6,15 +6,15 @@ queue, per-object tracks, writing), statistics, gates, publish - staged by Prefe
 
 Tasks are thin and coarse: one Prefect task per segment (fine work fans out on Dask inside it,
 see :mod:`flows.jobs`); the release-wide steps are one task each. Segment results are keyed on
-content (:mod:`flows.keys`): a re-run after an interruption or a change recomputes only the
+content (:mod:`drivetrack.release.keys`): a re-run after an interruption or a change recomputes only the
 segments whose key has no completion record. A failed segment is reported with its error and
 does not stop the others; the gates decide whether the release publishes.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,9 +26,14 @@ from prefect.artifacts import (create_markdown_artifact, create_progress_artifac
                                update_progress_artifact)
 from prefect.futures import wait  # noqa: E402
 
-from drivetrack.status import (SEGMENT_STAGES, ReleaseStatus, StageStatus, read_quality, reused_markdown,  # noqa: E402
-                               segment_markdown, write_status)
-from flows import jobs, keys  # noqa: E402
+from drivetrack.release import keys, work as workdir  # noqa: E402
+from drivetrack.release.catalog import next_version  # noqa: E402
+from drivetrack.provenance import code_version  # noqa: E402
+from drivetrack.release.assemble import release_run_record  # noqa: E402
+from drivetrack.release.status import (ReleaseStatus, gate_outcome, mark_failed, mark_from_record,  # noqa: E402
+                                       merge_progress, write_status)
+from drivetrack.release.status_pages import read_quality, reused_markdown, segment_markdown  # noqa: E402
+from flows import jobs  # noqa: E402
 from flows.credentials import guarded_flow, resolve_options  # noqa: E402
 from flows.runtime import ClusterConfig, dask_cluster, prefect_api  # noqa: E402
 
@@ -70,14 +75,14 @@ def plan_task(source: str, pairs: list[tuple[str, str]], work: str, config_fp: s
     """Per segment: source checksums and content key, and its completion record if one exists."""
     memo_url = f"{work}/checksums.json"
     storage_options = resolve_options(storage_options)
-    memo = {k: tuple(v) for k, v in (jobs.read_json(memo_url) or {}).items()}
+    memo = {k: tuple(v) for k, v in (workdir.read_record(memo_url) or {}).items()}
     plan = []
     for split, seg in pairs:
-        sums = keys.source_checksums(source, split, seg, storage_options=storage_options, memo=memo)
+        sums = keys.segment_checksums(source, split, seg, storage_options=storage_options, memo=memo)
         key = keys.segment_key(split, seg, sums, config_fp, code_fp)
         plan.append({"split": split, "segment": seg, "key": key, "checksums": sums,
-                     "record": jobs.completion_record(work, split, seg, key)})
-    jobs.write_json(memo_url, memo)
+                     "record": workdir.completion_record(work, split, seg, key)})
+    workdir.write_record(memo_url, memo)
     return plan
 
 
@@ -93,7 +98,7 @@ def segment_task(source: str, split: str, segment: str, key: str, work: str, con
                  storage_options: dict | None = None) -> dict:
     """One segment: a thin wrapper around :func:`flows.jobs.run_segment` (reuses a completion
     record with the same content key)."""
-    rec = jobs.completion_record(work, split, segment, key)
+    rec = workdir.completion_record(work, split, segment, key)
     if rec is not None:
         return rec
     return jobs.run_segment(source, split, segment, key, work, config, storage_options)
@@ -103,7 +108,7 @@ def segment_task(source: str, split: str, segment: str, key: str, work: str, con
 def statistics_task(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
     """Assemble the release folder: every done segment's files, merged stats tables (failed
     segments as ``status=failed`` rows), ``run.json``."""
-    from flows.assemble import assemble_release_folder
+    from drivetrack.release.assemble import assemble_release_folder
 
     return assemble_release_folder(out, records, failed, run, work)
 
@@ -203,40 +208,6 @@ class _Board:
         return (f"{self.status.dataset} {self.status.version}: " + ", ".join(f"{k} {v}" for k, v in c.items() if v)
                 + (f". {self.status.message}" if self.status.message else ""))
 
-    def merge_progress(self, split: str, segment: str, doc: dict | None) -> None:
-        """Copy a job's live stage states (``WORK/progress``) into the status."""
-        if not doc:
-            return
-        for name, info in (doc.get("stages") or {}).items():
-            if name in SEGMENT_STAGES:
-                fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
-                self.status.update(split, segment, name, info["state"], **fields)
-
-
-def _mark_from_record(status: ReleaseStatus, split: str, segment: str, rec: dict, cached: bool) -> None:
-    for name in SEGMENT_STAGES:
-        info = (rec.get("stages") or {}).get(name, {})
-        fields = {k: v for k, v in info.items() if k in StageStatus.__dataclass_fields__ and k != "state"}
-        status.update(split, segment, name, "done", cached=cached, **fields)
-
-
-def _mark_failed(status: ReleaseStatus, split: str, segment: str, progress: dict | None, error: str) -> str:
-    stages = (progress or {}).get("stages") or {}
-    failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") == "failed"), None)
-    if failed_at is None:  # failed before or between recorded stages
-        failed_at = next((n for n in SEGMENT_STAGES if stages.get(n, {}).get("state") != "done"), SEGMENT_STAGES[0])
-    after = False
-    for name in SEGMENT_STAGES:
-        if name == failed_at:
-            info = stages.get(name, {})
-            status.update(split, segment, name, "failed", error=error,
-                          **({"started": info["started"]} if info.get("started") else {}))
-            after = True
-        elif after:
-            status.update(split, segment, name, "skipped")
-    return failed_at
-
-
 def _latest_published(store: str, dataset: str, storage_options: dict | None) -> tuple[str | None, dict | None]:
     """(latest version, its run.json) or (None, None) when nothing is published."""
     from drivetrack.release import VersionNotFoundError, open_store
@@ -262,90 +233,60 @@ def _refuse_published(store: str, dataset: str, version: str, storage_options: d
                                  f"are immutable: choose a new version (or version='auto')")
 
 
-def next_version(latest: str | None) -> str:
-    """``auto`` versions: the next patch after the latest release, ``0.1.0`` for the first."""
-    if latest is None:
-        return "0.1.0"
-    core = latest.split("+")[0].split("-")[0]
-    try:
-        major, minor, patch = (int(x) for x in core.split("."))
-    except ValueError:
-        raise ValueError(f"latest version {latest!r} is not x.y.z: give an explicit version") from None
-    return f"{major}.{minor}.{patch + 1}"
-
-
 # ---- flows -------------------------------------------------------------------------------------
 
-@flow(name="release-build", log_prints=True)
-def build(version: str, source: str, store: str, splits: list[str], segments: list[str] | None,
-          config: dict, dataset: str, work: str, gates_config, accept_failed_gates: str | None,
-          skip_unchanged: bool, storage_options: dict | None, store_options: dict | None) -> dict:
-    """The staged recipe; runs with the Dask task runner the ``release`` flow gives it."""
-    from drivetrack.annotate import AnnotateConfig
-    from drivetrack.release.manifest import code_version
+class _Stop(Exception):
+    """A release stage failed: the board has the error; the flow raises the original."""
 
-    from prefect.runtime import flow_run
 
-    logger = get_run_logger()
-    run_id = str(flow_run.id)  # the artifacts of this build hang off this run
-    cfg = AnnotateConfig.from_dict(config or {})
-    config = cfg.to_dict()
-    config_fp, code_out, code_all = cfg.fingerprint(), keys.code_fingerprint(outputs_only=True), keys.code_fingerprint()
-    latest, latest_run = _latest_published(store, dataset, store_options)
-    if version == "auto":
-        version = next_version(latest)
-    _refuse_published(store, dataset, version, store_options)
-    out = f"{work.rstrip('/')}/releases/{version}"
-    status = ReleaseStatus(dataset=dataset, version=version, source=source, store=store)
-    board = _Board(status, out, work)
-    jobs_fs_reset(out)
-
-    status.update_release("list", "running")
+@contextlib.contextmanager
+def _release_stage(board: _Board, name: str, fail_message: str | None = None, *, optional: bool = False):
+    """One release-wide stage on the board: running, then done (the body may set a count through
+    the yielded dict) or failed with its error; a failed stage that is not ``optional`` ends the
+    build with ``fail_message`` on the board and re-raises. An ``optional`` stage that fails is
+    marked ``skipped`` with its error (previews never block a release)."""
+    status = board.status
+    status.update_release(name, "running")
     board.flush()
+    out: dict = {}
     try:
-        pairs = list_segments_task(source, splits, segments, storage_options)
-        plan = plan_task(source, pairs, work, config_fp, code_out, storage_options)
+        yield out
     except Exception as e:
-        status.update_release("list", "failed", error=jobs.failure_summary(e))
-        status.message = "could not list the source: nothing was built"
+        if optional:
+            status.update_release(name, "skipped", error=jobs.failure_summary(e))
+            get_run_logger().warning(f"{name} could not be made: {jobs.failure_summary(e)}")
+            return
+        status.update_release(name, "failed", error=jobs.failure_summary(e))
+        status.message = fail_message
         board.flush(final=True)
         raise
-    status.update_release("list", "done", count=len(plan), unit="segments")
-    for p in plan:
-        status.add_segment(p["split"], p["segment"], p["key"])
-    cached = [p for p in plan if p["record"]]
-    for p in cached:
-        _mark_from_record(status, p["split"], p["segment"], p["record"], cached=True)
-    todo = [p for p in plan if not p["record"]]
-    logger.info(f"{len(plan)} segments: {len(cached)} reused (same content key), {len(todo)} to compute")
-    status.update_release("segments", "running")
-    board.flush(table=True)
-    # reused segments are never submitted, so Prefect has no task run (Cached or other) for them
-    board.markdown("reused", reused_markdown(status), f"{len(cached)} of {len(plan)} segments reused")
+    status.update_release(name, out.pop("state", "done"), **out)
 
-    futures = {}
-    for p in todo:
-        f = segment_task.submit(source, p["split"], p["segment"], p["key"], work, config, storage_options)
-        futures[f] = p
-    records = {(p["split"], p["segment"]): p["record"] for p in cached}
-    failed = []
+
+def _run_segments(board: _Board, plan: list[dict], source: str, work: str, config: dict,
+                  storage_options: dict | None) -> tuple[dict, list[dict]]:
+    """Submit every segment without a completion record, poll their progress into the board
+    until all are settled; returns (completion records by (split, segment), failed segments)."""
+    status, logger = board.status, get_run_logger()
+    records = {(p["split"], p["segment"]): p["record"] for p in plan if p["record"]}
+    futures = {segment_task.submit(source, p["split"], p["segment"], p["key"], work, config, storage_options): p
+               for p in plan if not p["record"]}
+    failed: list[dict] = []
     pending = set(futures)
     while pending:
         done, pending = wait(list(pending), timeout=STATUS_EVERY_S)
         pending = set(pending)
         for p in (futures[f] for f in pending):
-            board.merge_progress(p["split"], p["segment"],
-                                 jobs.read_json(jobs.progress_path(work, p["split"], p["segment"])))
+            merge_progress(status, p["split"], p["segment"], _progress(work, p["split"], p["segment"]))
         for f in done:
             p = futures[f]
             split, seg = p["split"], p["segment"]
-            progress = jobs.read_json(jobs.progress_path(work, split, seg))
             res = f.result(raise_on_failure=False)  # the record, or the exception of a failed run
             state = f.state
             if isinstance(res, dict) and res.get("status") == "done" and \
-                    jobs.completion_record(work, split, seg, p["key"]) is not None:
+                    workdir.completion_record(work, split, seg, p["key"]) is not None:
                 records[(split, seg)] = res
-                _mark_from_record(status, split, seg, res, cached=state.name == "Cached")
+                mark_from_record(status, split, seg, res, cached=state.name == "Cached")
             elif isinstance(res, dict) and not p.get("refreshed"):
                 # Prefect's cache knew the key but the work folder lost the files: recompute
                 p["refreshed"] = True
@@ -358,81 +299,102 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
                 error = jobs.failure_summary(res) if isinstance(res, BaseException) else (
                     "the task reported done but its completion record is missing (work folder cleaned?): "
                     "run again" if isinstance(res, dict) else f"{state.name}: {state.message}")
-                stage = _mark_failed(status, split, seg, progress, error)
+                stage = mark_failed(status, split, seg, _progress(work, split, seg), error)
                 failed.append({"split": split, "segment": seg, "key": p["key"], "stage": stage, "error": error})
                 logger.error(f"segment {split}/{seg} failed: {error}")
         board.flush(table=bool(done))
-    c = status.counts()
-    status.update_release("segments", "failed" if failed else "done", count=c["done"], unit="segments done",
-                          error=f"{len(failed)} of {len(plan)} segments failed" if failed else None)
+    return records, failed
+
+
+def _progress(work: str, split: str, segment: str) -> dict | None:
+    """A running job's progress record; a damaged one is logged (naming it) and shows no progress."""
+    try:
+        return workdir.read_record(workdir.progress_path(work, split, segment))
+    except ValueError as e:
+        get_run_logger().warning(str(e))
+        return None
+
+
+def _result(status: ReleaseStatus, out: str, failed: list[dict], fingerprint: str, run_id: str, **extra) -> dict:
+    return {"version": status.version, "out": out, "counts": status.counts(), "failed": failed,
+            "fingerprint": fingerprint, "flow_run_id": run_id, **extra}
+
+
+# ---- flows -------------------------------------------------------------------------------------
+
+@flow(name="release-build", log_prints=True)
+def build(version: str, source: str, store: str, splits: list[str], segments: list[str] | None,
+          config: dict, dataset: str, work: str, gates_config, accept_failed_gates: str | None,
+          skip_unchanged: bool, storage_options: dict | None, store_options: dict | None) -> dict:
+    """The staged recipe; runs with the Dask task runner the ``release`` flow gives it."""
+    from prefect.runtime import flow_run
+
+    from drivetrack.annotate import AnnotateConfig
+
+    logger, run_id = get_run_logger(), str(flow_run.id)  # the artifacts of this build hang off this run
+    cfg = AnnotateConfig.from_dict(config or {})
+    config, config_fp = cfg.to_dict(), cfg.fingerprint()
+    code_out, code_all = keys.code_fingerprint(outputs_only=True), keys.code_fingerprint()
+    latest, latest_run = _latest_published(store, dataset, store_options)
+    version = next_version(latest) if version == "auto" else version
+    _refuse_published(store, dataset, version, store_options)
+    out = f"{work.rstrip('/')}/releases/{version}"
+    status = ReleaseStatus(dataset=dataset, version=version, source=source, store=store)
+    board = _Board(status, out, work)
+    jobs_fs_reset(out)
+
+    with _release_stage(board, "list", "could not list the source: nothing was built") as st:
+        pairs = list_segments_task(source, splits, segments, storage_options)
+        plan = plan_task(source, pairs, work, config_fp, code_out, storage_options)
+        st.update(count=len(plan), unit="segments")
+    for p in plan:
+        status.add_segment(p["split"], p["segment"], p["key"])
+        if p["record"]:
+            mark_from_record(status, p["split"], p["segment"], p["record"], cached=True)
+    n_cached = sum(1 for p in plan if p["record"])
+    logger.info(f"{len(plan)} segments: {n_cached} reused (same content key), {len(plan) - n_cached} to compute")
+    status.update_release("segments", "running")
+    board.flush(table=True)
+    # reused segments are never submitted, so Prefect has no task run (Cached or other) for them
+    board.markdown("reused", reused_markdown(status), f"{n_cached} of {len(plan)} segments reused")
+    records, failed = _run_segments(board, plan, source, work, config, storage_options)
+    status.update_release("segments", "failed" if failed else "done", count=status.counts()["done"],
+                          unit="segments done", error=f"{len(failed)} of {len(plan)} segments failed" if failed else None)
     board.flush(table=True)
 
     seg_rows = [{"split": s.split, "segment": s.segment, "key": s.key, "state": s.state} for s in status.segments]
-    fingerprint = keys.release_fingerprint(dataset, seg_rows, config_fingerprint=config_fp, gates=gates_config,
-                                           code=code_all)
-    status.fingerprint = fingerprint
-    run = {"config": config, "config_fingerprint": config_fp, "code_version": code_version(REPO),
-           "code_fingerprint": code_all, "release_fingerprint": fingerprint, "dataset": dataset,
-           "version": version, "source": source, "splits": splits,
-           "segments": [{"split": p["split"], "segment": p["segment"], "key": p["key"],
-                         "source_checksums": p["checksums"],
-                         "status": "failed" if (p["split"], p["segment"]) not in records else "done"}
-                        for p in plan]}
-
-    status.update_release("statistics", "running")
-    board.flush()
-    try:
-        stats = statistics_task(out, [records[k] | {"dir": jobs.segment_dir(work, *k, records[k]["key"])}
+    fingerprint = status.fingerprint = keys.release_fingerprint(dataset, seg_rows, config_fingerprint=config_fp,
+                                                                gates=gates_config, code=code_all)
+    run = release_run_record(config=config, config_fingerprint=config_fp, code_fingerprint=code_all,
+                             release_fingerprint=fingerprint, dataset=dataset, version=version, source=source,
+                             splits=splits, plan=plan, done=set(records), code_version=code_version(REPO))
+    with _release_stage(board, "statistics", "statistics could not be assembled: nothing published") as st:
+        stats = statistics_task(out, [records[k] | {"dir": workdir.segment_dir(work, *k, records[k]["key"])}
                                       for k in sorted(records)], failed, run, work)
-    except Exception as e:
-        status.update_release("statistics", "failed", error=jobs.failure_summary(e))
-        status.message = "statistics could not be assembled: nothing published"
-        board.flush(final=True)
-        raise
-    status.update_release("statistics", "done", count=stats.get("files"), unit="files")
-
+        st.update(count=stats.get("files"), unit="files")
 
     if skip_unchanged and latest_run and latest_run.get("release_fingerprint") == fingerprint:
-        status.update_release("previews", "skipped")
-        status.update_release("gates", "skipped")
-        status.update_release("publish", "skipped")
+        for name in ("previews", "gates", "publish"):
+            status.update_release(name, "skipped")
         status.message = (f"inputs, configuration and code are unchanged since {latest}: no new version "
                           f"(fingerprint {fingerprint[:16]})")
         board.segment_artifacts()
         board.flush(final=True)
         logger.info(status.message)
-        return {"version": None, "unchanged_since": latest, "published": False, "out": out,
-                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint, "flow_run_id": run_id}
+        return _result(status, out, failed, fingerprint, run_id, version=None, unchanged_since=latest,
+                       published=False)
 
-    status.update_release("previews", "running")
-    board.flush()
-    try:
+    with _release_stage(board, "previews", optional=True) as st:
         status.previews = previews_task(out)
-        status.update_release("previews", "done", count=len(status.previews), unit="files")
-    except Exception as e:  # previews help a reader; they never block a release
-        status.update_release("previews", "skipped", error=jobs.failure_summary(e))
-        logger.warning(f"previews could not be made: {jobs.failure_summary(e)}")
-
-    status.update_release("gates", "running")
-    board.flush()
-    try:
+        st.update(count=len(status.previews), unit="files")
+    with _release_stage(board, "gates", "the gates could not run: nothing published") as st:
         report = gates_task(out, gates_config)
-    except Exception as e:
-        status.update_release("gates", "failed", error=jobs.failure_summary(e))
-        status.message = "the gates could not run: nothing published"
-        board.flush(final=True)
-        raise
-    n_failed_gates = sum(1 for r in report.get("results", []) if not r.get("success", True))
-    status.update_release("gates", "done" if report.get("success") else "failed",
-                          count=len(report.get("results", [])), unit="gates",
-                          error=None if report.get("success") else f"{n_failed_gates} gates failed"
-                          + (f" (accepted: {accept_failed_gates})" if accept_failed_gates else ""))
+        st.update(gate_outcome(report, accept_failed_gates))
     board.segment_artifacts()
 
     # status.json/html go into the release itself: written as they will be once it is visible
     status.update_release("publish", "done")
-    status.published = True
-    status.message = f"published {dataset} {version} to {store}"
+    status.published, status.message = True, f"published {dataset} {version} to {store}"
     board.flush(table=True)  # the release folder's status files are final from here on
     try:
         res = publish_task(out, store, version, dataset, report, accept_failed_gates,
@@ -440,20 +402,15 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
                             "segments_failed": [f"{x['split']}/{x['segment']}" for x in failed]},
                            store_options)
     except Exception as e:
-        status.published = False
+        status.published, status.message = False, f"not published: {type(e).__name__}"
         status.update_release("publish", "failed", error=jobs.failure_summary(e))
-        status.message = f"not published: {type(e).__name__}"
         board.flush(final=True)
         logger.error(f"publish of {version} failed: {jobs.failure_summary(e)}")
-        return {"version": version, "published": False, "out": out, "error": jobs.failure_summary(e),
-                "counts": status.counts(), "failed": failed, "fingerprint": fingerprint, "flow_run_id": run_id}
+        return _result(status, out, failed, fingerprint, run_id, published=False, error=jobs.failure_summary(e))
     status.update_release("publish", "done")
-    status.published = True
-    status.message = f"published {dataset} {version} to {store}"
     board.flush(final=True)
-    return {"version": version, "published": True, "out": out, "store": store, "dataset": dataset,
-            "publish": res, "counts": status.counts(), "failed": failed, "fingerprint": fingerprint,
-            "flow_run_id": run_id}
+    return _result(status, out, failed, fingerprint, run_id, published=True, store=store, dataset=dataset,
+                   publish=res)
 
 
 def jobs_fs_reset(out: str) -> None:

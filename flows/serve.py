@@ -4,7 +4,7 @@
 
 Each scheduled run builds version ``auto``: the next patch version when the source data, the
 configuration or the code changed since the latest release, and nothing otherwise (the release
-fingerprint, see flows/keys.py). The same deployment is declared for ``prefect deploy`` in
+fingerprint, see drivetrack/release/keys.py). The same deployment is declared for ``prefect deploy`` in
 infra/prefect.yaml. Against a Prefect server or Cloud, set PREFECT_API_URL (and PREFECT_API_KEY)
 first; against a remote Dask cluster, set DRIVETRACK_DASK_ADDRESS (docs/orchestration.md).
 """

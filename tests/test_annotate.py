@@ -131,3 +131,48 @@ def test_config_file_unknown_key_is_named(tmp_path):
     path.write_text("track:\n  min_frame: 10\n")
     with pytest.raises(ValueError, match="min_frame"):
         load_config(str(path))
+
+
+def test_the_staged_core_with_injected_depth_map_and_progress_gives_the_cli_files(
+        synth_source, synth_segments, annotated_output, tmp_path):
+    """The flow's segment task and `drivetrack annotate` run one function: with the flow's kind of
+    depth_fn / map_fn / on_stage injected, the clip files are the CLI's byte for byte."""
+    import hashlib
+    from pathlib import Path
+
+    from drivetrack.annotate import STAGES, AnnotateConfig, complete_depth_batch, run_segment_stages
+
+    config, segment = AnnotateConfig(), synth_segments[0]
+    events, mapped, depth_calls = [], [], []
+
+    def depth_fn(batches):
+        depth_calls.append(len(batches))
+        return [complete_depth_batch(b, config) for b in batches], {"worker": "here"}
+
+    def map_fn(fn, jobs):
+        mapped.append(len(jobs))
+        return [fn(j) for j in jobs]
+
+    out = tmp_path / "seg"
+    result = run_segment_stages(synth_source, "training", segment, str(out), config, map_fn=map_fn,
+                                depth_fn=depth_fn, on_stage=lambda s, st, info: events.append((s, st, info)),
+                                write_segment_stats=True)
+    assert result.status == "done", result.error
+    assert [(s, st) for s, st, _ in events] == [(s, st) for s in STAGES for st in ("running", "done")]
+    done = {s: info for s, st, info in events if st == "done"}
+    assert done["depth"]["worker"] == "here" and done["depth"]["count"] == depth_calls[0] > 0
+    assert mapped and done["write"]["count"] == len(result.files) > 0
+    assert {p.name for p in (out / "stats").iterdir()} == {"objects.parquet", "segments.parquet",
+                                                            "rejections.parquet"}
+    for url in result.files:
+        rel = Path(url).relative_to(out)
+        assert hashlib.sha256((out / rel).read_bytes()).digest() == \
+            hashlib.sha256((Path(annotated_output) / rel).read_bytes()).digest(), rel
+
+    events.clear()
+    with pytest.raises(Exception, match="no_such_segment"):
+        run_segment_stages(synth_source, "training", "no_such_segment", str(tmp_path / "bad"), config,
+                           on_stage=lambda s, st, info: events.append((s, st, info)), raise_errors=True)
+    assert [(s, st) for s, st, _ in events] == [("ingest", "running"), ("ingest", "failed")]
+    failed = run_segment_stages(synth_source, "training", "no_such_segment", str(tmp_path / "bad"), config)
+    assert failed.status == "failed" and failed.stage == "ingest" and "no_such_segment" in failed.error

@@ -157,7 +157,7 @@ def test_release_flow_isolates_failures_resumes_and_skips_unchanged(source, pref
         release(version="0.1.0", **common)
 
     # 3. a scheduled run (version auto) of unchanged inputs, config and code publishes nothing
-    from flows.keys import code_fingerprint
+    from drivetrack.release.keys import code_fingerprint
 
     code_before = code_fingerprint()
     r3 = release(version="auto", skip_unchanged=True, **common)

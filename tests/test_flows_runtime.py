@@ -13,7 +13,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from flows import jobs, keys  # noqa: E402
+from drivetrack.release import keys, work as workdir  # noqa: E402
+from flows import jobs  # noqa: E402
 from flows.runtime import (GPU, ClusterConfig, NoWorkerForResourceError, dask_cluster,  # noqa: E402
                            require_resource, submit_resource_jobs, worker_specs, workers_with)
 
@@ -85,32 +86,42 @@ def test_segment_keys_follow_content_config_and_code(tmp_path):
         for seg in ("a", "b"):
             (root / "training" / comp / f"{seg}.parquet").write_bytes(f"{comp}-{seg}".encode())
     memo = {}
-    sums = keys.source_checksums(str(root), "training", "a", memo=memo)
+    sums = keys.segment_checksums(str(root), "training", "a", memo=memo)
     assert set(sums) == {"camera_image", "lidar"} and all(v.startswith("sha256:") for v in sums.values())
     k = keys.segment_key("training", "a", sums, "cfg1", "code1")
     assert k == keys.segment_key("training", "a", dict(sums), "cfg1", "code1")
     assert k != keys.segment_key("training", "a", sums, "cfg2", "code1")
     assert k != keys.segment_key("training", "a", sums, "cfg1", "code2")
     (root / "training" / "lidar" / "a.parquet").write_bytes(b"changed bytes")
-    changed = keys.source_checksums(str(root), "training", "a", memo=memo)
+    changed = keys.segment_checksums(str(root), "training", "a", memo=memo)
     assert changed["lidar"] != sums["lidar"] and changed["camera_image"] == sums["camera_image"]
     with pytest.raises(FileNotFoundError, match="segment 'zzz'"):
-        keys.source_checksums(str(root), "training", "zzz")
+        keys.segment_checksums(str(root), "training", "zzz")
     assert len(keys.code_fingerprint()) == 64
     assert keys.code_fingerprint(outputs_only=True) != keys.code_fingerprint()
 
 
 def test_completion_records_detect_missing_or_changed_files(tmp_path):
     work = str(tmp_path / "work")
-    d = Path(jobs.segment_dir(work, "training", "s1", "k" * 64))
+    d = Path(workdir.segment_dir(work, "training", "s1", "k" * 64))
     (d / "training").mkdir(parents=True)
     (d / "training" / "clip.npz").write_bytes(b"12345")
-    jobs.write_json(str(d / jobs.DONE), {"status": "done", "key": "k" * 64,
+    workdir.write_record(str(d / workdir.DONE), {"status": "done", "key": "k" * 64,
                                          "files": {"training/clip.npz": 5}})
-    assert jobs.completion_record(work, "training", "s1", "k" * 64)["status"] == "done"
-    assert jobs.completion_record(work, "training", "s1", "j" * 64) is None
+    assert workdir.completion_record(work, "training", "s1", "k" * 64)["status"] == "done"
+    assert workdir.completion_record(work, "training", "s1", "j" * 64) is None
     (d / "training" / "clip.npz").write_bytes(b"123")
-    assert jobs.completion_record(work, "training", "s1", "k" * 64) is None
+    assert workdir.completion_record(work, "training", "s1", "k" * 64) is None
+
+
+def test_a_damaged_completion_record_is_an_error_naming_it_not_a_recompute(tmp_path):
+    work = str(tmp_path / "work")
+    d = Path(workdir.segment_dir(work, "training", "s1", "k" * 64))
+    d.mkdir(parents=True)
+    (d / workdir.DONE).write_text('{"status": "done", "key": "kk')
+    with pytest.raises(ValueError, match=r"s1/kkkk.*_done\.json: not a valid JSON"):
+        workdir.completion_record(work, "training", "s1", "k" * 64)
+    assert workdir.completion_record(work, "training", "s2", "k" * 64) is None   # absent: compute it
 
 
 def test_transient_errors_are_retried_and_data_errors_are_not():
@@ -127,7 +138,7 @@ def test_transient_errors_are_retried_and_data_errors_are_not():
 
 
 def test_next_version():
-    from flows.release import next_version
+    from drivetrack.release.catalog import next_version
 
     assert next_version(None) == "0.1.0"
     assert next_version("1.2.3") == "1.2.4"
@@ -237,3 +248,19 @@ def test_on_a_gpu_node_the_default_depth_runs_as_torch_on_cuda():
     cpu = np.stack([get_completer("nearest")(m) for m in batches[0].maps])
     np.testing.assert_array_equal(dense.maps > 0, cpu > 0)
     assert np.mean(dense.maps == cpu) > 0.95
+
+
+def test_content_keys_and_run_json_hash_sources_and_name_the_code_one_way(tmp_path):
+    from drivetrack.provenance import code_version, code_version_text, source_checksums
+
+    root = tmp_path / "src"
+    (root / "training" / "camera_image").mkdir(parents=True)
+    (root / "training" / "camera_image" / "a.parquet").write_bytes(b"abc")
+    url = str(root / "training" / "camera_image" / "a.parquet")
+    plain = source_checksums({"camera_image": url})
+    assert keys.segment_checksums(str(root), "training", "a") == {"camera_image": "sha256:" + plain["camera_image"]}
+    version = code_version()
+    assert set(version) == {"drivetrack", "git_commit", "git_dirty"}
+    assert code_version_text(version).startswith(version["drivetrack"])
+    assert code_version_text({"drivetrack": "1.0", "git_commit": "ab" * 20, "git_dirty": True}) == \
+        "1.0+gabababababab.dirty"

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from drivetrack.status import SEGMENT_STAGES, ReleaseStatus, StatusError, render_status_html, write_status
+from drivetrack.release.status import SEGMENT_STAGES, ReleaseStatus, StatusError, write_status
+from drivetrack.release.status_pages import render_status_html
 
 HOSTILE_LINKS = ["javascript:alert(1)", "JaVaScRiPt:alert(1)//x.png", "//evil.example/x.png",
                  "https://evil.example/x.png", "../../etc/passwd", "previews/../../etc/passwd.png",
@@ -71,7 +72,7 @@ def test_page_links_only_relative_release_paths_and_escapes_data():
 
 def test_gate_values_and_segment_ids_from_the_tables_are_escaped(tmp_path):
     """A gate report whose names, bounds, observed values and failing rows carry markup."""
-    from drivetrack.status import read_quality
+    from drivetrack.release.status_pages import read_quality
 
     (tmp_path / "validation").mkdir()
     report = {"success": False, "results": [
@@ -160,10 +161,25 @@ def test_served_release_renders_safe_page_and_serves_only_its_previews(tmp_path)
 
 
 def test_quality_of_a_folder_with_a_corrupt_table_names_the_file(tmp_path):
-    from drivetrack.status import ReleaseQuality, read_quality
+    from drivetrack.release.status_pages import ReleaseQuality, read_quality
 
     (tmp_path / "stats").mkdir()
     (tmp_path / "stats" / "segments.parquet").write_bytes(b"not parquet")
     with pytest.raises(StatusError, match=r"stats/segments.parquet: not a readable parquet table"):
         read_quality(str(tmp_path))
     assert read_quality(str(tmp_path / "nothing-here")) == ReleaseQuality()
+
+
+def test_a_published_status_json_that_is_not_json_is_an_error_naming_it(tmp_path):
+    from drivetrack.release import publish_release
+    from drivetrack.release.status import read_release_status
+
+    src = tmp_path / "src"
+    st = hostile_status()
+    write_status(str(src), st)
+    (src / "run.json").write_text(json.dumps({"config": {}, "segments": []}))
+    publish_release(str(src), str(tmp_path / "store"), st.version)
+    published = next((tmp_path / "store").glob(f"*/{st.version}/status.json"))
+    published.write_bytes(b'{"dataset": "d", "vers')   # damaged at rest
+    with pytest.raises(StatusError, match=rf"{st.version}/status.json: not valid JSON"):
+        read_release_status(str(tmp_path / "store"), st.version, published.parent.parent.name)

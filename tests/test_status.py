@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivetrack.status import (SEGMENT_STAGES, ReleaseStatus, StatusError, read_status, render_status_html,
-                               write_status)
+from drivetrack.release.status import SEGMENT_STAGES, ReleaseStatus, StatusError, read_status, write_status
+from drivetrack.release.status_pages import render_status_html
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -214,7 +214,7 @@ def two_version_store(annotated_output, tmp_path_factory) -> Path:
     from drivetrack.gates import run_gates
     from drivetrack.release import publish_release
     from drivetrack.show import write_previews
-    from drivetrack.status import read_quality
+    from drivetrack.release.status_pages import read_quality
 
     base = tmp_path_factory.mktemp("status_store")
     store = base / "store"
@@ -235,7 +235,7 @@ def two_version_store(annotated_output, tmp_path_factory) -> Path:
 def test_quality_beside_state_from_the_release_tables(two_version_store):
     import pandas as pd
 
-    from drivetrack.status import read_quality
+    from drivetrack.release.status_pages import read_quality
 
     rel = two_version_store / "drivetrack-waymo" / "0.2.0"
     q = read_quality(str(rel))
@@ -321,7 +321,8 @@ def test_version_index_page_and_previews_served_and_rendered_in_chromium(two_ver
 def test_depth_stage_records_the_gpu_queue_choice_per_batch():
     """The flow's depth stage carries completer, device and per-batch records (issue 17.2); they
     survive status.json and show on the page."""
-    from drivetrack.status import ReleaseStatus, render_status_html
+    from drivetrack.release.status import ReleaseStatus
+    from drivetrack.release.status_pages import render_status_html
 
     status = ReleaseStatus(dataset="d", version="0.1.0")
     status.add_segment("training", "seg")

@@ -82,3 +82,48 @@ def test_streamed_array_needs_a_dimension_and_no_objects(tmp_path):
         StreamedArray((), np.float32, lambda: iter(()))
     with pytest.raises(ValueError, match="dtype object"):
         write_npz(str(tmp_path / "x.npz"), {"a": StreamedArray((1,), object, lambda: iter(()))})
+
+
+def test_side_writers_are_atomic_create_parents_and_round_trip(tmp_path):
+    import pandas as pd
+    import pyarrow as pa
+
+    from drivetrack.storage import read_json, write_bytes, write_json, write_parquet
+
+    base = tmp_path / "deep" / "er"
+    assert write_bytes(str(base / "a.bin"), b"\x00abc") == str(base / "a.bin")
+    assert (base / "a.bin").read_bytes() == b"\x00abc"
+    write_json(str(base / "r.json"), {"b": 1, "a": [1.5]}, indent=2, sort_keys=True)
+    assert (base / "r.json").read_text() == '{\n  "a": [\n    1.5\n  ],\n  "b": 1\n}'
+    assert read_json(str(base / "r.json")) == {"a": [1.5], "b": 1}
+    frame = pd.DataFrame({"x": [1, 2], "y": ["p", "q"]})
+    write_parquet(str(base / "t.parquet"), frame)
+    pd.testing.assert_frame_equal(pd.read_parquet(base / "t.parquet"), frame)
+    write_parquet(str(base / "u.parquet"), pa.table({"x": [3]}))
+    assert pd.read_parquet(base / "u.parquet")["x"].tolist() == [3]
+    assert sorted(p.name for p in base.iterdir()) == ["a.bin", "r.json", "t.parquet", "u.parquet"]
+
+
+def test_a_value_json_cannot_hold_writes_nothing_and_names_the_file(tmp_path):
+    from drivetrack.storage import write_json
+
+    target = tmp_path / "out" / "run.json"
+    target.parent.mkdir()
+    target.write_text('{"old": true}')
+    with pytest.raises(ValueError, match="run.json"):
+        write_json(str(target), {"bad": object()})
+    with pytest.raises(ValueError, match="run.json"):
+        write_json(str(target), {"nan": float("nan")} | {"x": {1, 2}})
+    assert target.read_text() == '{"old": true}' and len(list(target.parent.iterdir())) == 1
+
+
+def test_a_corrupt_json_record_is_an_error_naming_the_file_not_none(tmp_path):
+    from drivetrack.storage import read_json
+
+    for name, data in (("cut.json", b'{"status": "do'), ("bin.json", b"\xff\xfe\x00"), ("empty.json", b"")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ValueError, match=name):
+            read_json(str(tmp_path / name))
+    assert read_json(str(tmp_path / "missing.json"), missing_ok=True) is None
+    with pytest.raises(FileNotFoundError, match="missing.json"):
+        read_json(str(tmp_path / "missing.json"))

@@ -39,14 +39,14 @@ class NotFound(LookupError):
 
 
 def _content_type(rel: str) -> str:
-    from drivetrack.status import PREVIEW_TYPES
+    from drivetrack.release.status_pages import PREVIEW_TYPES
 
     return PREVIEW_TYPES["." + rel.rsplit(".", 1)[-1].lower()]
 
 
 def _preview_rel(rel: str) -> str:
     """``rel`` when it names a preview file (under previews/, known suffix, no traversal)."""
-    from drivetrack.status import PREVIEW_TYPES, safe_release_href
+    from drivetrack.release.status_pages import PREVIEW_TYPES, safe_release_href
 
     ok = safe_release_href(rel, under="previews")
     if ok is None or "." not in ok or "." + ok.rsplit(".", 1)[-1].lower() not in PREVIEW_TYPES:
@@ -61,7 +61,7 @@ class _BuildFolder:
         self.url, self.so = url.rstrip("/"), so
 
     def status(self):
-        from drivetrack.status import read_status
+        from drivetrack.release.status import read_status
 
         return read_status(self.url, storage_options=self.so)
 
@@ -70,7 +70,7 @@ class _BuildFolder:
 
         import fsspec
 
-        from drivetrack.status import read_quality, render_status_html
+        from drivetrack.release.status_pages import read_quality, render_status_html
 
         if path in ("", "status.html", "index.html"):
             return render_status_html(self.status(), refresh_s=5,
@@ -89,7 +89,7 @@ class _Release:
     """A published version: its page rendered from status.json plus its quality tables."""
 
     def __init__(self, store_url: str, version: str, dataset: str, so: dict | None):
-        from drivetrack.status import read_release_status
+        from drivetrack.release.status import read_release_status
 
         self.store_url, self.dataset, self.so = store_url, dataset, so
         self.version, _, self._status = read_release_status(store_url, version, dataset, storage_options=so)
@@ -101,7 +101,7 @@ class _Release:
         import json
 
         from drivetrack.release import open_store
-        from drivetrack.status import read_quality, render_status_html
+        from drivetrack.release.status_pages import read_quality, render_status_html
 
         store = open_store(self.store_url, self.so)
         if path in ("", "status.html", "index.html"):
@@ -160,7 +160,7 @@ class _Index:
 
     def get(self, path: str) -> tuple[bytes, str]:
         from drivetrack.release.manifest import SemVer
-        from drivetrack.status import render_index_html
+        from drivetrack.release.status_pages import render_index_html
 
         if path in ("", "index.html"):
             return render_index_html(self.dataset, self.store_url,
@@ -177,7 +177,7 @@ def _source(args):
     """-> (describe, site with .get(path)); raises the store's errors for an unknown version."""
     import fsspec
 
-    from drivetrack.status import STATUS_JSON
+    from drivetrack.release.status import STATUS_JSON
 
     check_dataset_arg(args)
     so = storage_options(args)
@@ -196,7 +196,7 @@ def run(args) -> int:
     import json
 
     from drivetrack.release import ReleaseError
-    from drivetrack.status import StatusError
+    from drivetrack.release.status import StatusError
 
     found = []
 

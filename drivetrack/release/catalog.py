@@ -6,7 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 from drivetrack.names import is_valid_name
-from drivetrack.release.errors import ManifestError, ReleaseError, VersionNotFoundError
+from drivetrack.release.errors import InvalidVersionError, ManifestError, ReleaseError, VersionNotFoundError
 from drivetrack.release.manifest import (MANIFEST_NAME, SemVer, check_dataset, manifest_entries,
                                          parse_manifest, sha256_stream)
 from drivetrack.release.publish import (DEFAULT_DATASET, DEFAULT_WORKERS, _read_json, add_to_index,
@@ -40,6 +40,20 @@ def _committed_versions(store: Store, dataset: str) -> list[str]:
         if store.exists(f"{dataset}/{name}/{MANIFEST_NAME}"):
             found.append(name)
     return sorted(found, key=SemVer.parse)
+
+
+def next_version(latest: str | None) -> str:
+    """The version an ``auto`` release gets: the next patch after ``latest`` (its pre-release
+    and build parts dropped: ``1.2.3-rc.1`` -> ``1.2.4``), ``0.1.0`` when nothing is published.
+    Raises InvalidVersionError when ``latest`` is not a semantic version."""
+    if latest is None:
+        return "0.1.0"
+    try:
+        v = SemVer.parse(latest)
+    except InvalidVersionError:
+        raise InvalidVersionError(f"latest version {latest!r} is not a semantic version x.y.z: give an explicit "
+                                  f"version") from None
+    return str(SemVer(v.major, v.minor, v.patch + 1))
 
 
 def resolve_version(store: Store, dataset: str, version: str) -> str:

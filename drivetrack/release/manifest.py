@@ -200,24 +200,7 @@ def render_sha256sums(entries: list[FileEntry]) -> bytes:
 
 # ---- what the release records about its inputs ---------------------------------------------
 
-def code_version(repo_dir: str | Path | None = None) -> dict:
-    """``drivetrack.__version__`` plus the git commit of the source tree if there is one."""
-    import drivetrack
-
-    out: dict = {"drivetrack": drivetrack.__version__, "git_commit": None, "git_dirty": None}
-    cwd = Path(repo_dir) if repo_dir else Path(drivetrack.__file__).resolve().parent
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True,
-                                text=True, timeout=10)
-        if commit.returncode == 0:
-            out["git_commit"] = commit.stdout.strip()
-            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                                   cwd=cwd, capture_output=True, text=True, timeout=10)
-            if dirty.returncode == 0:
-                out["git_dirty"] = bool(dirty.stdout.strip())
-    except (OSError, subprocess.SubprocessError):
-        pass
-    return out
+from drivetrack.provenance import code_version  # noqa: E402,F401  (re-exported: publish imports it here)
 
 
 def read_run_json(data: bytes | None, where: str) -> dict | None:

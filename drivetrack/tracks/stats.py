@@ -1,9 +1,6 @@
 """Tidy statistics tables of the track stage (``stats/*.parquet``, see docs/formats.md)."""
 from __future__ import annotations
 
-import io
-
-import fsspec
 import numpy as np
 import pandas as pd
 
@@ -101,12 +98,7 @@ def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
 
 
 def write_table(url: str, table: pd.DataFrame) -> str:
-    """Write ``table`` as parquet at ``url`` (any fsspec URL); returns url."""
-    buffer = io.BytesIO()
-    table.to_parquet(buffer, index=False)
-    fs, path = fsspec.core.url_to_fs(url)
-    if "/" in path:
-        fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-    with fs.open(path, "wb") as handle:
-        handle.write(buffer.getvalue())
-    return url
+    """Write ``table`` as parquet at ``url`` (any fsspec URL), atomically; returns url."""
+    from drivetrack.storage import write_parquet
+
+    return write_parquet(url, table)

@@ -1,22 +1,33 @@
 """Assemble the release folder from the work folder: every done segment's files (hard links
 when local), the per-segment statistics tables merged into ``stats/*.parquet`` (failed segments
-added to ``stats/segments.parquet`` as ``status=failed`` rows with their error), ``run.json``."""
+added to ``stats/segments.parquet`` as ``status=failed`` rows with their error), ``run.json``
+(:func:`release_run_record`)."""
 from __future__ import annotations
 
-import io
-import json
 import os
+import shutil
 
 import fsspec
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from flows.jobs import DONE
+from drivetrack.storage import atomic_local_path, is_local, write_json, write_parquet
+from drivetrack.release.work import DONE
 
 
-def _is_local(fs) -> bool:
-    protocols = fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)
-    return "file" in protocols or "local" in protocols
+def release_run_record(*, config: dict, config_fingerprint: str, code_fingerprint: str, release_fingerprint: str,
+                       dataset: str, version: str, source: str, splits: list[str], plan: list[dict],
+                       done: set, code_version: dict) -> dict:
+    """The release folder's ``run.json``: configuration, code, fingerprints and every planned
+    segment (``plan`` rows: split, segment, key, checksums) with ``done`` or ``failed`` (``done``:
+    the (split, segment) pairs that finished)."""
+    return {"config": config, "config_fingerprint": config_fingerprint, "code_version": code_version,
+            "code_fingerprint": code_fingerprint, "release_fingerprint": release_fingerprint, "dataset": dataset,
+            "version": version, "source": source, "splits": splits,
+            "segments": [{"split": p["split"], "segment": p["segment"], "key": p["key"],
+                          "source_checksums": p["checksums"],
+                          "status": "done" if (p["split"], p["segment"]) in done else "failed"}
+                         for p in plan]}
 
 
 def assemble_release_folder(out: str, records: list[dict], failed: list[dict], run: dict, work: str) -> dict:
@@ -42,16 +53,17 @@ def assemble_release_folder(out: str, records: list[dict], failed: list[dict], r
                                  f"{rec['split']}/{rec['segment']}): file names must be unique per segment")
             placed[rel] = f"{rec['split']}/{rec['segment']}"
             dst = f"{oroot}/{rel}"
-            ofs.makedirs(dst.rsplit("/", 1)[0], exist_ok=True)
-            if _is_local(sfs) and _is_local(ofs):
+            if is_local(sfs) and is_local(ofs):
+                ofs.makedirs(dst.rsplit("/", 1)[0], exist_ok=True)
                 try:
                     os.link(src, dst)
+                    n_files += 1
+                    continue
                 except OSError:
-                    ofs.put_file(src, dst)
-            else:
-                with sfs.open(src, "rb") as fi, ofs.open(dst, "wb") as fo:
-                    while block := fi.read(1 << 23):
-                        fo.write(block)
+                    pass
+            with sfs.open(src, "rb") as fi, atomic_local_path(ofs.unstrip_protocol(dst)) as tmp, \
+                    open(tmp, "wb") as fo:
+                shutil.copyfileobj(fi, fo, 1 << 23)
             n_files += 1
     # every table exists, with its schema, even when no segment is done; failed segments are rows
     from drivetrack.annotate import SegmentResult, write_tables
@@ -72,13 +84,8 @@ def assemble_release_folder(out: str, records: list[dict], failed: list[dict], r
         tables[rel] = tables.get(rel, []) + ([base] if base.num_rows or rel not in tables else [])
     for rel, parts in sorted(tables.items()):
         merged = pa.concat_tables(parts, promote_options="permissive")
-        buf = io.BytesIO()
-        pq.write_table(merged, buf)
-        ofs.makedirs(f"{oroot}/stats", exist_ok=True)
-        with ofs.open(f"{oroot}/{rel}", "wb") as f:
-            f.write(buf.getvalue())
+        write_parquet(ofs.unstrip_protocol(f"{oroot}/{rel}"), merged)
         n_files += 1
-    with ofs.open(f"{oroot}/run.json", "w") as f:
-        json.dump(run, f, indent=1, sort_keys=True, default=str)
+    write_json(ofs.unstrip_protocol(f"{oroot}/run.json"), run, indent=1, sort_keys=True, default=str)
     return {"files": n_files + 1, "segments": len(records), "failed": len(failed),
             "tables": {rel: sum(t.num_rows for t in parts) for rel, parts in tables.items()}}
