@@ -16,6 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from drivetrack.waymo import reader
+from drivetrack.waymo.summary import segment_summary
 from drivetrack.waymo.schema import component
 
 SEGMENT = "bench_segment"
@@ -117,7 +118,7 @@ def main() -> None:
         print(f"load_scene: {len(scene.lidar):,} returns over {scene.num_frames} frames "
               f"in {seconds:.1f} s ({len(scene.lidar) / seconds / 1e6:.1f} M returns/s)")
         t0 = time.perf_counter()
-        summary = reader.segment_summary(str(root), "training", SEGMENT)
+        summary = segment_summary(str(root), "training", SEGMENT)
         print(f"segment_summary (drivetrack info): {time.perf_counter() - t0:.1f} s, "
               f"TOP valid return 1 = {summary['lasers']['TOP']['valid_return1']:,}")
 

@@ -9,7 +9,7 @@ import pytest
 
 from _waymo_parquet import (CAMERA_FROM, FRONT_FROM, SEGMENT, TIMESTAMPS, WORLD_FROM_VEHICLE,
                             flat, tiny_segment, top_range, write_component)
-from drivetrack.waymo import reader
+from drivetrack.waymo import columns, lidar, reader
 from drivetrack.waymo.schema import COMPONENTS
 
 SPLIT = "training"
@@ -55,7 +55,7 @@ def test_read_component_reads_keys_and_requested_columns_of_the_segment(tmp_path
     table = reader.read_component(str(tmp_path), SPLIT, "vehicle_pose", SEGMENT, columns=[col])
     assert table.column_names == ["key.segment_context_name", "key.frame_timestamp_micros", col]
     assert table["key.segment_context_name"].to_pylist() == [SEGMENT, SEGMENT]
-    mats = reader.transforms_from_column(table[col])
+    mats = columns.transforms_from_column(table[col])
     assert mats.shape == (2, 4, 4)
     np.testing.assert_array_equal(mats[1], WORLD_FROM_VEHICLE[1])
     keys_only = reader.read_component(str(tmp_path), SPLIT, "vehicle_pose", SEGMENT, columns=[])
@@ -240,12 +240,12 @@ def test_options_select_lasers_returns_and_skip_images(segment_root):
 def test_decoders_handle_nulls_and_child_names():
     shapes = pa.array([[2, 3, 1], None, [1, 1, 2]], pa.list_(pa.field("element", pa.int32()), 3))
     values = pa.array([[0, 1, 2, 3, 4, 5], None, [7, 8]], pa.large_list(pa.float32()))
-    images = reader.range_images_from_columns(values, shapes)
+    images = columns.range_images_from_columns(values, shapes)
     np.testing.assert_array_equal(images[0][..., 0], [[0, 1, 2], [3, 4, 5]])
     assert images[1] is None and images[2].shape == (1, 1, 2)
-    sliced = reader.range_images_from_columns(values.slice(2), shapes.slice(2))
+    sliced = columns.range_images_from_columns(values.slice(2), shapes.slice(2))
     np.testing.assert_array_equal(sliced[0].ravel(), [7, 8])
-    mats = reader.transforms_from_column(pa.chunked_array(
+    mats = columns.transforms_from_column(pa.chunked_array(
         [pa.array([flat(np.eye(4))], pa.list_(pa.float64(), 16)),
          pa.array([None], pa.list_(pa.float64(), 16))]))
     assert mats.shape == (2, 4, 4)
@@ -258,13 +258,13 @@ def test_lidar_points_function_matches_the_scene(scene):
     from drivetrack.waymo.lidar import beam_inclinations
 
     incl = beam_inclinations(4, None, -0.2, 0.1)
-    pts, rows, cols, inten = reader.lidar_points(top_range(1, 1), TOP_FROM, incl,
+    pts, rows, cols, inten = lidar.lidar_points(top_range(1, 1), TOP_FROM, incl,
                                                  top_pose(1), WORLD_FROM_VEHICLE[1])
     m = (scene.lidar.frame == 1) & (scene.lidar.laser == 1) & (scene.lidar.return_index == 1)
     np.testing.assert_allclose(pts, scene.lidar.points_vehicle[m])
     np.testing.assert_array_equal(rows, scene.lidar.row[m])
     np.testing.assert_array_equal(cols, scene.lidar.col[m])
-    empty = reader.lidar_points(np.zeros((4, 8, 4), np.float32), TOP_FROM, incl)
+    empty = lidar.lidar_points(np.zeros((4, 8, 4), np.float32), TOP_FROM, incl)
     assert empty[0].shape == (0, 3) and empty[1].shape == (0,)
 
 
