@@ -320,3 +320,23 @@ def test_info_command_json_and_table(segment_root, tmp_path, capsys):
     assert "missing component file" in bad["error"] and "vehicle_pose" in bad["error"]
     assert main(["info", str(tmp_path), "--split", "validation"]) == 2
     assert main(["info", str(tmp_path), "--storage-option", "novalue"]) == 2
+
+
+def test_return_keys_sort_like_tuples_and_bound_each_range_image():
+    from drivetrack.waymo.lidar import RETURN_KEY_BITS, return_keys
+
+    rng = np.random.default_rng(3)
+    fields = [rng.integers(0, 4, 500), rng.integers(0, 6, 500), rng.integers(1, 3, 500),
+              rng.integers(0, 64, 500), rng.integers(0, 2650, 500)]
+    keys = return_keys(*fields)
+    assert keys.dtype == np.int64 and keys.shape == (500,) and (keys >= 0).all()
+    np.testing.assert_array_equal(np.argsort(keys, kind="stable"), np.lexsort(fields[::-1]))
+    sel = (fields[0] == 2) & (fields[1] == 1) & (fields[2] == 2)
+    inside = (keys >= return_keys(2, 1, 2, 0, 0)) & (keys < return_keys(2, 1, 3, 0, 0))
+    np.testing.assert_array_equal(inside, sel)
+    assert return_keys([], [], [], [], []).shape == (0,)
+    assert sum(bits for _, bits in RETURN_KEY_BITS) == 63
+    with pytest.raises(ValueError, match=r"clip x: LiDAR row value 16384 outside \[0, 16384\)"):
+        return_keys(0, 1, 1, [3, 16384], 0, "clip x")
+    with pytest.raises(ValueError, match=r"LiDAR laser value -1"):
+        return_keys(0, -1, 1, 0, 0)

@@ -11,7 +11,8 @@ import numpy as np
 from drivetrack.geometry import invert_rigid, rotation_from_rpy, transform_points
 
 __all__ = ["beam_inclinations", "beam_azimuths", "sensor_directions", "lidar_points",
-           "points_from_directions", "apply_pixel_pose", "camera_projection_at"]
+           "points_from_directions", "apply_pixel_pose", "camera_projection_at",
+           "RETURN_KEY_BITS", "return_keys"]
 
 
 def beam_inclinations(height: int, values: np.ndarray | None, inclination_min: float | None,
@@ -118,3 +119,36 @@ def camera_projection_at(projection: np.ndarray, rows: np.ndarray, cols: np.ndar
     return np.rint(projection[rows, cols, :6]).astype(np.int16)
 
 
+
+
+#: Bit fields of a LiDAR return key (:func:`return_keys`), most significant first; 63 bits in all,
+#: so every key is a non-negative int64.
+RETURN_KEY_BITS = (("frame", 28), ("laser", 3), ("return", 2), ("row", 14), ("col", 16))
+
+
+def return_keys(frame, laser, return_index, row, col, where: str = "") -> np.ndarray:
+    """int64 [N] key of each LiDAR return (segment frame, laser, return, range-image row, col).
+
+    Bit layout (:data:`RETURN_KEY_BITS`), most significant first: frame 28 bits | laser 3 |
+    return 2 | row 14 | col 16. Keys therefore sort like the tuples ``(frame, laser, return, row,
+    col)``, and the keys of one (frame, laser, return) range image lie in
+    ``[return_keys(f, l, r, 0, 0), return_keys(f, l, r + 1, 0, 0))``. The one packing for every
+    place that joins returns (the reader's ordering, consistency, evaluation, show); keys are
+    compared within one process only and never written.
+
+    Args:
+        frame, laser, return_index, row, col: integer arrays broadcastable to [N] (or scalars).
+        where: named in the error.
+    Raises:
+        ValueError naming ``where``, the field and the first value outside ``[0, 2**bits)``.
+    """
+    key = np.zeros(np.broadcast(*(np.asarray(v) for v in (frame, laser, return_index, row, col))).shape,
+                   np.int64)
+    for (name, bits), value in zip(RETURN_KEY_BITS, (frame, laser, return_index, row, col)):
+        value = np.asarray(value)
+        limit = 1 << bits
+        if value.size and (value.min() < 0 or value.max() >= limit):
+            bad = int(value[(value < 0) | (value >= limit)].flat[0])
+            raise ValueError(f"{where}: LiDAR {name} value {bad} outside [0, {limit})")
+        key = (key << bits) | value.astype(np.int64, copy=False)
+    return key

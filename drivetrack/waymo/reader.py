@@ -208,10 +208,17 @@ def _read_boxes(f: ComponentFile, timestamps: np.ndarray) -> Boxes:
     return boxes.select(order)
 
 
-def _point_key(frame, laser, return_index) -> np.ndarray:
-    """Sort key of a return: frame-major, then laser, then return (1 or 2)."""
-    return (np.asarray(frame, np.int64) * 16 + np.asarray(laser, np.int64) * 2
-            + np.asarray(return_index, np.int64) - 1)
+def _range_image_block(key_all: np.ndarray, frame: int, laser: int, return_index: int) -> slice:
+    """The returns of one range image in ``key_all`` (sorted :func:`lidar.return_keys` of a
+    :class:`LidarReturns`): a (frame, laser, return) image spans ``[key(.., 0, 0), key(.., r+1, 0, 0))``."""
+    lo = beam.return_keys(frame, laser, return_index, 0, 0)
+    hi = beam.return_keys(frame, laser, return_index + 1, 0, 0)
+    return slice(int(np.searchsorted(key_all, lo, "left")), int(np.searchsorted(key_all, hi, "left")))
+
+
+def _returns_key(returns: LidarReturns) -> np.ndarray:
+    """int64 [M] :func:`lidar.return_keys` of every return (sorted, as :func:`_read_lidar` orders them)."""
+    return beam.return_keys(returns.frame, returns.laser, returns.return_index, returns.row, returns.col)
 
 
 def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], lasers: set[int],
@@ -245,6 +252,7 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
                                          column="key.laser_name", expected=sorted(calibrations),
                                          found=laser)
                 h, w, _ = image.shape
+                _check_keyable(f, table, i, laser, h, w, c.col(f"range_image_return{r}.shape"))
                 key = (laser, h, w)
                 if key not in geometry_cache:
                     cal = calibrations[laser]
@@ -262,12 +270,26 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
         return _empty_returns(len(timestamps)), nonfinite
     pts, rows, cols_, inten, frame, laser, ret = (np.concatenate(x) for x in zip(*chunks))
     del chunks
-    order = np.argsort(_point_key(frame, laser, ret), kind="stable")
+    order = np.argsort(beam.return_keys(frame, laser, ret, rows, cols_), kind="stable")
     frame = frame[order]
     offsets = np.searchsorted(frame, np.arange(len(timestamps) + 1)).astype(np.int64)
     return LidarReturns(points_vehicle=pts[order], frame=frame, laser=laser[order],
                         return_index=ret[order], row=rows[order], col=cols_[order],
                         intensity=inten[order], frame_offsets=offsets), nonfinite
+
+
+def _check_keyable(f: ComponentFile, table: pa.Table, i: int, laser: int, height: int, width: int,
+                   shape_column: str) -> None:
+    """Refuse a laser name or range-image size that :func:`lidar.return_keys` cannot pack."""
+    limits = dict(beam.RETURN_KEY_BITS)
+    if not 0 <= laser < 1 << limits["laser"]:
+        raise f.error("laser name outside the LiDAR return key", column="key.laser_name",
+                      expected=f"0 <= laser < {1 << limits['laser']}",
+                      found=f"{laser} at {f.row_keys(table, i)}")
+    if height > 1 << limits["row"] or width > 1 << limits["col"]:
+        raise f.error("range image larger than the LiDAR return key allows", column=shape_column,
+                      expected=f"H <= {1 << limits['row']}, W <= {1 << limits['col']}",
+                      found=f"[{height}, {width}] at {f.row_keys(table, i)}")
 
 
 def _empty_returns(n_frames: int) -> LidarReturns:
@@ -291,7 +313,7 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
     values, shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
     cols = f.columns([values, shape])
     keys = f.read_keys()
-    key_all = _point_key(returns.frame, returns.laser, returns.return_index)
+    key_all = _returns_key(returns)
     top_frames = np.unique(returns.frame[returns.laser == LaserName.TOP])
     have = _frame_index(timestamps, scalar_numpy(
         keys[KEY_TIMESTAMP].filter(pc.equal(keys["key.laser_name"], int(LaserName.TOP))),
@@ -310,9 +332,7 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
                 continue  # only TOP range images carry a pose (dataset.proto, RangeImage)
             t = int(frame_col[i])
             for r in returns_read:
-                k = _point_key(t, int(LaserName.TOP), r)
-                block = slice(int(np.searchsorted(key_all, k, "left")),
-                              int(np.searchsorted(key_all, k, "right")))
+                block = _range_image_block(key_all, t, int(LaserName.TOP), r)
                 if block.stop == block.start:
                     continue
                 if pose is None:
@@ -348,7 +368,8 @@ def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps:
     cols = f.columns(cols)
     f.read_keys()
     out = np.full((len(returns), 6), -1, np.int16)
-    key_all = _point_key(returns.frame, returns.laser, returns.return_index)
+    key_all = _returns_key(returns)
+    lasers_read = set(np.unique(returns.laser).tolist())
     for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
         laser_col = scalar_numpy(table["key.laser_name"], np.int64, 0)
         frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
@@ -356,10 +377,10 @@ def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps:
             images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
                                                table[c.col(f"range_image_return{r}.shape")])
             for i, proj in enumerate(images):
-                if proj is None:
+                if proj is None or int(laser_col[i]) not in lasers_read:
                     continue
-                k = _point_key(int(frame_col[i]), int(laser_col[i]), r)
-                lo, hi = np.searchsorted(key_all, k, "left"), np.searchsorted(key_all, k, "right")
+                block = _range_image_block(key_all, int(frame_col[i]), int(laser_col[i]), r)
+                lo, hi = block.start, block.stop
                 if hi == lo:
                     continue
                 rows, cols_ = returns.row[lo:hi], returns.col[lo:hi]
