@@ -340,3 +340,21 @@ def test_return_keys_sort_like_tuples_and_bound_each_range_image():
         return_keys(0, 1, 1, [3, 16384], 0, "clip x")
     with pytest.raises(ValueError, match=r"LiDAR laser value -1"):
         return_keys(0, -1, 1, 0, 0)
+
+
+def test_merge_rows_joins_on_shared_key_columns_not_row_order():
+    from drivetrack.waymo.schema import COMPONENTS, KEY_CAMERA, KEY_LASER, KEY_TIMESTAMP, merge_rows
+
+    assert KEY_CAMERA in COMPONENTS["camera_image"].keys and KEY_LASER in COMPONENTS["lidar"].keys
+    left = {KEY_TIMESTAMP: np.array([30, 10, 20, 10]), KEY_CAMERA: np.array([1, 1, 1, 2])}
+    right = {KEY_TIMESTAMP: np.array([10, 20, 10, 40]), KEY_CAMERA: np.array([2, 1, 1, 1]),
+             "[X].value": np.arange(4)}
+    row, found = merge_rows(left, right)
+    np.testing.assert_array_equal(found, [True, True, True, False])
+    np.testing.assert_array_equal(row[found], [3, 2, 1])
+    row, found = merge_rows({KEY_TIMESTAMP: np.array([5, 7])}, {KEY_TIMESTAMP: np.array([7, 6, 5])})
+    np.testing.assert_array_equal(found, [True, False, True])
+    np.testing.assert_array_equal(row[found], [1, 0])
+    assert merge_rows({KEY_TIMESTAMP: np.zeros(0)}, {KEY_TIMESTAMP: np.array([1])})[1].tolist() == [False]
+    with pytest.raises(ValueError, match="no shared key column"):
+        merge_rows({KEY_TIMESTAMP: np.array([1])}, {KEY_LASER: np.array([1])})

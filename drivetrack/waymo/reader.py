@@ -34,22 +34,20 @@ from drivetrack.waymo.columns import (list_parts, range_images_from_columns, sca
 # drivetrack.waymo.reader (docs/waymo-v2.md): re-exported from their home, waymo/components.py.
 from drivetrack.waymo.components import (LIDAR_BATCH_ROWS, ComponentFile, WaymoFormatError,  # noqa: F401
                                          check_names, filesystem, list_segments, read_component)
-from drivetrack.waymo.schema import KEY_TIMESTAMP, LaserName
+from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, LaserName,
+                                     merge_rows)
 
 __all__ = ["WaymoFormatError", "list_segments", "read_component", "load_scene"]
 
 def _frame_index(timestamps: np.ndarray, ts_rows: np.ndarray, f: ComponentFile) -> np.ndarray:
-    """int32 [R] frame index of each row's timestamp; error for timestamps that are no frame."""
-    ts_rows = np.asarray(ts_rows, np.int64)
-    if ts_rows.size == 0:
-        return np.zeros(0, np.int32)
-    idx = np.minimum(np.searchsorted(timestamps, ts_rows), max(len(timestamps) - 1, 0))
-    bad = (timestamps[idx] != ts_rows) if len(timestamps) else np.ones(ts_rows.shape, bool)
-    if np.any(bad):
-        value = int(ts_rows[np.flatnonzero(bad)[0]])
+    """int32 [R] frame index of each row's timestamp (joined to ``vehicle_pose`` on
+    :data:`KEY_TIMESTAMP`); error for timestamps that are no frame."""
+    frame, found = merge_rows({KEY_TIMESTAMP: timestamps}, {KEY_TIMESTAMP: ts_rows})
+    if not found.all():
+        value = int(np.asarray(ts_rows, np.int64)[np.flatnonzero(~found)[0]])
         raise f.error("frame timestamp not present in vehicle_pose", column=KEY_TIMESTAMP,
-                      expected="a key.frame_timestamp_micros of vehicle_pose", found=value)
-    return idx.astype(np.int32)
+                      expected=f"a {KEY_TIMESTAMP} of vehicle_pose", found=value)
+    return frame.astype(np.int32)
 
 
 @dataclass
@@ -71,7 +69,7 @@ class _LidarCalibration:
 def _read_lidar_calibration(f: ComponentFile) -> dict[int, _LidarCalibration]:
     c = f.comp
     table = f.read(f.columns(None))
-    names = scalar_numpy(table["key.laser_name"], np.int64, 0)
+    names = scalar_numpy(table[KEY_LASER], np.int64, 0)
     extrinsic = transforms_from_column(table[c.col("extrinsic.transform")])
     incl_min = scalar_numpy(table[c.col("beam_inclination.min")], np.float64, np.nan)
     incl_max = scalar_numpy(table[c.col("beam_inclination.max")], np.float64, np.nan)
@@ -91,14 +89,15 @@ def _read_lidar_calibration(f: ComponentFile) -> dict[int, _LidarCalibration]:
 def _read_camera_calibration(f: ComponentFile, cameras: Iterable[int]) -> dict[int, CameraModel]:
     c = f.comp
     table = f.read(f.columns(None))
-    names = scalar_numpy(table["key.camera_name"], np.int64, 0).tolist()
+    names = scalar_numpy(table[KEY_CAMERA], np.int64, 0)
     extrinsic = transforms_from_column(table[c.col("extrinsic.transform")])
+    cameras = list(cameras)
+    rows, found = merge_rows({KEY_CAMERA: names}, {KEY_CAMERA: cameras})
     out = {}
-    for cam in cameras:
-        if cam not in names:
-            raise f.error("requested camera has no calibration", column="key.camera_name",
-                          expected=int(cam), found=sorted(names))
-        i = names.index(cam)
+    for cam, i, ok in zip(cameras, rows.tolist(), found.tolist()):
+        if not ok:
+            raise f.error("requested camera has no calibration", column=KEY_CAMERA,
+                          expected=int(cam), found=sorted(names.tolist()))
         kw = {}
         for p in ("f_u", "f_v", "c_u", "c_v", "k1", "k2", "p1", "p2", "k3"):
             v = table[c.col(f"intrinsic.{p}")][i].as_py()
@@ -133,7 +132,7 @@ def _read_cameras(f: ComponentFile, models: dict[int, CameraModel], timestamps: 
     if with_images:
         value_cols.append(c.col("image"))
     table = f.read(f.columns(value_cols))
-    cam_col = scalar_numpy(table["key.camera_name"], np.int64, 0)
+    cam_col = scalar_numpy(table[KEY_CAMERA], np.int64, 0)
     n_frames = len(timestamps)
     out = {}
     for cam, model in models.items():
@@ -187,7 +186,7 @@ def _read_boxes(f: ComponentFile, timestamps: np.ndarray) -> Boxes:
         raise f.error("negative box size", column=names["box.size.x"],
                       expected="sizes x, y, z >= 0 (metres)",
                       found=f"{size[i].tolist()} at {f.row_keys(table, i)}")
-    object_id = np.array(table["key.laser_object_id"].to_pylist(), dtype=object)
+    object_id = np.array(table[KEY_LASER_OBJECT].to_pylist(), dtype=object)
     # object ids become part of clip file names: refuse any that cannot, before a path is built
     for value in dict.fromkeys(object_id.tolist()):
         try:
@@ -195,7 +194,7 @@ def _read_boxes(f: ComponentFile, timestamps: np.ndarray) -> Boxes:
         except InvalidNameError as exc:
             i = int(np.flatnonzero(object_id == value)[0]) if value is not None else \
                 int(np.flatnonzero(np.equal(object_id, None))[0])
-            raise f.error("object id cannot be part of a file name", column="key.laser_object_id",
+            raise f.error("object id cannot be part of a file name", column=KEY_LASER_OBJECT,
                           expected=str(exc).split(": use ", 1)[-1],
                           found=f"{value!r} at {f.row_keys(table, i)}") from None
     frame = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
@@ -238,7 +237,7 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
     chunks = []
     nonfinite = 0
     for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table["key.laser_name"], np.int64, 0)
+        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
         frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
         for r in returns:
             images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
@@ -249,7 +248,7 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
                     continue
                 if laser not in calibrations:
                     raise cal_file.error("laser has range images but no calibration",
-                                         column="key.laser_name", expected=sorted(calibrations),
+                                         column=KEY_LASER, expected=sorted(calibrations),
                                          found=laser)
                 h, w, _ = image.shape
                 _check_keyable(f, table, i, laser, h, w, c.col(f"range_image_return{r}.shape"))
@@ -283,7 +282,7 @@ def _check_keyable(f: ComponentFile, table: pa.Table, i: int, laser: int, height
     """Refuse a laser name or range-image size that :func:`lidar.return_keys` cannot pack."""
     limits = dict(beam.RETURN_KEY_BITS)
     if not 0 <= laser < 1 << limits["laser"]:
-        raise f.error("laser name outside the LiDAR return key", column="key.laser_name",
+        raise f.error("laser name outside the LiDAR return key", column=KEY_LASER,
                       expected=f"0 <= laser < {1 << limits['laser']}",
                       found=f"{laser} at {f.row_keys(table, i)}")
     if height > 1 << limits["row"] or width > 1 << limits["col"]:
@@ -316,15 +315,15 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
     key_all = _returns_key(returns)
     top_frames = np.unique(returns.frame[returns.laser == LaserName.TOP])
     have = _frame_index(timestamps, scalar_numpy(
-        keys[KEY_TIMESTAMP].filter(pc.equal(keys["key.laser_name"], int(LaserName.TOP))),
+        keys[KEY_TIMESTAMP].filter(pc.equal(keys[KEY_LASER], int(LaserName.TOP))),
         np.int64, 0), f)
     missing = np.setdiff1d(top_frames, have)
     if missing.size:
         raise f.error("no per-pixel pose for a TOP range image", column=values,
                       expected="a lidar_pose row for every TOP lidar row",
-                      found=f"none at key.frame_timestamp_micros={int(timestamps[missing[0]])}")
+                      found=f"none at {KEY_TIMESTAMP}={int(timestamps[missing[0]])}")
     for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table["key.laser_name"], np.int64, 0)
+        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
         frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
         poses = range_images_from_columns(table[values], table[shape])
         for i, pose in enumerate(poses):
@@ -371,7 +370,7 @@ def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps:
     key_all = _returns_key(returns)
     lasers_read = set(np.unique(returns.laser).tolist())
     for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table["key.laser_name"], np.int64, 0)
+        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
         frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
         for r in returns_read:
             images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
@@ -471,7 +470,7 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
             wanted = set(calibrations) if lasers is None else {int(x) for x in lasers}
             missing = wanted - set(calibrations)
             if missing:
-                raise cal_file.error("requested laser has no calibration", column="key.laser_name",
+                raise cal_file.error("requested laser has no calibration", column=KEY_LASER,
                                      expected=sorted(missing), found=sorted(calibrations))
             lidar_returns, source_stats["lidar_nonfinite_ranges"] = _read_lidar(
                 open_component("lidar"), calibrations, wanted, returns, timestamps, cal_file)

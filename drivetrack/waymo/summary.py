@@ -7,7 +7,8 @@ import numpy as np
 from drivetrack.waymo.columns import range_images_from_columns, scalar_numpy
 from drivetrack.waymo.components import (LIDAR_BATCH_ROWS, ComponentFile, check_names,
                                          filesystem)
-from drivetrack.waymo.schema import KEY_TIMESTAMP, BoxType, CameraName, LaserName
+from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, BoxType,
+                                     CameraName, LaserName)
 
 __all__ = ["segment_summary"]
 
@@ -42,12 +43,12 @@ def segment_summary(root: str, split: str, segment: str,
         with opened("camera_calibration") as f:
             c = f.comp
             t = f.read(f.columns([c.col("width"), c.col("height")]))
-            for name, w, h in zip(t["key.camera_name"].to_pylist(), t[c.col("width")].to_pylist(),
+            for name, w, h in zip(t[KEY_CAMERA].to_pylist(), t[c.col("width")].to_pylist(),
                                   t[c.col("height")].to_pylist()):
                 cams[_enum_name(CameraName, name)] = {"width": w, "height": h, "images": 0}
     if fs.exists(f"{base}/{split}/camera_image/{segment}.parquet"):
         with opened("camera_image") as f:
-            names = scalar_numpy(f.read_keys()["key.camera_name"], np.int64, 0)
+            names = scalar_numpy(f.read_keys()[KEY_CAMERA], np.int64, 0)
             for name, n in zip(*np.unique(names, return_counts=True)):
                 cams.setdefault(_enum_name(CameraName, name), {"width": None, "height": None,
                                                                "images": 0})["images"] = int(n)
@@ -59,7 +60,7 @@ def segment_summary(root: str, split: str, segment: str,
             cols = f.columns(None)
             f.read_keys()
             for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-                laser_col = scalar_numpy(table["key.laser_name"], np.int64, 0)
+                laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
                 for r in (1, 2):
                     images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
                                                        table[c.col(f"range_image_return{r}.shape")])
@@ -81,7 +82,7 @@ def segment_summary(root: str, split: str, segment: str,
         with opened("lidar_box") as f:
             t = f.read(f.columns([f.comp.col("type")]))
             types = scalar_numpy(t[f.comp.col("type")], np.int64, 0)
-            ids = np.array(t["key.laser_object_id"].to_pylist(), dtype=object)
+            ids = np.array(t[KEY_LASER_OBJECT].to_pylist(), dtype=object)
             for ty in np.unique(types):
                 sel = types == ty
                 objects[_enum_name(BoxType, ty)] = {"objects": len(set(ids[sel].tolist())),
