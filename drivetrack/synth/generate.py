@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.geometry import (CameraModel, invert_rigid, points_in_box_mask, transform_points)
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid, points_in_box_mask, transform_points
 from drivetrack.synth import ground_truth as gt
 from drivetrack.synth.raycast import GROUND, Hits, cast, intersect_box, surface_albedo_normal
 from drivetrack.synth.sensors import (DEFAULT_CAMERAS, GLOBAL_SHUTTER, PRESETS, READOUT_S,
@@ -284,7 +285,7 @@ class _Generator:
         """
         key = (cam, t)
         if key not in self._laws:
-            from drivetrack.rolling_shutter import shutter_state
+            from drivetrack.camera.rolling_shutter import shutter_state
 
             state = shutter_state(self.camera_frames[cam], t)
             self._laws[key] = (None if not state.rolling else

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from drivetrack.geometry import CameraModel
+from drivetrack.camera.model import CameraModel
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
