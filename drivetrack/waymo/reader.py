@@ -17,7 +17,7 @@ Column names come from :mod:`drivetrack.waymo.schema` only.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -207,6 +207,31 @@ def _read_boxes(f: ComponentFile, timestamps: np.ndarray) -> Boxes:
     return boxes.select(order)
 
 
+def _range_images(f: ComponentFile, timestamps: np.ndarray, returns: Sequence[int]
+                  ) -> Iterator[tuple[pa.Table, int, int, int, int, np.ndarray | None]]:
+    """Stream the range images of ``returns`` (1, 2) of a range-image component (``lidar``,
+    ``lidar_camera_projection``) in batches of :data:`LIDAR_BATCH_ROWS` rows.
+
+    Yields ``(table, i, frame, laser, return, image)`` per row ``i`` of each batch ``table`` and
+    return: the row's frame (joined to ``vehicle_pose`` on its timestamp), its laser name and the
+    read-only [H, W, C] image view, None for a null image.
+    """
+    c = f.comp
+    cols = []
+    for r in returns:
+        cols += [c.col(f"range_image_return{r}.values"), c.col(f"range_image_return{r}.shape")]
+    cols = f.columns(cols)
+    f.read_keys()
+    for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
+        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
+        frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
+        for r in returns:
+            images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
+                                               table[c.col(f"range_image_return{r}.shape")])
+            for i, image in enumerate(images):
+                yield table, i, int(frame_col[i]), int(laser_col[i]), r, image
+
+
 def _range_image_block(key_all: np.ndarray, frame: int, laser: int, return_index: int) -> slice:
     """The returns of one range image in ``key_all`` (sorted :func:`lidar.return_keys` of a
     :class:`LidarReturns`): a (frame, laser, return) image spans ``[key(.., 0, 0), key(.., r+1, 0, 0))``."""
@@ -227,44 +252,31 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
     Returns ``(returns, nonfinite)``: the :class:`LidarReturns` and the number of NaN / inf
     ranges of the lasers and returns read (dropped: such a pixel is no return).
     """
-    c = f.comp
-    cols = []
-    for r in returns:
-        cols += [c.col(f"range_image_return{r}.values"), c.col(f"range_image_return{r}.shape")]
-    cols = f.columns(cols)
-    f.read_keys()
     geometry_cache: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
     chunks = []
     nonfinite = 0
-    for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
-        frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
-        for r in returns:
-            images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
-                                               table[c.col(f"range_image_return{r}.shape")])
-            for i, image in enumerate(images):
-                laser = int(laser_col[i])
-                if image is None or laser not in lasers:
-                    continue
-                if laser not in calibrations:
-                    raise cal_file.error("laser has range images but no calibration",
-                                         column=KEY_LASER, expected=sorted(calibrations),
-                                         found=laser)
-                h, w, _ = image.shape
-                _check_keyable(f, table, i, laser, h, w, c.col(f"range_image_return{r}.shape"))
-                key = (laser, h, w)
-                if key not in geometry_cache:
-                    cal = calibrations[laser]
-                    incl = cal.inclinations(h, cal_file, laser)
-                    dirs = beam.sensor_directions(incl, beam.beam_azimuths(w, cal.vehicle_from_lidar))
-                    geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
-                                           cal.vehicle_from_lidar[:3, 3].copy())
-                dirs, origin = geometry_cache[key]
-                nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
-                pts, rows, cols_, inten = beam.points_from_directions(image, dirs, origin)
-                n = len(rows)
-                chunks.append((pts, rows, cols_, inten, np.full(n, frame_col[i], np.int32),
-                               np.full(n, laser, np.int8), np.full(n, r, np.int8)))
+    for table, i, frame, laser, r, image in _range_images(f, timestamps, returns):
+        if image is None or laser not in lasers:
+            continue
+        if laser not in calibrations:
+            raise cal_file.error("laser has range images but no calibration",
+                                 column=KEY_LASER, expected=sorted(calibrations),
+                                 found=laser)
+        h, w, _ = image.shape
+        _check_keyable(f, table, i, laser, h, w, f.comp.col(f"range_image_return{r}.shape"))
+        key = (laser, h, w)
+        if key not in geometry_cache:
+            cal = calibrations[laser]
+            incl = cal.inclinations(h, cal_file, laser)
+            dirs = beam.sensor_directions(incl, beam.beam_azimuths(w, cal.vehicle_from_lidar))
+            geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
+                                   cal.vehicle_from_lidar[:3, 3].copy())
+        dirs, origin = geometry_cache[key]
+        nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
+        pts, rows, cols_, inten = beam.points_from_directions(image, dirs, origin)
+        n = len(rows)
+        chunks.append((pts, rows, cols_, inten, np.full(n, frame, np.int32),
+                       np.full(n, laser, np.int8), np.full(n, r, np.int8)))
     if not chunks:
         return _empty_returns(len(timestamps)), nonfinite
     pts, rows, cols_, inten, frame, laser, ret = (np.concatenate(x) for x in zip(*chunks))
@@ -360,35 +372,22 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
 
 def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
                             returns_read: Sequence[int]) -> np.ndarray:
-    c = f.comp
-    cols = []
-    for r in returns_read:
-        cols += [c.col(f"range_image_return{r}.values"), c.col(f"range_image_return{r}.shape")]
-    cols = f.columns(cols)
-    f.read_keys()
     out = np.full((len(returns), 6), -1, np.int16)
     key_all = _returns_key(returns)
     lasers_read = set(np.unique(returns.laser).tolist())
-    for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
-        frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
-        for r in returns_read:
-            images = range_images_from_columns(table[c.col(f"range_image_return{r}.values")],
-                                               table[c.col(f"range_image_return{r}.shape")])
-            for i, proj in enumerate(images):
-                if proj is None or int(laser_col[i]) not in lasers_read:
-                    continue
-                block = _range_image_block(key_all, int(frame_col[i]), int(laser_col[i]), r)
-                lo, hi = block.start, block.stop
-                if hi == lo:
-                    continue
-                rows, cols_ = returns.row[lo:hi], returns.col[lo:hi]
-                if proj.shape[2] != 6 or rows.max() >= proj.shape[0] or cols_.max() >= proj.shape[1]:
-                    raise f.error("camera projection does not match the range image",
-                                  column=c.col(f"range_image_return{r}.shape"),
-                                  expected="[H, W, 6] like the lidar range image",
-                                  found=f"{list(proj.shape)} at {f.row_keys(table, i)}")
-                out[lo:hi] = beam.camera_projection_at(proj, rows, cols_)
+    for table, i, frame, laser, r, proj in _range_images(f, timestamps, returns_read):
+        if proj is None or laser not in lasers_read:
+            continue
+        block = _range_image_block(key_all, frame, laser, r)
+        if block.stop == block.start:
+            continue
+        rows, cols_ = returns.row[block], returns.col[block]
+        if proj.shape[2] != 6 or rows.max() >= proj.shape[0] or cols_.max() >= proj.shape[1]:
+            raise f.error("camera projection does not match the range image",
+                          column=f.comp.col(f"range_image_return{r}.shape"),
+                          expected="[H, W, 6] like the lidar range image",
+                          found=f"{list(proj.shape)} at {f.row_keys(table, i)}")
+        out[block] = beam.camera_projection_at(proj, rows, cols_)
     return out
 
 
