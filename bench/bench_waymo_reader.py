@@ -16,7 +16,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from drivetrack.waymo import reader
-from drivetrack.waymo.schema import component
+from drivetrack.waymo.summary import segment_summary
+from drivetrack.waymo.schema import KEY_LASER, KEY_LASER_OBJECT, KEY_SEGMENT, KEY_TIMESTAMP, component
 
 SEGMENT = "bench_segment"
 SIZES = {1: (64, 2650), 2: (200, 600), 3: (200, 600), 4: (200, 600), 5: (200, 600)}
@@ -33,7 +34,7 @@ def _writer(root: Path, name: str, compression: str):
 def _table(comp, cols: dict, n: int) -> pa.Table:
     arrays = []
     for c in comp.columns:
-        if c.name == "key.segment_context_name":
+        if c.name == KEY_SEGMENT:
             arrays.append(pa.array([SEGMENT] * n, c.type))
         elif c.name in cols:
             v = cols[c.name]
@@ -55,20 +56,20 @@ def write_segment(root: Path, frames: int, compression: str) -> float:
     w, comp = _writer(root, "vehicle_pose", compression)
     poses = np.tile(np.eye(4).reshape(1, 16), (frames, 1))
     poses[:, 3] = np.arange(frames)
-    w.write_table(_table(comp, {"key.frame_timestamp_micros": ts,
+    w.write_table(_table(comp, {KEY_TIMESTAMP: ts,
                                 comp.col("world_from_vehicle.transform"): poses.tolist()}, frames))
     w.close()
     w, comp = _writer(root, "lidar_calibration", compression)
     ext = np.eye(4)
     ext[2, 3] = 2.0
-    w.write_table(_table(comp, {"key.laser_name": list(SIZES),
+    w.write_table(_table(comp, {KEY_LASER: list(SIZES),
                                 comp.col("extrinsic.transform"): [ext.ravel().tolist()] * 5,
                                 comp.col("beam_inclination.min"): [-0.3] * 5,
                                 comp.col("beam_inclination.max"): [0.05] * 5}, 5))
     w.close()
     w, comp = _writer(root, "lidar_box", compression)
-    w.write_table(_table(comp, {"key.frame_timestamp_micros": ts,
-                                "key.laser_object_id": ["a"] * frames,
+    w.write_table(_table(comp, {KEY_TIMESTAMP: ts,
+                                KEY_LASER_OBJECT: ["a"] * frames,
                                 **{comp.col(f"box.{p}.{a}"): [1.0] * frames
                                    for p in ("center", "size") for a in "xyz"},
                                 comp.col("box.heading"): [0.0] * frames,
@@ -78,7 +79,7 @@ def write_segment(root: Path, frames: int, compression: str) -> float:
     pw, pcomp = _writer(root, "lidar_pose", compression)
     list_t = lcomp.by_name[lcomp.col("range_image_return1.values")].type
     for t in range(frames):
-        cols = {"key.frame_timestamp_micros": [int(ts[t])] * 5, "key.laser_name": list(SIZES)}
+        cols = {KEY_TIMESTAMP: [int(ts[t])] * 5, KEY_LASER: list(SIZES)}
         for r in (1, 2):
             vals, shapes = [], []
             for laser, (h, wd) in SIZES.items():
@@ -92,7 +93,7 @@ def write_segment(root: Path, frames: int, compression: str) -> float:
         pose = np.zeros((64, 2650, 6), np.float32)
         pose[..., 3] = t + np.linspace(-0.05, 0.05, 2650, dtype=np.float32)[None]
         pw.write_table(_table(pcomp, {
-            "key.frame_timestamp_micros": [int(ts[t])], "key.laser_name": [1],
+            KEY_TIMESTAMP: [int(ts[t])], KEY_LASER: [1],
             pcomp.col("range_image_return1.values"): _list([pose.ravel()], list_t),
             pcomp.col("range_image_return1.shape"): [[64, 2650, 6]]}, 1))
     lw.close()
@@ -117,7 +118,7 @@ def main() -> None:
         print(f"load_scene: {len(scene.lidar):,} returns over {scene.num_frames} frames "
               f"in {seconds:.1f} s ({len(scene.lidar) / seconds / 1e6:.1f} M returns/s)")
         t0 = time.perf_counter()
-        summary = reader.segment_summary(str(root), "training", SEGMENT)
+        summary = segment_summary(str(root), "training", SEGMENT)
         print(f"segment_summary (drivetrack info): {time.perf_counter() - t0:.1f} s, "
               f"TOP valid return 1 = {summary['lasers']['TOP']['valid_return1']:,}")
 

@@ -17,18 +17,12 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.geometry import box_from_center_heading, invert_rigid
+from drivetrack.waymo.lidar import return_keys
 
 __all__ = ["lidar_rows_from_sources", "label_speed_errors", "CHUNK_POINTS"]
 
 #: Points carried at once (bounds the [T, chunk, 3] float64 temporaries: 48 MB at 200 frames).
 CHUNK_POINTS = 32768
-
-
-def _keys(frame, laser, return_index, row, col) -> np.ndarray:
-    """int64 key of a return: frame (20 bits) | laser (3) | return (2) | row (10) | col (16)."""
-    frame = np.asarray(frame, np.int64)
-    return ((((frame << 3 | np.asarray(laser, np.int64)) << 2 | np.asarray(return_index, np.int64)) << 10
-             | np.asarray(row, np.int64)) << 16) | np.asarray(col, np.int64)
 
 
 def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray, where: str = "") -> np.ndarray:
@@ -47,10 +41,10 @@ def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray
     frames = np.asarray(frames, np.int64).reshape(-1)
     if sources.shape[0] != frames.shape[0]:
         raise ValueError(f"{where}: {frames.shape[0]} source frames for {sources.shape[0]} lidar_sources")
-    table = _keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col)
+    table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
     order = np.argsort(table, kind="stable")
     ordered = table[order]
-    wanted = _keys(frames, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3])
+    wanted = return_keys(frames, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3], where)
     pos = np.minimum(np.searchsorted(ordered, wanted), max(ordered.size - 1, 0))
     found = ordered[pos] == wanted if ordered.size else np.zeros(wanted.size, bool)
     if not np.all(found):

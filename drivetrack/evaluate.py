@@ -44,6 +44,7 @@ import pandas as pd
 
 from drivetrack.metrics import (QUERY_MODES, THRESHOLDS_PX, compute_tapvid_metrics, queries_first,
                                 queries_strided, rescale_points)
+from drivetrack.waymo.lidar import return_keys
 from drivetrack.waymo.schema import CameraName
 
 __all__ = ["METRIC_KEYS", "Clip", "Evaluation", "AnnotationFile", "TruthIndex", "find_annotation_files",
@@ -60,9 +61,6 @@ DEFAULT_MAX_QUERIES = 20_000
 
 _CAMERAS = "|".join(sorted((c.name for c in CameraName if c.name != "UNKNOWN"), key=len, reverse=True))
 _STEM = re.compile(rf"^waymo_(?P<segment>.+?)_(?P<camera>{_CAMERAS})_(?P<object_id>.+)$")
-
-# bit layout of a LiDAR return key: frame | laser (3 bits) | return (2) | row (12) | col (13)
-_COL_BITS, _ROW_BITS, _RETURN_BITS, _LASER_BITS = 13, 12, 2, 3
 
 
 # ------------------------------------------------------------------------------------------------
@@ -284,23 +282,6 @@ def read_clip(file: AnnotationFile, storage_options: dict | None = None) -> Clip
 # Matching tracks to the truth
 # ------------------------------------------------------------------------------------------------
 
-def _return_keys(frame: np.ndarray, laser: np.ndarray, return_index: np.ndarray, row: np.ndarray,
-                 col: np.ndarray, where: str) -> np.ndarray:
-    """int64 [N] keys of LiDAR returns (see the bit layout above); raises on out-of-range fields."""
-    fields = (("frame", frame, 1 << 30), ("laser", laser, 1 << _LASER_BITS),
-              ("return", return_index, 1 << _RETURN_BITS), ("row", row, 1 << _ROW_BITS),
-              ("col", col, 1 << _COL_BITS))
-    for name, value, limit in fields:
-        value = np.asarray(value)
-        if value.size and (value.min() < 0 or value.max() >= limit):
-            bad = int(value[(value < 0) | (value >= limit)][0])
-            raise ValueError(f"{where}: LiDAR {name} value {bad} outside [0, {limit})")
-    key = np.asarray(frame, np.int64)
-    for value, bits in ((laser, _LASER_BITS), (return_index, _RETURN_BITS), (row, _ROW_BITS), (col, _COL_BITS)):
-        key = (key << bits) | np.asarray(value, np.int64)
-    return key
-
-
 class TruthIndex:
     """The exact truth of one synthetic segment, indexed for matching tracks to LiDAR hits.
 
@@ -315,7 +296,7 @@ class TruthIndex:
         hits = truth.hits
         self.timestamps_micros = np.asarray(truth.objects["timestamps_micros"], dtype=np.int64)
         self.object_ids = np.asarray(truth.objects["object_id"]).astype(str)
-        keys = _return_keys(hits["frame"], hits["laser"], hits["return_index"], hits["row"], hits["col"],
+        keys = return_keys(hits["frame"], hits["laser"], hits["return_index"], hits["row"], hits["col"],
                             f"ground truth {truth.url}")
         self._order = np.argsort(keys, kind="stable")
         self._sorted = keys[self._order]
@@ -351,7 +332,7 @@ class TruthIndex:
     def match(self, frame: np.ndarray, lidar_sources: np.ndarray, where: str) -> np.ndarray:
         """int64 [N]: truth hit of each (segment frame [N], (laser, return, row, col) [N, 4]), -1 if none."""
         sources = np.asarray(lidar_sources, dtype=np.int64).reshape(-1, 4)
-        keys = _return_keys(frame, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3], where)
+        keys = return_keys(frame, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3], where)
         pos = np.searchsorted(self._sorted, keys)
         pos_clipped = np.minimum(pos, max(self._sorted.size - 1, 0))
         found = (pos < self._sorted.size) & (self._sorted[pos_clipped] == keys) if self._sorted.size \

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, box_from_center_heading
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import box_from_center_heading
 
 __all__ = ["LidarReturns", "Boxes", "CameraFrames", "Scene"]
 

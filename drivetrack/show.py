@@ -434,6 +434,7 @@ def error_view(clip: Clip, truth_root: str, split: str | None = None) -> ErrorVi
     matched to segment frames on ``timestamps_micros``.
     """
     from drivetrack.synth.ground_truth import load_ground_truth
+    from drivetrack.waymo.lidar import return_keys
 
     split = split or (clip.split if clip.split in SPLITS else None)
     if split is None:
@@ -446,15 +447,10 @@ def error_view(clip: Clip, truth_root: str, split: str | None = None) -> ErrorVi
     h = truth.hits
     num_frames_gt = int(truth.objects["timestamps_micros"].shape[0])
 
-    def key(frame, laser, ret, row, col):
-        # one int64 per return: frame, laser, return, row, column packed in disjoint bit fields
-        return ((np.asarray(frame, np.int64) << 44) | (np.asarray(laser, np.int64) << 40)
-                | (np.asarray(ret, np.int64) << 36) | (np.asarray(row, np.int64) << 18) | np.asarray(col, np.int64))
-
-    gt_keys = key(h["frame"], h["laser"], h["return_index"], h["row"], h["col"])
+    gt_keys = return_keys(h["frame"], h["laser"], h["return_index"], h["row"], h["col"], f"ground truth {truth.url}")
     order = np.argsort(gt_keys, kind="stable")
     src = clip.lidar_sources.astype(np.int64)
-    ours = key(seg_frames[clip.query_frames.astype(np.int64)], src[:, 0], src[:, 1], src[:, 2], src[:, 3])
+    ours = return_keys(seg_frames[clip.query_frames.astype(np.int64)], src[:, 0], src[:, 1], src[:, 2], src[:, 3], clip.url)
     pos = np.clip(np.searchsorted(gt_keys[order], ours), 0, max(gt_keys.size - 1, 0))
     matched = (gt_keys[order][pos] == ours) if gt_keys.size else np.zeros(ours.shape, bool)
     hit = order[pos]

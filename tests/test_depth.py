@@ -8,7 +8,8 @@ import pytest
 
 from drivetrack.depth import (get_completer, lookup_max4, sparse_depth_from_points)
 from drivetrack.depth.analytic import default_scene, exact_depth, front_camera, lidar_points
-from drivetrack.geometry import CameraModel, rigid_from_rotation_translation
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import rigid_from_rotation_translation
 
 CPU_COMPLETERS = ["nearest", "ipbasic"]
 
@@ -359,7 +360,8 @@ def test_apply_depth_bounds_after_completion():
 
 def test_horizontal_depth_scale_gives_z_depth_from_horizontal_distance():
     from drivetrack.depth import horizontal_depth_scale
-    from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+    from drivetrack.camera.model import CameraModel
+    from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 
     camera = CameraModel(f_u=500.0, f_v=500.0, c_u=240.0, c_v=160.0, k1=0.04, k2=-0.02, p1=0.0005, p2=-0.0003,
                          k3=0.0, width=480, height=320, vehicle_from_camera=rigid_from_rotation_translation(
@@ -382,7 +384,8 @@ def test_bound_blind_zone_on_analytic_scene_never_brings_surfaces_nearer():
     while far returns of a bumper lidar seen round the car there are replaced."""
     from drivetrack.depth import bound_blind_zone, horizontal_depth_scale
     from drivetrack.depth.analytic import AnalyticScene
-    from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+    from drivetrack.camera.model import CameraModel
+    from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 
     near_car = np.array([[[3.2, -1.2, 0.0], [7.2, 1.2, 1.6]]])
     scene = AnalyticScene(ground_z=0.0, boxes=np.concatenate([near_car, default_scene().boxes]))

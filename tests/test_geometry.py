@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from drivetrack import geometry as g
+from drivetrack.camera.model import CameraModel
 
 
 def _camera(**kw):
     base = dict(f_u=2000.0, f_v=1990.0, c_u=960.0, c_v=640.0, k1=0.03, k2=-0.3, p1=8e-4,
                 p2=-6e-4, k3=0.0, width=1920, height=1280, vehicle_from_camera=np.eye(4))
     base.update(kw)
-    return g.CameraModel(**base)
+    return CameraModel(**base)
 
 
 def test_matrix_from_flat_is_row_major_with_translation_at_3_7_11():

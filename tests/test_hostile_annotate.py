@@ -23,6 +23,7 @@ import pytest
 from _waymo_parquet import SEGMENT, TIMESTAMPS, flat, rigid, tiny_segment, write_component
 from drivetrack.names import InvalidNameError
 from drivetrack.waymo import reader
+from drivetrack.waymo.summary import segment_summary
 from drivetrack.waymo.reader import WaymoFormatError
 
 SPLIT = "training"
@@ -213,7 +214,7 @@ def test_nan_and_inf_ranges_are_dropped_and_counted(tmp_path):
     assert scene.source_stats["lidar_nonfinite_ranges"] == 3
     assert np.isfinite(scene.lidar.points_vehicle).all()
     assert len(scene.lidar.points_vehicle) == len(clean.lidar.points_vehicle) - 3
-    summary = reader.segment_summary(str(tmp_path), SPLIT, SEGMENT)
+    summary = segment_summary(str(tmp_path), SPLIT, SEGMENT)
     assert summary["lasers"]["TOP"]["nonfinite_return1"] == 3
     assert summary["lasers"]["TOP"]["nonfinite_return2"] == 0
 
@@ -267,7 +268,7 @@ def test_segment_or_split_name_is_refused_before_any_path_is_built(tmp_path, seg
     with pytest.raises(InvalidNameError, match="segment name"):
         reader.load_scene(str(tmp_path), SPLIT, segment)
     with pytest.raises(InvalidNameError, match="segment name"):
-        reader.segment_summary(str(tmp_path), SPLIT, segment)
+        segment_summary(str(tmp_path), SPLIT, segment)
     with pytest.raises(InvalidNameError, match="segment name"):
         annotate(str(tmp_path), SPLIT, [segment], str(tmp_path / "out"), AnnotateConfig())
     with pytest.raises(InvalidNameError, match="split name"):

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivetrack import rolling_shutter as rs
-from drivetrack.geometry import CameraModel
+from drivetrack.camera import rolling_shutter as rs
+from drivetrack.camera.model import CameraModel
 from drivetrack.scene import CameraFrames
 
 EXTRINSIC = np.array([

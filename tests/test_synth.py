@@ -9,7 +9,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from drivetrack.geometry import CameraModel, invert_rigid, matrix_from_flat, rotation_from_rpy, transform_points
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid, matrix_from_flat, rotation_from_rpy, transform_points
 from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
 from drivetrack.waymo import lidar as lidar_geometry
 from drivetrack.waymo.schema import COMPONENTS, CameraName, LaserName, types_compatible

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivetrack import rolling_shutter as rs
+from drivetrack.camera import rolling_shutter as rs
 from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
 from drivetrack.waymo.reader import load_scene
 

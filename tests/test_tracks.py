@@ -6,7 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from drivetrack.geometry import CameraModel, box_from_center_heading, invert_rigid, rotation_z, transform_points
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import box_from_center_heading, invert_rigid, rotation_z, transform_points
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.tracks import (REJECTION_REASONS, TrackConfig, continuous_runs, depth_jobs, object_jobs,
                                object_stats, plan_segment, prepare_segment, rejection_stats, run_object_job,

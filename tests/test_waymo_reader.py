@@ -9,7 +9,7 @@ import pytest
 
 from _waymo_parquet import (CAMERA_FROM, FRONT_FROM, SEGMENT, TIMESTAMPS, WORLD_FROM_VEHICLE,
                             flat, tiny_segment, top_range, write_component)
-from drivetrack.waymo import reader
+from drivetrack.waymo import columns, lidar, reader
 from drivetrack.waymo.schema import COMPONENTS
 
 SPLIT = "training"
@@ -55,7 +55,7 @@ def test_read_component_reads_keys_and_requested_columns_of_the_segment(tmp_path
     table = reader.read_component(str(tmp_path), SPLIT, "vehicle_pose", SEGMENT, columns=[col])
     assert table.column_names == ["key.segment_context_name", "key.frame_timestamp_micros", col]
     assert table["key.segment_context_name"].to_pylist() == [SEGMENT, SEGMENT]
-    mats = reader.transforms_from_column(table[col])
+    mats = columns.transforms_from_column(table[col])
     assert mats.shape == (2, 4, 4)
     np.testing.assert_array_equal(mats[1], WORLD_FROM_VEHICLE[1])
     keys_only = reader.read_component(str(tmp_path), SPLIT, "vehicle_pose", SEGMENT, columns=[])
@@ -240,12 +240,12 @@ def test_options_select_lasers_returns_and_skip_images(segment_root):
 def test_decoders_handle_nulls_and_child_names():
     shapes = pa.array([[2, 3, 1], None, [1, 1, 2]], pa.list_(pa.field("element", pa.int32()), 3))
     values = pa.array([[0, 1, 2, 3, 4, 5], None, [7, 8]], pa.large_list(pa.float32()))
-    images = reader.range_images_from_columns(values, shapes)
+    images = columns.range_images_from_columns(values, shapes)
     np.testing.assert_array_equal(images[0][..., 0], [[0, 1, 2], [3, 4, 5]])
     assert images[1] is None and images[2].shape == (1, 1, 2)
-    sliced = reader.range_images_from_columns(values.slice(2), shapes.slice(2))
+    sliced = columns.range_images_from_columns(values.slice(2), shapes.slice(2))
     np.testing.assert_array_equal(sliced[0].ravel(), [7, 8])
-    mats = reader.transforms_from_column(pa.chunked_array(
+    mats = columns.transforms_from_column(pa.chunked_array(
         [pa.array([flat(np.eye(4))], pa.list_(pa.float64(), 16)),
          pa.array([None], pa.list_(pa.float64(), 16))]))
     assert mats.shape == (2, 4, 4)
@@ -258,13 +258,13 @@ def test_lidar_points_function_matches_the_scene(scene):
     from drivetrack.waymo.lidar import beam_inclinations
 
     incl = beam_inclinations(4, None, -0.2, 0.1)
-    pts, rows, cols, inten = reader.lidar_points(top_range(1, 1), TOP_FROM, incl,
+    pts, rows, cols, inten = lidar.lidar_points(top_range(1, 1), TOP_FROM, incl,
                                                  top_pose(1), WORLD_FROM_VEHICLE[1])
     m = (scene.lidar.frame == 1) & (scene.lidar.laser == 1) & (scene.lidar.return_index == 1)
     np.testing.assert_allclose(pts, scene.lidar.points_vehicle[m])
     np.testing.assert_array_equal(rows, scene.lidar.row[m])
     np.testing.assert_array_equal(cols, scene.lidar.col[m])
-    empty = reader.lidar_points(np.zeros((4, 8, 4), np.float32), TOP_FROM, incl)
+    empty = lidar.lidar_points(np.zeros((4, 8, 4), np.float32), TOP_FROM, incl)
     assert empty[0].shape == (0, 3) and empty[1].shape == (0,)
 
 
@@ -320,3 +320,41 @@ def test_info_command_json_and_table(segment_root, tmp_path, capsys):
     assert "missing component file" in bad["error"] and "vehicle_pose" in bad["error"]
     assert main(["info", str(tmp_path), "--split", "validation"]) == 2
     assert main(["info", str(tmp_path), "--storage-option", "novalue"]) == 2
+
+
+def test_return_keys_sort_like_tuples_and_bound_each_range_image():
+    from drivetrack.waymo.lidar import RETURN_KEY_BITS, return_keys
+
+    rng = np.random.default_rng(3)
+    fields = [rng.integers(0, 4, 500), rng.integers(0, 6, 500), rng.integers(1, 3, 500),
+              rng.integers(0, 64, 500), rng.integers(0, 2650, 500)]
+    keys = return_keys(*fields)
+    assert keys.dtype == np.int64 and keys.shape == (500,) and (keys >= 0).all()
+    np.testing.assert_array_equal(np.argsort(keys, kind="stable"), np.lexsort(fields[::-1]))
+    sel = (fields[0] == 2) & (fields[1] == 1) & (fields[2] == 2)
+    inside = (keys >= return_keys(2, 1, 2, 0, 0)) & (keys < return_keys(2, 1, 3, 0, 0))
+    np.testing.assert_array_equal(inside, sel)
+    assert return_keys([], [], [], [], []).shape == (0,)
+    assert sum(bits for _, bits in RETURN_KEY_BITS) == 63
+    with pytest.raises(ValueError, match=r"clip x: LiDAR row value 16384 outside \[0, 16384\)"):
+        return_keys(0, 1, 1, [3, 16384], 0, "clip x")
+    with pytest.raises(ValueError, match=r"LiDAR laser value -1"):
+        return_keys(0, -1, 1, 0, 0)
+
+
+def test_merge_rows_joins_on_shared_key_columns_not_row_order():
+    from drivetrack.waymo.schema import COMPONENTS, KEY_CAMERA, KEY_LASER, KEY_TIMESTAMP, merge_rows
+
+    assert KEY_CAMERA in COMPONENTS["camera_image"].keys and KEY_LASER in COMPONENTS["lidar"].keys
+    left = {KEY_TIMESTAMP: np.array([30, 10, 20, 10]), KEY_CAMERA: np.array([1, 1, 1, 2])}
+    right = {KEY_TIMESTAMP: np.array([10, 20, 10, 40]), KEY_CAMERA: np.array([2, 1, 1, 1]),
+             "[X].value": np.arange(4)}
+    row, found = merge_rows(left, right)
+    np.testing.assert_array_equal(found, [True, True, True, False])
+    np.testing.assert_array_equal(row[found], [3, 2, 1])
+    row, found = merge_rows({KEY_TIMESTAMP: np.array([5, 7])}, {KEY_TIMESTAMP: np.array([7, 6, 5])})
+    np.testing.assert_array_equal(found, [True, False, True])
+    np.testing.assert_array_equal(row[found], [1, 0])
+    assert merge_rows({KEY_TIMESTAMP: np.zeros(0)}, {KEY_TIMESTAMP: np.array([1])})[1].tolist() == [False]
+    with pytest.raises(ValueError, match="no shared key column"):
+        merge_rows({KEY_TIMESTAMP: np.array([1])}, {KEY_LASER: np.array([1])})

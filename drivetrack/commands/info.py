@@ -49,7 +49,8 @@ def run(args) -> int:
 def _run(args) -> int:
     from drivetrack.commands._release_common import unreachable_cause
     from drivetrack.names import InvalidNameError
-    from drivetrack.waymo.reader import WaymoFormatError, list_segments, segment_summary
+    from drivetrack.waymo.components import WaymoFormatError, list_segments
+    from drivetrack.waymo.summary import segment_summary
 
     try:
         options = parse_storage_options(args.storage_option)

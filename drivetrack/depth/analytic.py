@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 
 __all__ = ["AnalyticScene", "default_scene", "front_camera", "ray_hit_distance", "exact_depth",
            "lidar_points"]

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, transform_points
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import transform_points
 
 __all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
            "horizontal_depth_scale"]

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, box_from_center_heading, transform_points
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import box_from_center_heading, transform_points
 
 _EDGES = np.array([(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7),
                    (0, 4), (1, 5), (2, 6), (3, 7)])

@@ -10,10 +10,10 @@ Rolling shutter (``SynthConfig.rolling_shutter``): each camera gets a real reado
 (:data:`~drivetrack.synth.sensors.ROLLING_SHUTTER_DIRECTIONS`), and every pixel is rendered at
 its own capture time with the ego pose and every object's pose of that instant (closed-form world
 model, no linearisation). The capture time follows the Waymo camera model exactly as
-:mod:`drivetrack.rolling_shutter` implements it: linear in the undistorted normalised coordinate
+:mod:`drivetrack.camera.rolling_shutter` implements it: linear in the undistorted normalised coordinate
 of the pixel's ray along the readout axis (``v = -z/x`` for row readouts, ``u = -y/x`` for column
 readouts), ``t = pose_timestamp - pose_offset + time_per_normalised * coordinate``, constants from
-:func:`drivetrack.rolling_shutter.shutter_state` of the written ``camera_image`` fields. The
+:func:`drivetrack.camera.rolling_shutter.shutter_state` of the written ``camera_image`` fields. The
 ground truth uses the same law: each body point's capture time is solved by fixed-point
 iteration on ``t = law(coordinate of the point at t, seen by the camera at t)`` to 1e-12 s, so
 truth pixels, visibility and dense depth are exact with respect to the rendered images.

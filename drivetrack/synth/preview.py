@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.synth.ground_truth import load_ground_truth
-from drivetrack.waymo.schema import COMPONENTS, CameraName, LaserName
+from drivetrack.waymo.schema import COMPONENTS, KEY_CAMERA, KEY_TIMESTAMP, CameraName, LaserName
 
 __all__ = ["render_preview"]
 
@@ -15,8 +15,8 @@ def _images(root: str, split: str, segment: str, frame: int) -> dict[int, np.nda
 
     comp = COMPONENTS["camera_image"]
     table = pq.read_table(f"{str(root).rstrip('/')}/{split}/camera_image/{segment}.parquet",
-                          columns=["key.frame_timestamp_micros", "key.camera_name", comp.col("image")])
-    stamps = sorted(set(table.column("key.frame_timestamp_micros").to_pylist()))
+                          columns=[KEY_TIMESTAMP, KEY_CAMERA, comp.col("image")])
+    stamps = sorted(set(table.column(KEY_TIMESTAMP).to_pylist()))
     if not 0 <= frame < len(stamps):
         raise IndexError(f"segment {segment}: frame {frame} out of range 0..{len(stamps) - 1}")
     out = {}

@@ -5,7 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, rigid_from_rotation_translation, rotation_from_rpy
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["Preset", "PRESETS", "LidarSpec", "camera_models", "lidar_specs", "DEFAULT_CAMERAS",

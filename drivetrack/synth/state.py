@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, invert_rigid
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid
 from drivetrack.synth.boxes import _box_matrix, _rotate_rpy, _screen_rect
 from drivetrack.synth.config import (FRAME_PERIOD_S, LABEL_RANGE_M, T0_MICROS, SynthConfig, segment_name,
                                      sweep_offset)
@@ -118,7 +119,7 @@ class _Generator(_CameraRendering, _LidarCasting):
         """
         key = (cam, t)
         if key not in self._laws:
-            from drivetrack.rolling_shutter import shutter_state
+            from drivetrack.camera.rolling_shutter import shutter_state
 
             state = shutter_state(self.camera_frames[cam], t)
             offset = self.camera_offsets[cam]

@@ -5,7 +5,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, invert_rigid
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid
 from drivetrack.synth import ground_truth as gt
 from drivetrack.synth.boxes import _apply, _yaw_transform
 from drivetrack.synth.raycast import intersect_box

@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, invert_rigid, transform_points
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.tracks.depth_stage import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
@@ -285,11 +286,11 @@ class TrackSource:
 
 
 def rolling_shutter_projector():
-    """``drivetrack.rolling_shutter.pixels_from_world`` if that module exists, else None."""
+    """``drivetrack.camera.rolling_shutter.pixels_from_world`` if that module exists, else None."""
     try:
-        module = importlib.import_module("drivetrack.rolling_shutter")
+        module = importlib.import_module("drivetrack.camera.rolling_shutter")
     except ModuleNotFoundError as error:
-        if error.name != "drivetrack.rolling_shutter":
+        if error.name != "drivetrack.camera.rolling_shutter":
             raise
         return None
     return getattr(module, "pixels_from_world")
@@ -362,11 +363,11 @@ def fill_invalid_positions(tracks: np.ndarray) -> np.ndarray:
 def _any_rolling_frame(frames_meta, frames: np.ndarray) -> bool:
     """True when some clip frame has usable rolling-shutter data (``shutter_state(...).rolling``).
 
-    The decision is ``drivetrack.rolling_shutter.shutter_state``'s own (direction 0 or 5,
+    The decision is ``drivetrack.camera.rolling_shutter.shutter_state``'s own (direction 0 or 5,
     readout <= 0 or a missing value mean global shutter), asked frame by frame; it also raises
     the same errors the projector would (a frame without a pose).
     """
-    from drivetrack.rolling_shutter import shutter_state
+    from drivetrack.camera.rolling_shutter import shutter_state
 
     return any(shutter_state(frames_meta, t).rolling for t in frames.tolist())
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
+from drivetrack.camera.model import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
 
 __all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
            "fill_points3d_frames", "summarise_tracks"]

@@ -5,7 +5,9 @@ exact column names and arrow types of the official release
 (``waymo-research/waymo-open-dataset``, ``src/waymo_open_dataset/v2/perception``). Every column is
 nullable. Key columns are named ``key.<field>``; value columns ``[<ComponentClass>].<dotted.path>``.
 This module is the only place in the project that spells column names: everything else asks for
-them through :data:`COMPONENTS` or the ``Component`` helpers.
+them through :data:`COMPONENTS`, the ``Component`` helpers or the ``KEY_*`` constants, and joins
+components on their key columns through :func:`merge_rows` (the SDK's ``v2.merge`` on shared
+key columns, for numpy key arrays).
 
 List columns compare equal whatever their child field is called (``item`` or ``element``): the
 official writer and other producers differ, so nothing here depends on it.
@@ -15,16 +17,23 @@ from __future__ import annotations
 import enum
 import re
 from dataclasses import dataclass, field
+from typing import Mapping
 
+import numpy as np
 import pyarrow as pa
 
 __all__ = [
     "CameraName", "LaserName", "BoxType", "Column", "Component", "COMPONENTS", "KEY_SEGMENT",
-    "KEY_TIMESTAMP", "arrow_type_from_text", "types_compatible", "component",
+    "KEY_TIMESTAMP", "KEY_CAMERA", "KEY_LASER", "KEY_LASER_OBJECT", "KEY_CAMERA_OBJECT",
+    "arrow_type_from_text", "types_compatible", "component", "merge_rows",
 ]
 
 KEY_SEGMENT = "key.segment_context_name"
 KEY_TIMESTAMP = "key.frame_timestamp_micros"
+KEY_CAMERA = "key.camera_name"
+KEY_LASER = "key.laser_name"
+KEY_LASER_OBJECT = "key.laser_object_id"
+KEY_CAMERA_OBJECT = "key.camera_object_id"
 
 
 class CameraName(enum.IntEnum):
@@ -314,6 +323,46 @@ COMPONENTS["camera_segmentation"] = _component("camera_segmentation", "CameraSeg
     ("[CameraSegmentationLabelComponent].sequence_id", "string"),
     ("[CameraSegmentationLabelComponent].num_cameras_covered", "binary"),
 ])
+
+
+def merge_rows(left: Mapping[str, np.ndarray], right: Mapping[str, np.ndarray]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Join the rows of ``right`` to those of ``left`` on their shared key columns.
+
+    The numpy counterpart of the SDK's ``v2.merge`` (which joins two components on the ``key.``
+    columns they share), for the integer keys the reader aligns on (timestamps, camera and laser
+    names): never on row order.
+
+    Args:
+        left: key column name -> int array [L]; its key tuples must be unique (component files
+            are checked for duplicate keys when read), e.g. ``{KEY_TIMESTAMP: timestamps}``.
+        right: key column name -> int array [R].
+    Returns:
+        ``(row int64 [R], found bool [R])``: the row of ``left`` with the same values in every
+        shared key column, and whether there is one (``row`` is only meaningful where found).
+    Raises:
+        ValueError when the two share no key column.
+    """
+    on = [name for name in left if name in right and name.startswith("key.")]
+    if not on:
+        raise ValueError(f"no shared key column to join on: left has {sorted(left)}, right has "
+                         f"{sorted(right)}")
+    left_cols = [np.asarray(left[name], np.int64).reshape(-1) for name in on]
+    right_cols = [np.asarray(right[name], np.int64).reshape(-1) for name in on]
+    n_left, n_right = left_cols[0].size, right_cols[0].size
+    if len(on) == 1:
+        left_key, right_key = left_cols[0], right_cols[0]
+    else:  # one int64 code per distinct key tuple, shared by both sides
+        both = np.stack([np.concatenate([a, b]) for a, b in zip(left_cols, right_cols)], axis=-1)
+        _, code = np.unique(both, axis=0, return_inverse=True)
+        code = code.reshape(-1)
+        left_key, right_key = code[:n_left], code[n_left:]
+    if n_left == 0:
+        return np.zeros(n_right, np.int64), np.zeros(n_right, bool)
+    order = np.argsort(left_key, kind="stable")
+    pos = np.minimum(np.searchsorted(left_key[order], right_key), n_left - 1)
+    found = left_key[order][pos] == right_key
+    return order[pos].astype(np.int64), found
 
 
 def component(name: str) -> Component:

@@ -36,7 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.geometry import CameraModel, invert_rigid
+from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid
 from drivetrack.scene import CameraFrames
 
 __all__ = [
