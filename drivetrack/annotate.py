@@ -42,7 +42,7 @@ import pandas as pd
 
 import drivetrack
 from drivetrack import faults
-from drivetrack.layout import LAYOUTS, CLIP_PREFIX
+from drivetrack.outputs import LAYOUTS, CLIP_PREFIX
 from drivetrack.names import check_name
 from drivetrack.scene import Scene
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 import posixpath
-import re
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
@@ -44,6 +43,7 @@ import pandas as pd
 
 from drivetrack.metrics import (QUERY_MODES, THRESHOLDS_PX, compute_tapvid_metrics, queries_first,
                                 queries_strided, rescale_points)
+from drivetrack.outputs import parse_clip_name
 from drivetrack.waymo.schema import CameraName
 
 __all__ = ["METRIC_KEYS", "Clip", "Evaluation", "AnnotationFile", "TruthIndex", "find_annotation_files",
@@ -57,9 +57,6 @@ METRIC_KEYS = (("occlusion_accuracy",) + tuple(f"pts_within_{d}" for d in THRESH
 #: Default cap on the queries scored per clip and mode (evenly spaced subset beyond it): bounds the
 #: [Q, T, 2] float64 temporaries of the metric (a full-size clip can have 10^5 tracks x 40 strides).
 DEFAULT_MAX_QUERIES = 20_000
-
-_CAMERAS = "|".join(sorted((c.name for c in CameraName if c.name != "UNKNOWN"), key=len, reverse=True))
-_STEM = re.compile(rf"^waymo_(?P<segment>.+?)_(?P<camera>{_CAMERAS})_(?P<object_id>.+)$")
 
 # bit layout of a LiDAR return key: frame | laser (3 bits) | return (2) | row (12) | col (13)
 _COL_BITS, _ROW_BITS, _RETURN_BITS, _LASER_BITS = 13, 12, 2, 3
@@ -133,27 +130,6 @@ class AnnotationFile:
     segment: str
     camera: str
     object_id: str
-
-
-def parse_clip_name(name: str, segments: Iterable[str] = ()) -> tuple[str, str, str]:
-    """``(segment, camera, object_id)`` of ``waymo_{segment}_{CAMERA}_{object_id}[.npz]``.
-
-    A segment from ``segments`` that prefixes the name wins (segment names could contain a camera
-    name); otherwise the first camera name after ``waymo_`` splits the name.
-    """
-    stem = posixpath.basename(name)
-    stem = stem[:-4] if stem.endswith(".npz") else stem
-    for segment in sorted(segments, key=len, reverse=True):
-        rest = stem[len(f"waymo_{segment}_"):] if stem.startswith(f"waymo_{segment}_") else None
-        if rest is not None:
-            match = re.match(rf"^(?P<camera>{_CAMERAS})_(?P<object_id>.+)$", rest)
-            if match:
-                return segment, match["camera"], match["object_id"]
-    match = _STEM.match(stem)
-    if not match:
-        raise ValueError(f"{name}: not a clip file name waymo_{{segment}}_{{CAMERA}}_{{object_id}}.npz "
-                         f"(CAMERA one of {_CAMERAS.split('|')})")
-    return match["segment"], match["camera"], match["object_id"]
 
 
 def _fs(url: str, storage_options: dict | None = None):

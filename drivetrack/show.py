@@ -25,22 +25,20 @@ from __future__ import annotations
 
 import io
 import posixpath
-import re
 import zipfile
 from dataclasses import dataclass
 
 import fsspec
 import numpy as np
 
-__all__ = ["Clip", "ErrorView", "CLIP_NAME", "find_clips", "parse_clip_name", "clip_num_tracks",
+from drivetrack.outputs import is_clip_name, parse_clip_name
+
+__all__ = ["Clip", "ErrorView", "find_clips", "parse_clip_name", "clip_num_tracks",
            "select_clip", "load_clip", "parse_frames", "sample_tracks", "track_colors",
            "draw_tracks", "depth_panel", "clip_depth", "error_view", "render_frames",
            "contact_sheet", "render_sheet", "render_video", "write_image", "write_video",
            "write_previews", "fit_width", "SPLITS", "ERROR_BINS_PX"]
 
-#: ``waymo_{segment}_{CAMERA}_{object_id}.npz``; camera names tried longest first.
-CLIP_NAME = re.compile(r"^waymo_(?P<segment>.+?)_(?P<camera>FRONT_LEFT|FRONT_RIGHT|SIDE_LEFT|SIDE_RIGHT|FRONT)"
-                       r"_(?P<object_id>[A-Za-z0-9_.\-]+)\.npz$")
 SPLITS = ("training", "validation", "testing")
 #: Folders whose ``waymo_*.npz`` are not DriveTrack clips (TAPVid-3D copies, release internals).
 _NOT_CLIP_DIRS = {"tapvid3d", "_staging", "_txn", "previews"}
@@ -52,16 +50,6 @@ WRONG_FLAG_COLOR = (255, 0, 255)
 
 
 # ---- finding and reading clips -------------------------------------------------------------
-
-def parse_clip_name(url: str) -> tuple[str, str, str]:
-    """``(segment, CAMERA, object_id)`` from a clip file name; ValueError naming the file if not one."""
-    name = posixpath.basename(str(url))
-    m = CLIP_NAME.match(name)
-    if not m:
-        raise ValueError(f"{url}: not a DriveTrack clip file name (expected "
-                         f"waymo_{{segment}}_{{CAMERA}}_{{object_id}}.npz)")
-    return m["segment"], m["camera"], m["object_id"]
-
 
 def _fs(url: str):
     return fsspec.core.url_to_fs(str(url))
@@ -88,7 +76,7 @@ def find_clips(root: str) -> list[str]:
     out = []
     for p in found:
         rel = p[len(base):].lstrip("/") if p.startswith(base) else p
-        if set(rel.split("/")[:-1]) & _NOT_CLIP_DIRS or not CLIP_NAME.match(posixpath.basename(p)):
+        if set(rel.split("/")[:-1]) & _NOT_CLIP_DIRS or not is_clip_name(p, strict_object_id=True):
             continue
         out.append(_join(fs, p))
     return sorted(out)

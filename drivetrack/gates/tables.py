@@ -16,7 +16,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from drivetrack.gates.config import PERCENTILES
-from drivetrack.layout import DRIVETRACK, parse_clip_path
+from drivetrack.outputs import DRIVETRACK, parse_clip_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
 #: The same percentiles for the same tracks under the labelled poses (``drivetrack.consistency``);

@@ -43,7 +43,7 @@ from typing import Callable
 
 import fsspec
 
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clips_of
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, clip_glob, clips_of
 from drivetrack.release import cards as _cards
 from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GatesFailedError,
                                        InvalidSourceError, PublishConflictError, PublishInterruptedError,

@@ -16,7 +16,7 @@ import numpy as np
 
 from drivetrack import faults, storage
 from drivetrack.geometry import invert_rigid
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_path
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, clip_path
 from drivetrack.names import check_name
 from drivetrack.storage import StreamedArray
 from drivetrack.tracks.core import ObjectTracks, frames_per_chunk

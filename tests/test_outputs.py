@@ -1,7 +1,7 @@
-"""drivetrack.layout: where clip files live (tracks/{split}/, tapvid3d/{split}/)."""
+"""drivetrack.outputs: where clip files live (tracks/{split}/, tapvid3d/{split}/)."""
 import pytest
 
-from drivetrack.layout import (DRIVETRACK, TAPVID3D, clip_glob, clip_path, clips_of, parse_clip_path,
+from drivetrack.outputs import (DRIVETRACK, TAPVID3D, clip_glob, clip_path, clips_of, parse_clip_path,
                                splits_of)
 
 
