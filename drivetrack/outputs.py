@@ -1,24 +1,35 @@
 """The output contract: where clip files live, what they are called, and how their names parse.
 
-One place that knows the file names and locations of an annotation output folder or a release:
+One place that knows the file names, locations, table columns and categorical values of an
+annotation output folder or a release; writers, gates, manifests and readers import them from here.
+Clip files:
 
     tracks/{split}/waymo_{segment}_{CAMERA}_{object_id}.npz     DriveTrack-compatible clips
     tapvid3d/{split}/waymo_{segment}_{CAMERA}_{object_id}.npz   the same clips, TAPVid-3D layout
 
 Split folders sit under a layout folder because Waymo has a split called ``validation`` and the
 top-level ``validation/`` folder holds the gate reports. Paths here are relative, ``/``-separated.
+
+Tables (``stats/{name}.parquet``, docs/formats.md): :data:`OBJECT_COLUMNS` (then the
+``label_speed_err_p*`` and ``refine_*`` columns annotate adds), :data:`SEGMENT_COLUMNS`,
+:data:`REJECTION_COLUMNS`. Categorical values are ``StrEnum``s whose values are the strings in
+the files: :class:`SegmentStatus`, :class:`Stage`, :class:`RejectionReason`.
 """
 from __future__ import annotations
 
 import posixpath
 import re
+from enum import StrEnum
 from typing import Iterable
 
 from drivetrack.names import check_name, is_valid_name
 from drivetrack.waymo.schema import CameraName
 
 __all__ = ["LAYOUTS", "DRIVETRACK", "TAPVID3D", "CLIP_PREFIX", "CLIP_CAMERAS", "CLIP_NAME", "clip_path",
-           "clip_glob", "parse_clip_path", "parse_clip_name", "is_clip_name", "splits_of", "clips_of"]
+           "clip_glob", "parse_clip_path", "parse_clip_name", "is_clip_name", "splits_of", "clips_of",
+           "SegmentStatus", "Stage", "RejectionReason", "REJECTION_REASONS", "SPEED_PERCENTILES",
+           "SPEED_ERR_COLUMNS", "LABEL_SPEED_ERR_COLUMNS", "OBJECT_COLUMNS", "SEGMENT_COLUMNS", "REJECTION_COLUMNS",
+           "TABLES"]
 
 DRIVETRACK = "drivetrack"
 TAPVID3D = "tapvid3d"
@@ -33,6 +44,69 @@ _CAMERA_GROUP = "|".join(CLIP_CAMERAS)
 #: the shortest prefix followed by a camera name; ``object_id`` is everything after it.
 CLIP_NAME = re.compile(rf"^{CLIP_PREFIX}(?P<segment>.+?)_(?P<camera>{_CAMERA_GROUP})_(?P<object_id>.+)$")
 _CAMERA_OBJECT = re.compile(rf"^(?P<camera>{_CAMERA_GROUP})_(?P<object_id>.+)$")
+
+
+class SegmentStatus(StrEnum):
+    """A segment's outcome (``status`` of ``stats/segments.parquet``, ``run.json``, ``SegmentResult``)."""
+    RUNNING = "running"        # in memory while the segment runs; never written
+    DONE = "done"
+    FAILED = "failed"
+
+
+class Stage(StrEnum):
+    """The stage of a segment a failure happened in (``SegmentResult.stage``, the ``[stage]`` prefix of
+    the ``error`` column, the keys of ``timings_s``), in pipeline order."""
+    INGEST = "ingest"
+    REFINE = "refine"
+    PLAN = "plan"
+    DEPTH = "depth"
+    TRACKS = "tracks"
+    WRITE = "write"
+    WORKER = "worker"          # the worker process died (annotate with workers >= 2)
+
+
+class RejectionReason(StrEnum):
+    """Why a (segment, camera, object) clip was rejected, in the order the filters test them
+    (``reason`` of ``stats/rejections.parquet``; ``rejected_{reason}`` columns of segments)."""
+    CAMERA = "camera"                        # camera not in TrackConfig.cameras
+    OBJECT_TYPE = "object_type"              # type not in TrackConfig.object_types
+    NOT_IN_VIEW = "not_in_view"              # never in the camera's view
+    LABEL_GAP = "label_gap"                  # in view in several runs separated by frames without a label
+    IMAGE_GAP = "image_gap"                  # ... separated by frames without a camera image
+    LEFT_AND_RETURNED = "left_and_returned"  # ... the object left the image and came back
+    TOO_FEW_FRAMES = "too_few_frames"        # the run is shorter than min_frames
+    TOO_FAR = "too_far"                      # never within max_camera_distance_m of the camera during the run
+    NO_POINTS = "no_points"                  # no LiDAR return inside the box during the run
+    NO_VISIBLE_POINTS = "no_visible_points"  # (track stage) no point visible in any frame after occlusion/filters
+
+
+#: Every rejection reason, in the order they are tested.
+REJECTION_REASONS = tuple(RejectionReason)
+
+#: Percentiles of the per-track speed error written per object.
+SPEED_PERCENTILES = (25, 50, 75, 95, 99)
+SPEED_ERR_COLUMNS = tuple(f"speed_err_p{p}" for p in SPEED_PERCENTILES)
+#: The same percentiles under the labelled poses (annotate adds them after :data:`OBJECT_COLUMNS`).
+LABEL_SPEED_ERR_COLUMNS = tuple(f"label_speed_err_p{p}" for p in SPEED_PERCENTILES)
+
+#: ``stats/objects.parquet``: one row per annotated clip, as the track stage writes it.
+OBJECT_COLUMNS = (
+    "split", "segment", "camera", "object_id", "object_type", "file", "num_tracks", "num_frames",
+    "first_frame", "visible_fraction", "min_camera_distance_m", "box_speed_mean_mps",
+    *SPEED_ERR_COLUMNS,
+    "num_nonfinite_visible", "num_visible_outside_image", "num_candidates",
+    "num_dropped_invisible", "num_dropped_speed", "projection",
+)
+#: ``stats/segments.parquet``: one row per segment.
+SEGMENT_COLUMNS = (
+    "split", "segment", "status", "error", "num_frames", "num_objects_labelled",
+    "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
+    *(f"rejected_{r}" for r in REJECTION_REASONS),
+)
+#: ``stats/rejections.parquet``: one row per rejected clip.
+REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")
+#: table name -> its columns (``stats/{name}.parquet``).
+TABLES = {"objects": OBJECT_COLUMNS, "segments": SEGMENT_COLUMNS, "rejections": REJECTION_COLUMNS}
 
 
 def clip_path(layout: str, split: str, stem: str) -> str:

@@ -45,7 +45,7 @@ REACHED_PREFIX = "reached_"
 def filter_order(reasons: list[str]) -> list[str]:
     """``reasons`` in the order the track stage applies its filters (``REJECTION_REASONS``);
     reasons it does not know follow in the given order."""
-    from drivetrack.tracks.plan import REJECTION_REASONS
+    from drivetrack.outputs import REJECTION_REASONS
 
     known = [r for r in REJECTION_REASONS if r in reasons]
     return known + [r for r in reasons if r not in REJECTION_REASONS]
