@@ -26,7 +26,7 @@ from drivetrack.names import check_name, is_valid_name
 from drivetrack.waymo.schema import CameraName
 
 __all__ = ["LAYOUTS", "DRIVETRACK", "TAPVID3D", "CLIP_PREFIX", "CLIP_CAMERAS", "CLIP_NAME", "clip_path",
-           "clip_glob", "parse_clip_path", "parse_clip_name", "is_clip_name", "splits_of", "clips_of",
+           "clip_glob", "clip_stem", "parse_clip_path", "parse_clip_name", "is_clip_name", "splits_of", "clips_of",
            "SegmentStatus", "Stage", "RejectionReason", "REJECTION_REASONS", "SPEED_PERCENTILES",
            "SPEED_ERR_COLUMNS", "LABEL_SPEED_ERR_COLUMNS", "OBJECT_COLUMNS", "SEGMENT_COLUMNS", "REJECTION_COLUMNS",
            "TABLES"]
@@ -148,6 +148,15 @@ def splits_of(paths, layout: str | None = None) -> list[str]:
 def clips_of(paths, layout: str, split: str) -> list[str]:
     """Sorted clip paths of ``layout`` and ``split`` among ``paths``."""
     return sorted(p for p in paths if parse_clip_path(p) == (layout, split))
+
+
+def clip_stem(segment: str, camera: str, object_id: str, where: str | None = None) -> str:
+    """``waymo_{segment}_{CAMERA}_{object_id}``, each part checked with :func:`drivetrack.names.check_name`
+    (full match) first; an :class:`~drivetrack.names.InvalidNameError` names the part, its value and ``where``."""
+    check_name("segment", segment, where)
+    check_name("camera", camera, where)
+    check_name("object_id", object_id, where)
+    return f"{CLIP_PREFIX}{segment}_{camera}_{object_id}"
 
 
 def parse_clip_name(name: str, segments: Iterable[str] = ()) -> tuple[str, str, str]:
