@@ -19,7 +19,7 @@ import drivetrack
 from drivetrack.waymo.schema import COMPONENTS
 
 PACKAGE = Path(drivetrack.__file__).resolve().parent
-NOT_OUTPUT_CODE = ("commands/", "cli.py", "status.py", "release/", "gates/", "synth/", "evaluate.py")
+NOT_OUTPUT_CODE = ("commands/", "cli.py", "status.py", "release/", "gates/", "synth/", "evaluation/")
 """Package paths whose code does not change a segment's outputs (they still enter the release
 fingerprint)."""
 
