@@ -2,7 +2,7 @@
 
 Written from the list of its choices in /work/shared/METHOD.md section 3 (no code of it is
 copied; it is not used by the pipeline). Its purpose: score the original method on the same
-synthetic scenes and with the same evaluation (``drivetrack.evaluate``) as ours. Choices
+synthetic scenes and with the same evaluation (``drivetrack.evaluation``) as ours. Choices
 emulated:
 
 - object points: TOP LiDAR, first return only, inside the labelled box (no margin, no ground
@@ -19,7 +19,7 @@ emulated:
 - filters: in view for at least 24 continuous frames (our planner's test, which the original
   shares) and within **50 m of the vehicle origin** (not the camera) at some frame.
 
-The result per clip is a :class:`drivetrack.evaluate.Clip` (lidar_sources = (TOP, 1, row, col)).
+The result per clip is a :class:`drivetrack.evaluation.Clip` (lidar_sources = (TOP, 1, row, col)).
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from drivetrack.depth import lookup_max4
-from drivetrack.evaluate import Clip
+from drivetrack.evaluation import Clip
 from drivetrack.geometry import box_from_center_heading, invert_rigid, transform_points
 from drivetrack.scene import Scene
 from drivetrack.tracks import TrackConfig, plan_segment

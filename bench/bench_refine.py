@@ -6,7 +6,7 @@ differ), the standard pipeline runs on the labels (``baseline``) and on the boxe
 :func:`drivetrack.annotate.refine_scene` (``drivetrack.refine.refine_scene_boxes``) with 4 degrees of freedom per frame (``refined_4dof``:
 centre and heading, ``RefineConfig(pitch_roll_sigma_deg=None)``) and with 6 (``refined``: and
 pitch, roll; the default), and all are scored with
-:func:`drivetrack.evaluate.evaluate_tracks`: occlusion accuracy (OA), average Jaccard (AJ),
+:func:`drivetrack.evaluation.evaluate_tracks`: occlusion accuracy (OA), average Jaccard (AJ),
 delta_avg (query mode ``first``), median pixel error, purity and recall. CPU cost: process CPU
 seconds of the refinement as the pipeline pays it (:func:`drivetrack.annotate.refine_scene`: its
 plan without point selection to pick the objects, the candidate gather and the solves) per object,
@@ -75,7 +75,7 @@ def _run_pipeline(scene, config):
 
 
 def _scores(results, truth_root: str) -> dict:
-    from drivetrack.evaluate import evaluate_tracks
+    from drivetrack.evaluation import evaluate_tracks
 
     summary = evaluate_tracks(results, truth_root).summary
     first = summary["modes"].get("first", {})
@@ -156,7 +156,7 @@ def measure_full(noises=(0.0, 0.05), frames: int = 30, seed: int = SEED, cache: 
     on its own; the gather is the rest."""
     from bench.bench_tracks import SPLIT, depth_for, ensure_source, noisy_scene, track_stage
     from drivetrack.annotate import AnnotateConfig, load_scene_for
-    from drivetrack.evaluate import evaluate_tracks
+    from drivetrack.evaluation import evaluate_tracks
     from drivetrack.tracks import plan_segment, prepare_segment
 
     cache = cache or ROOT / ".bench-cache"
@@ -267,7 +267,7 @@ def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = N
     block = (f"{DOC_START}\n## Pose refinement\n\n"
              f"`bench/bench_refine.py`: one synthetic segment per label-noise level (preset `small`, "
              f"{frames} frames, seed {SEED}; 480x320 images), default `TrackConfig`, default `RefineConfig`; "
-             f"tracks scored against the exact truth (`drivetrack.evaluate`, query mode `first`). "
+             f"tracks scored against the exact truth (`drivetrack.evaluation`, query mode `first`). "
              f"CPU seconds (`time.process_time`) of the track stage (plan + object jobs, depth maps excluded) and "
              f"of the refinement as the pipeline runs it (`annotate.refine_scene`: its plan without point "
              f"selection, the candidate gather, the solves), in the same process. Machine: {machine}; load average {os.getloadavg()[0]:.1f} at the end of the run (CPU "

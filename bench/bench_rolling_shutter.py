@@ -2,7 +2,7 @@
 
 Generates a small synthetic segment with ``SynthConfig(rolling_shutter=True)`` (and, as a control,
 the same world global-shutter), annotates each with ``TrackConfig(rolling_shutter=True)`` and
-``False`` and scores the tracks against the exact truth (``drivetrack.evaluate``).
+``False`` and scores the tracks against the exact truth (``drivetrack.evaluation``).
 
     .venv/bin/python bench/bench_rolling_shutter.py                 # 30 frames, seed 7
     .venv/bin/python bench/bench_rolling_shutter.py --frames 30 --seed 3 --no-control
@@ -23,7 +23,7 @@ if str(ROOT) not in sys.path:
 
 def _score(root: str, segment: str, rolling: bool, refine: bool | None) -> dict:
     from drivetrack.annotate import AnnotateConfig, annotate_segment
-    from drivetrack.evaluate import evaluate_tracks
+    from drivetrack.evaluation import evaluate_tracks
     from drivetrack.tracks import TrackConfig
 
     kwargs = {} if refine is None else {"refine_poses": refine}

@@ -12,7 +12,7 @@ takes many CPU-minutes, so it is cached under ``.bench-cache/``; ``--frames`` ke
   as fixed + per point + per point-frame and evaluated for a 200-frame clip; ``--long-frames 210``
   also measures the longest clips of a 210-frame small-preset segment directly (target < 1 GiB);
   ``--memory-only`` runs just this;
-- accuracy against the exact truth (``drivetrack.evaluate``): OA, AJ, delta_avg (query mode
+- accuracy against the exact truth (``drivetrack.evaluation``): OA, AJ, delta_avg (query mode
   ``first`` and ``strided``), pixel error, purity, recall, for each depth completer, without and
   with box noise (sigma ``--box-noise`` m on centres, 1 degree per 5 cm on headings, applied to the
   loaded labels exactly as ``drivetrack synth --box-noise`` applies it to the written ones: the
@@ -48,7 +48,7 @@ if str(ROOT) not in sys.path:
 from bench.baseline_original import original_clips  # noqa: E402
 from bench.run import machine_description  # noqa: E402
 from drivetrack.annotate import AnnotateConfig, load_scene_for, refine_scene  # noqa: E402
-from drivetrack.evaluate import evaluate_clips, evaluate_tracks  # noqa: E402
+from drivetrack.evaluation import evaluate_clips, evaluate_tracks  # noqa: E402
 from drivetrack.tracks import (TrackConfig, complete_depth, depth_jobs, plan_segment, prepare_segment,  # noqa: E402
                                run_object_job, sparse_depth)
 

@@ -9,7 +9,7 @@ it with the current default pipeline (``drivetrack.annotate.annotate_segment``, 
 clips at all) and scores the tracks against the exact truth:
 
 - pooled occlusion accuracy (OA) over every (track, frame) whose true pixel is inside the image,
-  and per clip (TAP-Vid OA, query mode ``first``, from ``drivetrack.evaluate``);
+  and per clip (TAP-Vid OA, query mode ``first``, from ``drivetrack.evaluation``);
 - the false "visible" rate on back-face point-frames (truth ``facing`` is False: the point's face
   turns away from the camera, so it is hidden by its own box) and on point-frames occluded by
   another object;
@@ -51,7 +51,7 @@ def point_frames(tracks, root: str) -> dict[str, np.ndarray]:
     """Every matched (track, frame) of the accepted clips with its truth, prediction and context:
     arrays of equal length ``camera``, ``role``, ``moving``, ``clip``, ``inside``, ``truth_visible``,
     ``pred_visible``, ``facing``, ``distance_m``, ``error_px``."""
-    from drivetrack.evaluate import TruthIndex, clip_from_tracks
+    from drivetrack.evaluation import TruthIndex, clip_from_tracks
 
     index = None
     out: dict[str, list] = {k: [] for k in ("camera", "role", "moving", "clip", "inside", "truth_visible",
@@ -193,7 +193,7 @@ def _replace_block(block: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     from bench.run import machine_description
     from drivetrack.annotate import AnnotateConfig, annotate_segment
-    from drivetrack.evaluate import evaluate_tracks
+    from drivetrack.evaluation import evaluate_tracks
     from drivetrack.synth import SynthConfig, generate_segment
     from drivetrack.tracks import TrackConfig
 

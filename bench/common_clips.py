@@ -29,7 +29,7 @@ def main(argv: list[str]) -> int:
     from bench.bench_tracks import SPLIT, ensure_source
     from drivetrack.annotate import (AnnotateConfig, complete_depth_batch, load_scene_for, sparse_depth_batches,
                                      track_segment)
-    from drivetrack.evaluate import evaluate_clips, evaluate_tracks
+    from drivetrack.evaluation import evaluate_clips, evaluate_tracks
     from drivetrack.tracks import TrackConfig, plan_segment
 
     root, segment = ensure_source(ROOT / ".bench-cache", "full", 7, 30)

@@ -41,7 +41,8 @@ import numpy as np
 import pandas as pd
 
 from drivetrack import faults
-from drivetrack.layout import LAYOUTS, CLIP_PREFIX
+from drivetrack.outputs import (CLIP_PREFIX, LABEL_SPEED_ERR_COLUMNS, LAYOUTS, SPEED_ERR_COLUMNS, SPEED_PERCENTILES,
+                                TABLES, SegmentStatus, Stage)
 from drivetrack.names import check_name
 from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
@@ -322,7 +323,7 @@ def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
 StageCallback = Callable[[str, str, dict], None]
 
 #: The stages of one segment, in order (``refine`` runs only with ``config.refine_poses``).
-STAGES = ("ingest", "refine", "plan", "depth", "tracks", "write")
+STAGES = (Stage.INGEST, Stage.REFINE, Stage.PLAN, Stage.DEPTH, Stage.TRACKS, Stage.WRITE)
 
 
 def run_segment_stages(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig, *,
@@ -348,10 +349,10 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
     A failure comes back as a failed :class:`SegmentResult` naming the stage and the error; with
     ``raise_errors`` the error itself is raised after ``on_stage`` heard it.
     """
-    result = SegmentResult(split=split, segment=segment, status="running")
+    result = SegmentResult(split=split, segment=segment, status=SegmentStatus.RUNNING)
     plan = None
     tracks: list[ObjectTracks] = []
-    stage, start = "ingest", time.perf_counter()
+    stage, start = Stage.INGEST, time.perf_counter()
 
     def begin(name: str) -> None:
         nonlocal stage, start
@@ -365,7 +366,7 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
             on_stage(stage, "done", info)
 
     try:
-        begin("ingest")
+        begin(Stage.INGEST)
         scene = load_scene_for(source, split, segment, config, storage_options, refine=False)
         result.source_files = dict(scene.source_files)
         result.source_stats = dict(scene.source_stats)
@@ -374,15 +375,15 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": int(scene.num_frames), "unit": "frames"})
 
         if config.refine_poses:
-            begin("refine")
+            begin(Stage.REFINE)
             scene = refine_scene(scene, config)
             end({"count": len(scene.box_refinement), "unit": "objects"})
 
-        begin("plan")
+        begin(Stage.PLAN)
         plan = plan_segment(scene, config.track)
         end({"count": len(plan.jobs), "unit": "object jobs"})
 
-        begin("depth")
+        begin(Stage.DEPTH)
         batches = sparse_depth_batches(scene, config, plan)
         if depth_fn is None:
             dense, info = [complete_depth_batch(b, config) for b in batches], {}
@@ -391,25 +392,26 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": len(batches), "unit": "depth batches", **info})
         del batches
 
-        begin("tracks")
+        begin(Stage.TRACKS)
         tracks = track_segment(scene, dense, config, plan, map_fn=map_fn)
         del dense
         end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
-        begin("write")
+        begin(Stage.WRITE)
         written = write_segment_outputs(out_url, split, tracks, config.track.writers)
         result.files = [u for urls in written.values() for u in urls]
         result.objects, result.rejections, result.segment_row = segment_tables(out_url, scene, plan, tracks, written)
         if write_segment_stats:
             write_tables(out_url, [result])
-        result.status, result.stage = "done", ""
+        result.status, result.stage = SegmentStatus.DONE, ""
         end({"count": len(result.files), "unit": "files"})
     except Exception as error:  # isolate the segment: report (and raise only when asked)
-        result.status, result.stage = "failed", stage
+        result.status, result.stage = SegmentStatus.FAILED, stage
         result.error = f"{type(error).__name__}: {error}"
         result.traceback = traceback.format_exc()  # type: ignore[attr-defined]
-        result.segment_row = segment_stats(split, segment, plan if stage not in ("ingest", "refine", "plan") else None,
-                                           (), status="failed", error=f"[{stage}] {result.error}")
+        planned = stage not in (Stage.INGEST, Stage.REFINE, Stage.PLAN)
+        result.segment_row = segment_stats(split, segment, plan if planned else None,
+                                           (), status=SegmentStatus.FAILED, error=f"[{stage}] {result.error}")
         if on_stage:
             on_stage(stage, "failed", {"error": result.error})
         if raise_errors:
@@ -445,13 +447,11 @@ def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[O
 def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[ObjectTracks]) -> pd.DataFrame:
     """Objects table plus ``label_speed_err_p*``: speed-error percentiles under the labelled poses."""
     from drivetrack.consistency import label_speed_errors
-    from drivetrack.tracks.stats import SPEED_PERCENTILES
-
-    columns = [f"label_speed_err_p{p}" for p in SPEED_PERCENTILES]
+    columns = list(LABEL_SPEED_ERR_COLUMNS)
     if objects.empty:
         return objects.assign(**{c: pd.Series(dtype=float) for c in columns})
     if scene.box_labels is None:   # the tracks were carried with the labels: same figures
-        return objects.assign(**{c: objects[f"speed_err_p{p}"] for c, p in zip(columns, SPEED_PERCENTILES)})
+        return objects.assign(**{c: objects[s] for c, s in zip(columns, SPEED_ERR_COLUMNS)})
     rows = {}
     for t in tracks:
         if t.rejection is not None:
@@ -481,18 +481,14 @@ def _relative(root: str, url: str) -> str:
 
 def write_tables(out_url: str, results: list[SegmentResult]) -> dict[str, str]:
     """``stats/objects.parquet``, ``stats/segments.parquet``, ``stats/rejections.parquet``."""
-    from drivetrack.tracks.stats import OBJECT_COLUMNS, REJECTION_COLUMNS, SEGMENT_COLUMNS
-
     def concat(frames, columns):
         frames = [f for f in frames if f is not None and not f.empty]
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=list(columns))
 
     base = out_url.rstrip("/")
-    tables = {
-        "objects": concat([r.objects for r in results], OBJECT_COLUMNS),
-        "segments": concat([r.segment_row for r in results], SEGMENT_COLUMNS),
-        "rejections": concat([r.rejections for r in results], REJECTION_COLUMNS),
-    }
+    frames = {"objects": [r.objects for r in results], "segments": [r.segment_row for r in results],
+              "rejections": [r.rejections for r in results]}
+    tables = {name: concat(frames[name], columns) for name, columns in TABLES.items()}
     return {name: write_table(f"{base}/stats/{name}.parquet", table) for name, table in tables.items()}
 
 
@@ -537,9 +533,10 @@ def _describe_exit(exitcode: int | None) -> str:
 def _worker_failed(split: str, segment: str, deaths: list[str]) -> SegmentResult:
     error = (f"the worker process of segment {segment!r} died in each of {len(deaths)} attempts: "
              + "; ".join(f"attempt {i + 1} {d}" for i, d in enumerate(deaths)))
-    r = SegmentResult(split, segment, "failed", error=error, stage="worker", attempts=len(deaths),
+    r = SegmentResult(split, segment, SegmentStatus.FAILED, error=error, stage=Stage.WORKER, attempts=len(deaths),
                       worker_deaths=list(deaths))
-    r.segment_row = segment_stats(split, segment, None, (), status="failed", error=f"[worker] {error}")
+    r.segment_row = segment_stats(split, segment, None, (), status=SegmentStatus.FAILED,
+                                  error=f"[{Stage.WORKER}] {error}")
     return r
 
 
@@ -682,11 +679,11 @@ def annotate(source: str, split: str, segments: list[str], out_url: str, config:
         else:
             by_segment = _run_in_processes(jobs, workers, tmp_root, on_result)
         results = [by_segment[s] for s in segments]
-        failed = [r.segment for r in results if r.status != "done"]
-        keep = [_relative(out_url, url) for r in results if r.status == "done" for url in r.files]
+        failed = [r.segment for r in results if r.status != SegmentStatus.DONE]
+        keep = [_relative(out_url, url) for r in results if r.status == SegmentStatus.DONE for url in r.files]
         remove_segment_clips(out_url, split, failed, keep)
         for r in results:
-            if r.status != "done":
+            if r.status != SegmentStatus.DONE:
                 r.files = []
     finally:
         remove_partial_files(out_url)

@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivetrack.evaluate import (METRIC_KEYS, Clip, TruthIndex, evaluate_annotations, evaluate_clips,
-                                 evaluate_tracks, find_annotation_files, parse_clip_name, read_clip, score_clip,
-                                 score_predictions)
+from drivetrack.evaluation import (METRIC_KEYS, Clip, TruthIndex, evaluate_annotations, evaluate_clips,
+                                   evaluate_tracks, find_annotation_files, read_clip, score_clip,
+                                   score_predictions)
+from drivetrack.outputs import parse_clip_name
 
 # Measured on the shared fixture (seed 7, small preset, 30 frames, default config, nearest
 # depth): purity 1.0, OA 0.93, AJ 0.90, delta_avg 0.99, median pixel error 0.3 px. The thresholds

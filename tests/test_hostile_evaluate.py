@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivetrack.evaluate import find_annotation_files, score_predictions
+from drivetrack.evaluation import find_annotation_files, score_predictions
 
 
 def _arrays(url: str) -> dict[str, np.ndarray]:
@@ -253,7 +253,7 @@ def test_wrong_shapes_name_file_member_expected_and_found(annotated_output, tmp_
 def test_nan_annotation_tracks_count_against_exact_truth(annotated_output, synth_source):
     """The same rule in the other mode: an annotation's NaN position at a truth-visible frame is
     an error in the summary, not a point left out of the pixel statistics."""
-    from drivetrack.evaluate import evaluate_clips, read_clip
+    from drivetrack.evaluation import evaluate_clips, read_clip
 
     files = [f for f in find_annotation_files(annotated_output)]
     segment = files[0].segment

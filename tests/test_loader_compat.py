@@ -25,7 +25,7 @@ import os
 import numpy as np
 import pytest
 
-from drivetrack import metrics
+from drivetrack.evaluation import metrics
 
 
 @pytest.fixture(scope="module")

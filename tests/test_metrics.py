@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivetrack.metrics import (compute_tapvid_metrics, evaluation_mask, queries_first, queries_strided,
+from drivetrack.evaluation.metrics import (compute_tapvid_metrics, evaluation_mask, queries_first, queries_strided,
                                 rescale_points, to_tapvid)
 
 

@@ -13,7 +13,7 @@ from drivetrack.tracks import (REJECTION_REASONS, TrackConfig, continuous_runs, 
                                object_stats, plan_segment, prepare_segment, rejection_stats, run_object_job,
                                segment_stats, write_object_outputs, write_table)
 from drivetrack.tracks.core import track_speeds
-from drivetrack.tracks.stats import OBJECT_COLUMNS, SEGMENT_COLUMNS
+from drivetrack.outputs import OBJECT_COLUMNS, SEGMENT_COLUMNS
 
 W, H, F, CX, CY = 160, 120, 100.0, 80.0, 60.0
 DT = 0.1

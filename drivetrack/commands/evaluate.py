@@ -121,7 +121,7 @@ def print_tables(result, console) -> None:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from drivetrack.evaluate import evaluate_annotations, score_predictions
+    from drivetrack.evaluation import evaluate_annotations, score_predictions
 
     try:
         if args.stride < 1:

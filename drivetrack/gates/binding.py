@@ -12,7 +12,7 @@ its report a *binding*:
 
 ``drivetrack.release.publish_release`` recomputes the same binding over exactly what it stages and
 refuses a report whose binding differs (:func:`binding_problems` names the files). Clip files are
-the files :func:`drivetrack.layout.parse_clip_path` recognises (both layouts). Plain Python: no
+the files :func:`drivetrack.outputs.parse_clip_path` recognises (both layouts). Plain Python: no
 Great Expectations import.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ import json
 import posixpath
 from concurrent.futures import ThreadPoolExecutor
 
-from drivetrack.layout import parse_clip_path
+from drivetrack.outputs import parse_clip_path
 
 BINDING_FORMAT = "drivetrack-gates-binding/1"
 HASH_CHUNK = 8 << 20

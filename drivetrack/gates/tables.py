@@ -18,7 +18,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from drivetrack.gates.config import PERCENTILES
-from drivetrack.layout import DRIVETRACK, parse_clip_path
+from drivetrack.outputs import DRIVETRACK, parse_clip_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
 #: The same percentiles for the same tracks under the labelled poses (``drivetrack.consistency``);
@@ -47,7 +47,7 @@ REACHED_PREFIX = "reached_"
 def filter_order(reasons: list[str]) -> list[str]:
     """``reasons`` in the order the track stage applies its filters (``REJECTION_REASONS``);
     reasons it does not know follow in the given order."""
-    from drivetrack.tracks.plan import REJECTION_REASONS
+    from drivetrack.outputs import REJECTION_REASONS
 
     known = [r for r in REJECTION_REASONS if r in reasons]
     return known + [r for r in reasons if r not in REJECTION_REASONS]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
-from drivetrack.layout import DRIVETRACK, LAYOUTS, TAPVID3D, clip_glob, clip_path, clips_of
+from drivetrack.outputs import DRIVETRACK, LAYOUTS, TAPVID3D, clip_glob, clip_path, clips_of
 from drivetrack.release.manifest import FileEntry
 
 CROISSANT_CONFORMS_TO = "http://mlcommons.org/croissant/1.1"

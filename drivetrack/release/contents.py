@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.layout import DRIVETRACK, LAYOUTS, TAPVID3D, parse_clip_path
+from drivetrack.outputs import DRIVETRACK, LAYOUTS, TAPVID3D, parse_clip_path
 from drivetrack.names import is_valid_name
 from drivetrack.release.errors import InvalidSourceError
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from functools import total_ordering
 from pathlib import Path
 
-from drivetrack.layout import DRIVETRACK, TAPVID3D, parse_clip_path, splits_of
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, parse_clip_path, splits_of
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.release.errors import (InvalidDatasetError, InvalidSourceError, InvalidVersionError,
                                        ManifestError)
@@ -290,7 +290,7 @@ def counts_from_files(entries: list[FileEntry], splits: list[str]) -> dict:
 def splits_from_paths(paths: list[str]) -> list[str]:
     """Splits holding clip files (``tracks/{split}/*.npz`` or ``tapvid3d/{split}/*.npz``).
 
-    Splits are recognised by where their clips are (:mod:`drivetrack.layout`), never by a folder
+    Splits are recognised by where their clips are (:mod:`drivetrack.outputs`), never by a folder
     name, so the Waymo split ``validation`` and the gate reports in ``validation/`` cannot mix.
     """
     return splits_of(paths)

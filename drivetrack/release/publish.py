@@ -50,7 +50,7 @@ from typing import Callable
 import fsspec
 
 from drivetrack.gates.binding import binding_problems, check_binding_shape
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_glob, clips_of, parse_clip_path
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, clip_glob, clips_of, parse_clip_path
 from drivetrack.release import cards as _cards
 from drivetrack.release import contents as _contents
 from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GateBindingError,

@@ -12,11 +12,12 @@ Two stages, separable by an orchestrator:
 
 The numeric core never imports Prefect.
 """
+from drivetrack.outputs import REJECTION_REASONS
 from drivetrack.tracks.config import FOV_RUN_POLICIES, TrackConfig
 from drivetrack.tracks.core import ObjectTracks, run_object_job, track_speeds
 from drivetrack.tracks.depth_stage import (DepthJob, DepthStack, SegmentContext, complete_depth, depth_jobs,
                                            object_jobs, prepare_segment, sparse_depth)
-from drivetrack.tracks.plan import REJECTION_REASONS, ObjectJob, SegmentPlan, continuous_runs, plan_segment
+from drivetrack.tracks.plan import ObjectJob, SegmentPlan, continuous_runs, plan_segment
 from drivetrack.tracks.stats import object_stats, rejection_stats, segment_stats, write_table
 from drivetrack.tracks.writers import WRITERS, write_object_outputs
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.outputs import RejectionReason
 from drivetrack.tracks.depth_stage import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
@@ -85,7 +86,7 @@ class ObjectTracks:
         projection: ``rolling_shutter`` or ``global_shutter``.
         num_candidates: returns inside the box over the clip (before the visibility filter).
         num_dropped_invisible, num_dropped_speed: candidates dropped by each filter.
-        rejection: None, or a reason from ``REJECTION_REASONS`` when no track survived.
+        rejection: None, or a :class:`drivetrack.outputs.RejectionReason` when no track survived.
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -564,7 +565,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         projection="rolling_shutter" if projector is not None else "global_shutter",
         num_candidates=int(n_candidates), num_dropped_invisible=dropped_invisible,
         num_dropped_speed=dropped_speed,
-        rejection=None if keep.any() else "no_visible_points",
+        rejection=None if keep.any() else RejectionReason.NO_VISIBLE_POINTS,
     )
     return result
 

@@ -24,26 +24,13 @@ import numpy as np
 
 from drivetrack.boxes import returns_in_boxes
 from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.outputs import RejectionReason
 from drivetrack.scene import Scene
 from drivetrack.tracks.config import TrackConfig
 from drivetrack.waymo.schema import BoxType, CameraName
 
-__all__ = ["REJECTION_REASONS", "CameraGeometry", "ObjectJob", "SegmentPlan", "plan_segment",
+__all__ = ["CameraGeometry", "ObjectJob", "SegmentPlan", "plan_segment",
            "camera_geometry", "continuous_runs", "select_object_points"]
-
-#: Every reason a (segment, camera, object) clip can be rejected, in the order they are tested.
-REJECTION_REASONS = (
-    "camera",              # camera not in TrackConfig.cameras
-    "object_type",         # type not in TrackConfig.object_types
-    "not_in_view",         # never in the camera's view
-    "label_gap",           # in view in several runs separated by frames without a label
-    "image_gap",           # ... separated by frames without a camera image
-    "left_and_returned",   # ... the object left the image and came back
-    "too_few_frames",      # the run is shorter than min_frames
-    "too_far",             # never within max_camera_distance_m of the camera during the run
-    "no_points",           # no LiDAR return inside the box during the run
-    "no_visible_points",   # (track stage) no point visible in any frame after occlusion/filters
-)
 
 
 @dataclass
@@ -233,7 +220,7 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
     """Apply the cheap filters to every (camera, object) of ``scene``; see the module docstring.
 
     Rejections are recorded in ``plan.rejections`` with one reason from
-    :data:`REJECTION_REASONS` each; accepted clips become ``plan.jobs``.
+    :class:`drivetrack.outputs.RejectionReason` each; accepted clips become ``plan.jobs``.
 
     ``select_points=False`` skips the selection of each box's LiDAR returns (the costly part on a
     full segment) and with it the ``no_points`` filter: enough to know which clips pass the
@@ -268,15 +255,16 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
             object_type = int(np.bincount(boxes.type[rows].astype(np.int64)).argmax())
             plan.num_clips_considered += 1
 
-            def reject(reason: str, detail: str = "") -> None:
+            def reject(reason: RejectionReason, detail: str = "") -> None:
                 plan.rejections.append({"camera": c, "object_id": oid, "object_type": object_type,
                                         "reason": reason, "detail": detail})
 
             if c not in config.camera_values:
-                reject("camera", f"camera {CameraName(c).name} not in {list(config.cameras)}")
+                reject(RejectionReason.CAMERA, f"camera {CameraName(c).name} not in {list(config.cameras)}")
                 continue
             if object_type not in config.object_type_values:
-                reject("object_type", f"type {BoxType(object_type).name} not in {list(config.object_types)}")
+                reject(RejectionReason.OBJECT_TYPE,
+                       f"type {BoxType(object_type).name} not in {list(config.object_types)}")
                 continue
             labelled = np.zeros(t_count, dtype=bool)
             labelled[boxes.frame[rows]] = True
@@ -286,7 +274,7 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
             in_view[boxes.frame[rows]] = in_view_rows[c][rows]
             runs = continuous_runs(in_view)
             if runs.shape[0] == 0:
-                reject("not_in_view")
+                reject(RejectionReason.NOT_IN_VIEW)
                 continue
             if runs.shape[0] > 1:
                 spans = ", ".join(f"{a}-{b}" for a, b in runs.tolist())
@@ -295,14 +283,14 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
                 if config.fov_runs == "reject":
                     if (~labelled[between]).any():
                         missing = between[~labelled[between]]
-                        reject("label_gap", f"in view in frames {spans}; no label at frames "
+                        reject(RejectionReason.LABEL_GAP, f"in view in frames {spans}; no label at frames "
                                             f"{missing[:10].tolist()}")
                     elif (~geometry.has_image[between]).any():
                         missing = between[~geometry.has_image[between]]
-                        reject("image_gap", f"in view in frames {spans}; no image at frames "
+                        reject(RejectionReason.IMAGE_GAP, f"in view in frames {spans}; no image at frames "
                                             f"{missing[:10].tolist()}")
                     else:
-                        reject("left_and_returned", f"in view in frames {spans}")
+                        reject(RejectionReason.LEFT_AND_RETURNED, f"in view in frames {spans}")
                     continue
                 lengths = runs[:, 1] - runs[:, 0]
                 run = runs[int(np.argmax(lengths))]
@@ -310,18 +298,18 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
                 run = runs[0]
             frames = np.arange(run[0], run[1] + 1, dtype=np.int64)
             if frames.size < config.min_frames:
-                reject("too_few_frames", f"in view for {frames.size} frames ({run[0]}-{run[1]}), "
+                reject(RejectionReason.TOO_FEW_FRAMES, f"in view for {frames.size} frames ({run[0]}-{run[1]}), "
                                          f"need {config.min_frames}")
                 continue
             clip_rows = row_at[frames]
             centres_world = transform_points(scene.world_from_vehicle[frames], boxes.center[clip_rows][:, None, :])[:, 0]
             distance = float(np.min(np.linalg.norm(centres_world - geometry.camera_centre_world[frames], axis=-1)))
             if distance > config.max_camera_distance_m:
-                reject("too_far", f"closest {distance:.1f} m > {config.max_camera_distance_m} m")
+                reject(RejectionReason.TOO_FAR, f"closest {distance:.1f} m > {config.max_camera_distance_m} m")
                 continue
             num_points = int(points_per_row[clip_rows].sum())
             if num_points == 0 and select_points:
-                reject("no_points", f"no LiDAR return in the box over frames {run[0]}-{run[1]}")
+                reject(RejectionReason.NO_POINTS, f"no LiDAR return in the box over frames {run[0]}-{run[1]}")
                 continue
             plan.jobs.append(ObjectJob(c, oid, object_type, frames, clip_rows, distance, num_points))
     return plan

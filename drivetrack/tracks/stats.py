@@ -5,27 +5,12 @@ import numpy as np
 import pandas as pd
 
 from drivetrack.tracks.core import ObjectTracks
-from drivetrack.tracks.plan import REJECTION_REASONS, SegmentPlan
+from drivetrack.outputs import (OBJECT_COLUMNS, REJECTION_COLUMNS, REJECTION_REASONS, SEGMENT_COLUMNS,
+                                SPEED_ERR_COLUMNS, SPEED_PERCENTILES, SegmentStatus)
+from drivetrack.tracks.plan import SegmentPlan
 from drivetrack.waymo.schema import BoxType, CameraName
 
-__all__ = ["OBJECT_COLUMNS", "SEGMENT_COLUMNS", "REJECTION_COLUMNS", "SPEED_PERCENTILES",
-           "object_stats", "segment_stats", "rejection_stats", "write_table"]
-
-SPEED_PERCENTILES = (25, 50, 75, 95, 99)
-
-OBJECT_COLUMNS = (
-    "split", "segment", "camera", "object_id", "object_type", "file", "num_tracks", "num_frames",
-    "first_frame", "visible_fraction", "min_camera_distance_m", "box_speed_mean_mps",
-    *(f"speed_err_p{p}" for p in SPEED_PERCENTILES),
-    "num_nonfinite_visible", "num_visible_outside_image", "num_candidates",
-    "num_dropped_invisible", "num_dropped_speed", "projection",
-)
-SEGMENT_COLUMNS = (
-    "split", "segment", "status", "error", "num_frames", "num_objects_labelled",
-    "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
-    *(f"rejected_{r}" for r in REJECTION_REASONS),
-)
-REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")
+__all__ = ["object_stats", "segment_stats", "rejection_stats", "write_table"]
 
 
 def _object_row(t: ObjectTracks, file: str) -> dict:
@@ -46,7 +31,7 @@ def _object_row(t: ObjectTracks, file: str) -> dict:
         "num_candidates": int(t.num_candidates), "num_dropped_invisible": int(t.num_dropped_invisible),
         "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
     }
-    row.update({f"speed_err_p{p}": float(v) for p, v in zip(SPEED_PERCENTILES, pct)})
+    row.update({c: float(v) for c, v in zip(SPEED_ERR_COLUMNS, pct)})
     return row
 
 
@@ -79,10 +64,11 @@ def rejection_stats(plan: SegmentPlan, results: list[ObjectTracks] = ()) -> pd.D
 
 
 def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
-                  results: list[ObjectTracks] = (), status: str = "done", error: str = "") -> pd.DataFrame:
+                  results: list[ObjectTracks] = (), status: str = SegmentStatus.DONE, error: str = "") -> pd.DataFrame:
     """One row for a segment; ``plan`` may be None when the segment failed before planning."""
-    if status not in ("done", "failed"):
-        raise ValueError(f"segment {segment!r}: status must be 'done' or 'failed', got {status!r}")
+    if status not in (SegmentStatus.DONE, SegmentStatus.FAILED):
+        raise ValueError(f"segment {segment!r}: status must be '{SegmentStatus.DONE}' or '{SegmentStatus.FAILED}', "
+                         f"got {status!r}")
     row = {"split": split, "segment": segment, "status": status, "error": error,
            "num_frames": plan.scene.num_frames if plan else 0,
            "num_objects_labelled": plan.num_objects_labelled if plan else 0,

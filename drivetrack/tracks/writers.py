@@ -16,8 +16,8 @@ import numpy as np
 
 from drivetrack import faults, storage
 from drivetrack.geometry import invert_rigid
-from drivetrack.layout import DRIVETRACK, TAPVID3D, clip_path
-from drivetrack.names import check_name
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, clip_path
+from drivetrack.outputs import clip_stem as outputs_clip_stem  # writers.clip_stem takes an ObjectTracks
 from drivetrack.storage import StreamedArray
 from drivetrack.tracks.core import ObjectTracks, frames_per_chunk
 
@@ -42,10 +42,7 @@ def clip_stem(tracks: ObjectTracks) -> str:
     :class:`~drivetrack.names.InvalidNameError` names the part, its value and the segment.
     """
     where = f"segment {tracks.segment!r} camera {tracks.camera!r} object {tracks.object_id!r}"
-    check_name("segment", tracks.segment, where)
-    check_name("camera", tracks.camera_name, where)
-    check_name("object_id", tracks.object_id, where)
-    return f"waymo_{tracks.segment}_{tracks.camera_name}_{tracks.object_id}"
+    return outputs_clip_stem(tracks.segment, tracks.camera_name, tracks.object_id, where)
 
 
 def _video_chunks(tracks: ObjectTracks):

@@ -1,0 +1,158 @@
+"""Finding and reading the clips to show (any folder layout; release internals skipped).
+
+The clip type is :class:`drivetrack.evaluation.Clip` and names parse with
+:func:`drivetrack.outputs.parse_clip_name`, shared with the evaluation. All storage goes through fsspec.
+"""
+from __future__ import annotations
+
+import io
+import posixpath
+import zipfile
+
+import fsspec
+import numpy as np
+
+from drivetrack.evaluation.clips import Clip, url_of
+from drivetrack.outputs import is_clip_name, parse_clip_name
+
+__all__ = ["SPLITS", "find_clips", "clip_num_tracks", "select_clip", "load_clip", "parse_frames"]
+
+SPLITS = ("training", "validation", "testing")
+#: Folders whose ``waymo_*.npz`` are not DriveTrack clips (TAPVid-3D copies, release internals).
+_NOT_CLIP_DIRS = {"tapvid3d", "_staging", "_txn", "previews"}
+
+
+def fs_of(url: str):
+    """(file system, path) of ``url`` (fsspec)."""
+    return fsspec.core.url_to_fs(str(url))
+
+
+def find_clips(root: str) -> list[str]:
+    """Sorted URLs of every DriveTrack clip (``**/waymo_*.npz``) under ``root``.
+
+    Works on an annotation output folder and on a release version folder, whatever the split
+    folder layout (``{split}/`` or ``tracks/{split}/``); TAPVid-3D copies (a ``tapvid3d`` folder)
+    and release internals (``_staging``, ``_txn``) are left out.
+    """
+    fs, path = fs_of(root)
+    if not fs.isdir(path):
+        raise FileNotFoundError(f"{root}: not a folder (pass a clip .npz file or a folder holding clips)")
+    found = fs.glob(posixpath.join(path.rstrip("/"), "**", "waymo_*.npz"))
+    base = path.rstrip("/")
+    out = []
+    for p in found:
+        rel = p[len(base):].lstrip("/") if p.startswith(base) else p
+        if set(rel.split("/")[:-1]) & _NOT_CLIP_DIRS or not is_clip_name(p, strict_object_id=True):
+            continue
+        out.append(url_of(fs, p))
+    return sorted(out)
+
+
+def _npy_header(fs, path: str, key: str) -> tuple[tuple[int, ...], np.dtype]:
+    with fs.open(path, "rb") as f, zipfile.ZipFile(f) as zf:
+        try:
+            member = zf.open(f"{key}.npy")
+        except KeyError:
+            raise KeyError(f"{path}: no array {key!r} in the file (has {sorted(n[:-4] for n in zf.namelist())})") from None
+        with member:
+            version = np.lib.format.read_magic(member)
+            shape, _, dtype = (np.lib.format.read_array_header_1_0(member) if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0(member))
+    return tuple(int(s) for s in shape), dtype
+
+
+def clip_num_tracks(url: str) -> int:
+    """N of a clip, read from the ``tracks`` array header only (no data is decompressed)."""
+    fs, path = fs_of(url)
+    return _npy_header(fs, path, "tracks")[0][0]
+
+
+def select_clip(source: str, object_id: str | None = None, camera: str | None = None) -> str:
+    """The clip to show: ``source`` itself if it is a file, else the clip under the folder
+    ``source`` matching ``object_id`` / ``camera`` with the most tracks (ties: first by name)."""
+    fs, path = fs_of(source)
+    if fs.isfile(path):
+        return str(source)
+    clips = find_clips(source)
+    if not clips:
+        raise FileNotFoundError(f"{source}: no DriveTrack clip (waymo_*.npz) under this folder")
+    keep = []
+    for url in clips:
+        _, cam, obj = parse_clip_name(url)
+        if (object_id is None or obj == object_id) and (camera is None or cam == camera.upper()):
+            keep.append(url)
+    if not keep:
+        have = sorted({f"{parse_clip_name(u)[2]} ({parse_clip_name(u)[1]})" for u in clips})
+        raise LookupError(f"{source}: no clip for object {object_id!r} camera {camera!r}; "
+                          f"objects here: {', '.join(have[:20])}{' ...' if len(have) > 20 else ''}")
+    counts = [clip_num_tracks(u) for u in keep]
+    return keep[int(np.argmax(counts))]
+
+
+
+def load_clip(url: str) -> Clip:
+    """Read a DriveTrack clip; errors name the file and the offending key, shape or dtype."""
+    segment, camera, object_id = parse_clip_name(url)
+    fs, path = fs_of(url)
+    try:
+        with fs.open(path, "rb") as f:
+            data = f.read()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{url}: no such clip file") from None
+    try:
+        z = np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, zipfile.BadZipFile, OSError) as error:
+        raise ValueError(f"{url}: not a readable .npz file ({error})") from error
+    with z:
+        missing = [k for k in ("video", "tracks", "visibles") if k not in z.files]
+        if missing:
+            raise KeyError(f"{url}: missing array(s) {missing}; a DriveTrack clip has video, tracks, visibles")
+        arrays = {k: z[k] for k in z.files}
+    video, tracks, visibles = arrays["video"], arrays["tracks"], arrays["visibles"]
+    if video.dtype != np.uint8 or video.ndim != 4 or video.shape[-1] != 3:
+        raise ValueError(f"{url}: video must be uint8 [T, H, W, 3], found {video.dtype} {video.shape}")
+    t = video.shape[0]
+    if tracks.ndim != 3 or tracks.shape[1:] != (t, 2):
+        raise ValueError(f"{url}: tracks must be [N, {t}, 2] (T from video), found {tracks.shape}")
+    if visibles.dtype != bool or visibles.shape != tracks.shape[:2]:
+        raise ValueError(f"{url}: visibles must be bool {tracks.shape[:2]}, found {visibles.dtype} {visibles.shape}")
+    split = posixpath.basename(posixpath.dirname(path))
+    return Clip(url=str(url), split=split, segment=segment, camera=camera, object_id=object_id,
+                video=video, tracks=tracks.astype(np.float32, copy=False), visibles=visibles,
+                timestamps_micros=arrays.get("timestamps_micros"), query_frames=arrays.get("query_frames"),
+                lidar_sources=arrays.get("lidar_sources"))
+
+
+def parse_frames(spec: str | None, num_frames: int) -> np.ndarray:
+    """int64 [F] clip frames of a Python-style slice ``"A:B"`` (or ``"A:B:S"``, or one index ``"A"``)."""
+    if spec is None or spec.strip() in ("", ":"):
+        return np.arange(num_frames)
+    parts = spec.split(":")
+    try:
+        if len(parts) == 1:
+            index = int(parts[0])
+            frames = np.arange(num_frames)[[index]]
+        elif len(parts) <= 3:
+            bounds = [int(p) if p.strip() else None for p in parts]
+            frames = np.arange(num_frames)[slice(*bounds)]
+        else:
+            raise ValueError("too many ':'")
+    except (ValueError, IndexError) as error:
+        raise ValueError(f"--frames {spec!r}: expected A:B (clip frames 0..{num_frames - 1}); {error}") from None
+    if frames.size == 0:
+        raise ValueError(f"--frames {spec!r} selects no frame of a {num_frames}-frame clip")
+    return frames
+
+
+
+def scene_frames(timestamps_all: np.ndarray, timestamps_clip: np.ndarray | None, where: str) -> np.ndarray:
+    """int64 [T] segment frame index of each clip frame, matched on timestamps."""
+    if timestamps_clip is None:
+        raise ValueError(f"{where}: the clip has no timestamps_micros; cannot match its frames to the source")
+    idx = np.clip(np.searchsorted(timestamps_all, timestamps_clip), 0, max(len(timestamps_all) - 1, 0))
+    bad = timestamps_all[idx] != timestamps_clip if len(timestamps_all) else np.ones(len(timestamps_clip), bool)
+    if np.any(bad):
+        raise ValueError(f"{where}: clip timestamp(s) {timestamps_clip[bad][:3].tolist()} not found among the "
+                         f"source's {len(timestamps_all)} frame timestamps (wrong --source or segment?)")
+    return idx.astype(np.int64)
+
