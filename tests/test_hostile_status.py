@@ -22,7 +22,7 @@ HOSTILE_LINKS = ["javascript:alert(1)", "JaVaScRiPt:alert(1)//x.png", "//evil.ex
                  "/etc/passwd.png", "previews/x.png\" onerror=\"alert(1)", "data:image/png;base64,AAAA",
                  "previews/.hidden.png", "previews\\..\\x.png", " previews/x.png", "previews/a.png\n"]
 SCRIPT = "<script>alert('pwned')</script>"
-GOOD = "previews/training/good_clip.png"
+GOOD = "previews/training/waymo_good_clip.png"
 
 
 class _Tags(HTMLParser):
@@ -120,18 +120,22 @@ def _raw_get(port: int, path: str) -> tuple[int, str, bytes]:
 def test_served_release_renders_safe_page_and_serves_only_its_previews(tmp_path):
     from drivetrack.release import publish_release
 
-    src = tmp_path / "src"
+    from test_release import gates_of, make_output
+
+    src = make_output(tmp_path / "src", n_clips=1)
     st = hostile_status()
     write_status(str(src), st)
     # a status.html stored by some other writer, with a live javascript: link: never served as is
     (src / "status.html").write_text('<a href="javascript:alert(1)">x</a><script>alert(1)</script>')
-    (src / "run.json").write_text(json.dumps({"config": {}, "segments": []}))
     (src / "previews" / "training").mkdir(parents=True)
     png = b"\x89PNG\r\n\x1a\n" + b"\0" * 32
-    (src / "previews" / "training" / "good_clip.png").write_bytes(png)
-    (src / "previews" / "notes.txt").write_text("not a preview type")
-    (src / "secret.txt").write_text("inside the release but not under previews/")
-    publish_release(str(src), str(tmp_path / "store"), st.version)
+    (src / GOOD).write_bytes(png)
+    publish_release(str(src), str(tmp_path / "store"), st.version, gate_report=gates_of(src))
+    # files publish would refuse, put into the release folder at rest: the server still hands out
+    # nothing but previews
+    release = next((tmp_path / "store").glob(f"*/{st.version}"))
+    (release / "previews" / "notes.txt").write_text("not a preview type")
+    (release / "secret.txt").write_text("inside the release but not under previews/")
     (tmp_path / "outside.png").write_bytes(png)
 
     proc = subprocess.Popen([sys.executable, "-m", "drivetrack.cli", "status", str(tmp_path / "store"),
@@ -174,11 +178,12 @@ def test_a_published_status_json_that_is_not_json_is_an_error_naming_it(tmp_path
     from drivetrack.release import publish_release
     from drivetrack.release.status import read_release_status
 
-    src = tmp_path / "src"
+    from test_release import gates_of, make_output
+
+    src = make_output(tmp_path / "src", n_clips=1)
     st = hostile_status()
     write_status(str(src), st)
-    (src / "run.json").write_text(json.dumps({"config": {}, "segments": []}))
-    publish_release(str(src), str(tmp_path / "store"), st.version)
+    publish_release(str(src), str(tmp_path / "store"), st.version, gate_report=gates_of(src))
     published = next((tmp_path / "store").glob(f"*/{st.version}/status.json"))
     published.write_bytes(b'{"dataset": "d", "vers')   # damaged at rest
     with pytest.raises(StatusError, match=rf"{st.version}/status.json: not valid JSON"):

@@ -26,11 +26,13 @@ def progress_bar(label: str, *, unit: str = "bytes", enabled: bool = True):
 
     ``unit``: ``"bytes"`` (size from ``planned``'s ``bytes``, advanced by events' ``bytes``) or
     ``"steps"`` (size from ``planned``'s ``steps``, advanced by one per event). With
-    ``enabled=False`` (``--json``) the callback does nothing. Safe to call from worker threads.
+    ``enabled=False`` (``--json``) or when stderr is not a terminal the callback does nothing; the
+    bar appears at the first event. Safe to call from worker threads.
     """
     if unit not in ("bytes", "steps"):
         raise ValueError(f"progress unit {unit!r}: expected 'bytes' or 'steps'")
-    if not enabled:
+    console = _console() if enabled else None
+    if console is None or not console.is_terminal:  # --json, or logs/CI: no bar, no partial lines
         yield lambda event, info: None
         return
     from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progress, TextColumn,
@@ -40,17 +42,25 @@ def progress_bar(label: str, *, unit: str = "bytes", enabled: bool = True):
     columns += ([DownloadColumn(), TransferSpeedColumn()] if unit == "bytes" else [MofNCompleteColumn()])
     columns.append(TimeElapsedColumn())
     lock = threading.Lock()
-    with Progress(*columns, console=_console(), transient=False) as bar:
-        task = bar.add_task(label, total=None)
+    state: dict = {}  # the bar starts at the first event (so an unreachable store prints no empty bar)
 
-        def progress(event: str, info: dict) -> None:
-            with lock:
-                if event == "planned":
-                    bar.update(task, total=info.get(unit))
-                elif unit == "bytes":
-                    if event in ("uploaded", "checked"):
-                        bar.advance(task, int(info.get("bytes") or 0))
-                else:
-                    bar.advance(task, 1)
+    def progress(event: str, info: dict) -> None:
+        with lock:
+            if "bar" not in state:
+                state["bar"] = Progress(*columns, console=console, transient=False)
+                state["bar"].start()
+                state["task"] = state["bar"].add_task(label, total=None)
+            bar, task = state["bar"], state["task"]
+            if event == "planned":
+                bar.update(task, total=info.get(unit))
+            elif unit == "bytes":
+                if event in ("uploaded", "checked"):
+                    bar.advance(task, int(info.get("bytes") or 0))
+            else:
+                bar.advance(task, 1)
 
+    try:
         yield progress
+    finally:
+        if "bar" in state:
+            state["bar"].stop()
