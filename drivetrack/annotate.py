@@ -418,7 +418,7 @@ def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[O
 
 def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[ObjectTracks]) -> pd.DataFrame:
     """Objects table plus ``label_speed_err_p*``: speed-error percentiles under the labelled poses."""
-    from drivetrack.consistency import label_speed_errors
+    from drivetrack.tracks.consistency import label_speed_errors
     from drivetrack.tracks.stats import SPEED_PERCENTILES
 
     columns = [f"label_speed_err_p{p}" for p in SPEED_PERCENTILES]

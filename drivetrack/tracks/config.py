@@ -61,7 +61,7 @@ class TrackConfig:
             saw under or round it is dropped.
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
-            (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
+            (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep_motion`).
         rolling_shutter: project with ``drivetrack.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the

@@ -25,7 +25,7 @@ import numpy as np
 from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.scene import Scene
 from drivetrack.tracks.config import TrackConfig
-from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
+from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["REJECTION_REASONS", "CameraGeometry", "ObjectJob", "SegmentPlan", "plan_segment",
@@ -202,7 +202,7 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
     A return belongs to a box when it is of a selected laser and return index, lies inside the
     box grown by ``box_margin_m`` and at least ``ground_clearance_m`` above the box bottom. With
     ``config.compensate_sweep_motion`` and ``lidar.capture_offset_s``, the box is moved to each
-    return's capture time first (:func:`drivetrack.tracks.sweep.points_box_at_capture`).
+    return's capture time first (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`).
     Per frame, returns are sorted by x once; each box then tests only the slab of returns whose
     x is within its horizontal radius.
 
@@ -216,7 +216,7 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
     per_row: dict[int, np.ndarray] = {}
     grow = max(config.box_margin_m, 0.0)
     offsets_s = lidar.capture_offset_s if config.compensate_sweep_motion else None
-    if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep.py)
+    if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep_motion.py)
         velocity, yaw_rate = scene_box_motion(scene)
     for t in np.unique(boxes.frame[rows]):
         part = lidar.of_frame(int(t))
