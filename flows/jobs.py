@@ -196,7 +196,7 @@ def depth_job(batch, config):
     on this worker. Returns ``(dense batch, {"completer", "device"})``."""
     import dataclasses
 
-    from drivetrack import annotate as core
+    from drivetrack.depth.stage import complete_depth_batch
 
     track = config.track
     completer, device = depth_choice(track.depth_completer, cuda=worker_cuda())
@@ -205,7 +205,7 @@ def depth_job(batch, config):
         track = type(track).from_dict({**track.to_dict(), "depth_completer": completer,
                                        "depth_completer_options": options})
         config = dataclasses.replace(config, track=track)
-    dense = core.complete_depth_batch(batch, config, device=device if completer == GPU_COMPLETER else None)
+    dense = complete_depth_batch(batch, config, device=device if completer == GPU_COMPLETER else None)
     return dense, {"completer": completer, "device": device}
 
 
@@ -229,6 +229,7 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
     completion record last. Returns the record (small, JSON-safe). Raises on failure after
     recording the failed stage and its error in the progress file."""
     from drivetrack import annotate as core
+    from drivetrack.depth.stage import sparse_depth_batches
     from drivetrack.tracks import plan_segment
     from flows.runtime import GPU, submit_resource_jobs
 
@@ -246,7 +247,7 @@ def run_segment(source: str, split: str, segment: str, key: str, work: str, conf
         plan = plan_segment(scene, cfg.track)
         st.update(count=int(scene.num_frames), unit="frames")
     with rec.stage("depth") as st:
-        batches = core.sparse_depth_batches(scene, cfg, plan)
+        batches = sparse_depth_batches(scene, cfg, plan)
         if batches:
             with _dask_client() as client:
                 futures = submit_resource_jobs(client, depth_job, batches, cfg, resource=GPU,

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivetrack.geometry import CameraModel, invert_rigid, transform_points
-from drivetrack.tracks.depth_stage import SegmentContext
+from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture
 from drivetrack.waymo.schema import BoxType, CameraName
