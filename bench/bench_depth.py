@@ -1,6 +1,6 @@
 """Depth completion benchmark: maps per CPU-second and error against exact depth.
 
-Scene: the analytic street of :mod:`drivetrack.depth.analytic` (ground plane + 7 boxes) seen by
+Scene: the analytic street of ``tests/_analytic_depth.py`` (ground plane + 7 boxes) seen by
 a Waymo-like FRONT camera (1920x1280, distortion), LiDAR simulated by ray casting, exact dense
 depth by intersecting every pixel-centre ray. Two LiDAR patterns: ``waymo-top`` (64 beams x
 2650 columns, like Waymo's TOP LiDAR, about 0.7% of the pixels) and ``dense-5pct`` (200 x 6000,
@@ -28,10 +28,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+# The analytic scene is a test fixture (tests/_analytic_depth.py), shared with tests/test_depth.py.
+sys.path.insert(0, str(ROOT / "tests"))
 
 from drivetrack.depth import get_completer, lookup_max4, sparse_depth_from_points  # noqa: E402
-from drivetrack.depth.analytic import (default_scene, exact_depth, front_camera,  # noqa: E402
-                                       lidar_points)
+from _analytic_depth import default_scene, exact_depth, front_camera, lidar_points  # noqa: E402
 
 LIDAR_RANGE_M = 75.0
 PATTERNS = {"waymo-top": dict(beams=64, azimuths=2650), "dense-5pct": dict(beams=200, azimuths=6000)}
@@ -159,7 +160,7 @@ def to_markdown(results: dict) -> str:
         f"Python {m['python']}, numpy {m['numpy']}, OpenCV {m['opencv']}, scipy {m['scipy']}, "
         f"torch {m.get('torch')} (CUDA: {m.get('cuda', False)}).",
         f"Image {results['width']}x{results['height']}, analytic street scene "
-        f"(`drivetrack.depth.analytic`); exact depth of all pixels in {results['exact_depth_s']:.1f} s. "
+        f"(`tests/_analytic_depth.py`); exact depth of all pixels in {results['exact_depth_s']:.1f} s. "
         f"Errors on pixels whose exact depth is within the LiDAR's {LIDAR_RANGE_M:.0f} m range; "
         "coverage = share of those filled; sky filled = share of surface-less pixels given a depth.",
         "",

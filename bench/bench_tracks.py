@@ -49,8 +49,8 @@ from bench.baseline_original import original_clips  # noqa: E402
 from bench.run import machine_description  # noqa: E402
 from drivetrack.annotate import AnnotateConfig, load_scene_for, refine_scene  # noqa: E402
 from drivetrack.evaluation import evaluate_clips, evaluate_tracks  # noqa: E402
-from drivetrack.tracks import (TrackConfig, complete_depth, depth_jobs, plan_segment, prepare_segment,  # noqa: E402
-                               run_object_job, sparse_depth)
+from drivetrack.depth.stage import complete_depth, depth_jobs, sparse_depth  # noqa: E402
+from drivetrack.tracks import TrackConfig, plan_segment, prepare_segment, run_object_job  # noqa: E402
 
 DOC = ROOT / "docs" / "benchmarks.md"
 DOC_START, DOC_END = "<!-- bench_tracks:start -->", "<!-- bench_tracks:end -->"
@@ -94,7 +94,7 @@ def depth_for(scene, config: TrackConfig, plans) -> tuple[dict, float, int]:
         for job in depth_jobs(scene, config, plan):
             needed.setdefault(job.camera, set()).update(job.frames.tolist())
     out, cpu, count = {}, 0.0, 0
-    from drivetrack.tracks.depth_stage import DepthJob
+    from drivetrack.depth.stage import DepthJob
     for camera, frames in sorted(needed.items()):
         frames = np.array(sorted(frames), dtype=np.int64)
         parts = []
@@ -187,7 +187,7 @@ def _job_peak(ctx, job, max_tracks: int | None, out_dir: str, rss_base: int) -> 
     import shutil
 
     from drivetrack.tracks import write_object_outputs
-    from drivetrack.tracks.depth_stage import SegmentContext
+    from drivetrack.tracks.context import SegmentContext
 
     plan = replace(ctx.plan, config=replace(ctx.plan.config, max_tracks_per_object=max_tracks))
     sub = SegmentContext(plan, ctx.depth)

@@ -46,11 +46,13 @@ from drivetrack.outputs import (CLIP_PREFIX, LABEL_SPEED_ERR_COLUMNS, LAYOUTS, S
 from drivetrack.names import check_name
 from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
+# The depth stage's pipeline unit, re-exported: `from drivetrack.annotate import DepthBatch,
+# sparse_depth_batches, complete_depth_batch` is the documented pipeline API (docs/architecture.md).
+from drivetrack.depth.stage import DepthBatch, _depth_by_camera, complete_depth_batch, sparse_depth_batches
 from drivetrack.storage import write_json
-from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, complete_depth, depth_jobs,
-                               object_stats, plan_segment, prepare_segment, rejection_stats,
-                               run_object_job, segment_stats, sparse_depth, write_object_outputs,
-                               write_table)
+from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, object_stats, plan_segment,
+                               prepare_segment, rejection_stats, run_object_job, segment_stats,
+                               write_object_outputs, write_table)
 from drivetrack.waymo.schema import CameraName, LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
@@ -121,27 +123,6 @@ class AnnotateConfig:
     def fingerprint(self) -> str:
         """sha256 of the canonical JSON of the configuration (not of the code version)."""
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()
-
-
-@dataclass
-class DepthBatch:
-    """Depth maps of one camera over a batch of frames of one segment.
-
-    Attributes:
-        segment: segment name (for error messages and routing).
-        camera: ``CameraName`` value.
-        frames: int64 [B], frame indices.
-        maps: float32 [B, H, W], z-depth in metres from the camera, 0 = unknown; sparse maps
-            also hold blind-zone bounds as negative values (``drivetrack.depth.bound_blind_zone``).
-        dense: False for sparse LiDAR maps, True once completed.
-        method: the completer that produced dense maps ("" for sparse).
-    """
-    segment: str
-    camera: int
-    frames: np.ndarray
-    maps: np.ndarray
-    dense: bool = False
-    method: str = ""
 
 
 @dataclass
@@ -230,45 +211,6 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
                                         compensate_sweep_motion=config.track.compensate_sweep_motion)
     return dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
                                box_refinement={oid: r.summary() for oid, r in results.items()})
-
-
-def sparse_depth_batches(scene: Scene, config: AnnotateConfig, plan: SegmentPlan | None = None) -> list[DepthBatch]:
-    """Sparse LiDAR depth maps of every frame an accepted clip needs, in batches per camera."""
-    plan = plan if plan is not None else plan_segment(scene, config.track)
-    return [DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
-            for job in depth_jobs(scene, config.track, plan)]
-
-
-def complete_depth_batch(batch: DepthBatch, config: AnnotateConfig, device: str | None = None) -> DepthBatch:
-    """Complete a sparse batch with the configured completer: the unit of the depth (GPU) queue.
-
-    ``device`` (e.g. ``"cuda:0"``) is passed to completers that take one (``nearest-torch``).
-    """
-    if batch.dense:
-        raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
-                         f"batch is already completed (by {batch.method!r})")
-    track = config.track
-    if device is not None:
-        options = {**track.depth_completer_options, "device": device}
-        track = TrackConfig.from_dict({**track.to_dict(), "depth_completer_options": options})
-    maps = complete_depth(batch.maps, track)
-    return DepthBatch(batch.segment, batch.camera, batch.frames, maps, dense=True, method=track.depth_completer)
-
-
-def _depth_by_camera(batches: Iterable[DepthBatch]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    grouped: dict[int, list[DepthBatch]] = {}
-    for batch in batches:
-        if not batch.dense:
-            raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
-                             f"depth batch of frames {batch.frames[:5].tolist()}... is not completed")
-        grouped.setdefault(batch.camera, []).append(batch)
-    out = {}
-    for camera, parts in grouped.items():
-        frames = np.concatenate([p.frames for p in parts])
-        maps = np.concatenate([p.maps for p in parts])
-        order = np.argsort(frames, kind="stable")
-        out[camera] = (frames[order], maps[order])
-    return out
 
 
 def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: AnnotateConfig,
@@ -446,7 +388,8 @@ def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[O
 
 def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[ObjectTracks]) -> pd.DataFrame:
     """Objects table plus ``label_speed_err_p*``: speed-error percentiles under the labelled poses."""
-    from drivetrack.consistency import label_speed_errors
+    from drivetrack.tracks.consistency import label_speed_errors
+
     columns = list(LABEL_SPEED_ERR_COLUMNS)
     if objects.empty:
         return objects.assign(**{c: pd.Series(dtype=float) for c in columns})

@@ -4,7 +4,7 @@ Two stages ask, with different tolerances, so there are two gathers over the sam
 
 - :func:`returns_in_boxes` (the track stage's per-box selection, ``tracks/plan.py``): the returns
   of the selected lasers / return indices inside each box grown by a margin and above a ground
-  clearance, with the box moved to each return's capture time (``tracks/sweep.py``). Per frame the
+  clearance, with the box moved to each return's capture time (``tracks/sweep_motion.py``). Per frame the
   returns are sorted by x once; a box tests the slab within its horizontal radius, then the exact
   box test (:func:`inside_box`).
 - :func:`gather_candidates` (the pose refinement's candidates, ``refine/scene.py``): the returns
@@ -54,14 +54,14 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
     inside the box grown by ``margin`` (metres, < 0 shrinks) and at least ``clearance`` above the
     box bottom (:func:`inside_box`). With ``compensate_sweep_motion`` and
     ``lidar.capture_offset_s``, the box is moved to each return's capture time first
-    (:func:`drivetrack.tracks.sweep.points_box_at_capture`). Per frame, returns are sorted by x
+    (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`). Per frame, returns are sorted by x
     once; each box then tests only the slab of returns whose x is within its horizontal radius.
 
     Returns:
         ``(offsets int64 [K + 1], index int64 [P])``: rows of ``scene.lidar`` of box row k are
         ``index[offsets[k]:offsets[k + 1]]``, ascending (rows not in ``rows`` get no points).
     """
-    from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
+    from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
 
     lidar, boxes = scene.lidar, scene.boxes
     k = len(boxes)
@@ -70,7 +70,7 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
     per_row: dict[int, np.ndarray] = {}
     grow = max(margin, 0.0)
     offsets_s = lidar.capture_offset_s if compensate_sweep_motion else None
-    if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep.py)
+    if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep_motion.py)
         velocity, yaw_rate = scene_box_motion(scene)
     for t in np.unique(boxes.frame[rows]):
         part = lidar.of_frame(int(t))

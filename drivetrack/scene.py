@@ -39,7 +39,7 @@ class LidarReturns:
             None unless requested from the reader.
         capture_offset_s: optional float32 [M], seconds: when the return was captured, relative
             to the time of its frame's vehicle pose (the boxes' reference); estimated by the
-            reader from the TOP per-pixel poses (``drivetrack.waymo.sweep``), 0 for lasers without
+            reader from the TOP per-pixel poses (``drivetrack.waymo.capture_time``), 0 for lasers without
             one; None when unknown (then no compensation of object motion during the sweep).
     """
     points_vehicle: np.ndarray

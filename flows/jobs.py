@@ -145,7 +145,7 @@ def depth_job(batch, config):
     on this worker. Returns ``(dense batch, {"completer", "device"})``."""
     import dataclasses
 
-    from drivetrack import annotate as core
+    from drivetrack.depth.stage import complete_depth_batch
 
     track = config.track
     completer, device = depth_choice(track.depth_completer, cuda=worker_cuda())
@@ -154,7 +154,7 @@ def depth_job(batch, config):
         track = type(track).from_dict({**track.to_dict(), "depth_completer": completer,
                                        "depth_completer_options": options})
         config = dataclasses.replace(config, track=track)
-    dense = core.complete_depth_batch(batch, config, device=device if completer == GPU_COMPLETER else None)
+    dense = complete_depth_batch(batch, config, device=device if completer == GPU_COMPLETER else None)
     return dense, {"completer": completer, "device": device}
 
 

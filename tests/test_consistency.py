@@ -1,4 +1,4 @@
-"""Speed consistency under the labelled poses (drivetrack.consistency) and its objects-table columns."""
+"""Speed consistency under the labelled poses (drivetrack.tracks.consistency) and its objects-table columns."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from drivetrack.annotate import AnnotateConfig, annotate_segment, load_scene_for
-from drivetrack.consistency import label_speed_errors, lidar_rows_from_sources
+from drivetrack.tracks.consistency import label_speed_errors, lidar_rows_from_sources
 from drivetrack.tracks import TrackConfig
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from drivetrack.depth import (get_completer, lookup_max4, sparse_depth_from_points)
-from drivetrack.depth.analytic import default_scene, exact_depth, front_camera, lidar_points
+from _analytic_depth import default_scene, exact_depth, front_camera, lidar_points
 from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import rigid_from_rotation_translation
 
@@ -278,7 +278,7 @@ def test_see_through_returns_on_analytic_scene_removes_returns_the_camera_cannot
     """A LiDAR above the camera sees the ground behind a car right in front; those returns sit
     inside the car in the image. The filter removes them and keeps what the camera sees."""
     from drivetrack.depth import see_through_returns
-    from drivetrack.depth.analytic import AnalyticScene
+    from _analytic_depth import AnalyticScene
 
     base = default_scene()
     near_car = np.array([[[3.5, -1.0, 0.0], [7.5, 1.0, 1.9]]])
@@ -383,7 +383,7 @@ def test_bound_blind_zone_on_analytic_scene_never_brings_surfaces_nearer():
     bound fills that region, and nowhere puts a surface nearer than the truth (no false occlusion),
     while far returns of a bumper lidar seen round the car there are replaced."""
     from drivetrack.depth import bound_blind_zone, horizontal_depth_scale
-    from drivetrack.depth.analytic import AnalyticScene
+    from _analytic_depth import AnalyticScene
     from drivetrack.camera.model import CameraModel
     from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 

@@ -171,7 +171,7 @@ def test_deployment_definition_loads_with_its_schedule():
 
 
 def _lidar_batch(seed: int, frames: int = 3):
-    from drivetrack.annotate import DepthBatch
+    from drivetrack.depth.stage import DepthBatch
 
     rng = np.random.default_rng(seed)
     sparse = np.zeros((frames, 40, 192), np.float32)

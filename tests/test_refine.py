@@ -507,7 +507,7 @@ def test_box_transform_convention_with_pitch_and_roll():
 
 def test_boxes_without_tilt_are_unchanged_and_with_tilt_carried():
     from drivetrack.scene import Boxes
-    from drivetrack.tracks.sweep import points_box_at_capture
+    from drivetrack.tracks.sweep_motion import points_box_at_capture
 
     rng = np.random.default_rng(0)
     k = 5

@@ -21,8 +21,8 @@ import pytest
 from drivetrack.geometry import box_from_center_heading, invert_rigid, rotation_z, transform_points
 from drivetrack.tracks import TrackConfig, plan_segment, prepare_segment, run_object_job
 from drivetrack.tracks.plan import select_object_points
-from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture, scene_box_motion
-from drivetrack.waymo import sweep
+from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture, scene_box_motion
+from drivetrack.waymo import capture_time
 from drivetrack.waymo.schema import LaserName
 
 
@@ -122,35 +122,35 @@ def _sweep_pixel_positions(frames_moving, frames_static, width=16, slope=-0.1 / 
 
 def test_frames_where_the_ego_stands_still_get_the_fitted_model():
     wfv, ts, frame, col, pixel_pos, dt_true = _sweep_pixel_positions(4, 4)
-    velocity = sweep.ego_velocity_world(wfv, ts)
-    samples = sweep.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
+    velocity = capture_time.ego_velocity_world(wfv, ts)
+    samples = capture_time.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
     static = frame >= 5          # frame 4 is still moving on one side (central difference)
     assert np.isnan(samples[static]).all() and np.isfinite(samples[frame < 3]).all()
-    timing = sweep.fit_sweep_timing(col, samples)
+    timing = capture_time.fit_sweep_timing(col, samples)
     assert timing.fitted and timing.num_inliers >= 3 * 16 * 3
     laser = np.full(col.shape, int(LaserName.TOP), np.int8)
-    offsets = sweep.capture_offsets(laser, col, timing)
+    offsets = capture_time.capture_offsets(laser, col, timing)
     np.testing.assert_allclose(offsets[static], dt_true[static], atol=1e-6)
     # other lasers: 0
-    assert np.all(sweep.capture_offsets(np.full(col.shape, int(LaserName.FRONT)), col, timing) == 0)
+    assert np.all(capture_time.capture_offsets(np.full(col.shape, int(LaserName.FRONT)), col, timing) == 0)
 
 
 def test_all_static_ego_gives_zero_offsets_and_outliers_do_not_bend_the_fit():
     wfv, ts, frame, col, pixel_pos, dt_true = _sweep_pixel_positions(0, 5)
-    velocity = sweep.ego_velocity_world(wfv, ts)
-    samples = sweep.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
-    timing = sweep.fit_sweep_timing(col, samples)
+    velocity = capture_time.ego_velocity_world(wfv, ts)
+    samples = capture_time.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
+    timing = capture_time.fit_sweep_timing(col, samples)
     assert not timing.fitted and timing.num_samples == 0
-    assert np.all(sweep.capture_offsets(np.ones(col.shape, np.int8), col, timing) == 0)
+    assert np.all(capture_time.capture_offsets(np.ones(col.shape, np.int8), col, timing) == 0)
 
     wfv, ts, frame, col, pixel_pos, dt_true = _sweep_pixel_positions(6, 0)
-    velocity = sweep.ego_velocity_world(wfv, ts)
-    samples = sweep.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
+    velocity = capture_time.ego_velocity_world(wfv, ts)
+    samples = capture_time.pixel_time_offsets(pixel_pos, wfv[frame, :3, 3], velocity[frame])
     samples[::7] += 0.03                                        # 14 % bad poses
-    timing = sweep.fit_sweep_timing(col, samples)
+    timing = capture_time.fit_sweep_timing(col, samples)
     assert abs(timing.slope_s - (-0.1 / 16)) < 1e-6 and abs(timing.intercept_s - 0.05) < 1e-5
     with pytest.raises(ValueError, match="col has shape"):
-        sweep.fit_sweep_timing(col[:-1], samples)
+        capture_time.fit_sweep_timing(col[:-1], samples)
 
 
 # ------------------------------------------------------------------ compensation

@@ -10,7 +10,7 @@ from drivetrack.depth import lookup_max4
 from drivetrack.geometry import box_from_center_heading, rotation_z
 from drivetrack.tracks import TrackConfig, object_jobs, prepare_segment, run_object_job
 from drivetrack.tracks import kernel
-from drivetrack.tracks.depth_stage import SegmentContext
+from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.core import _any_rolling_frame, fill_invalid_positions, track_speeds
 from test_tracks import (DT, FRONT, H, W, SceneBuilder, camera_model, world_center)
 

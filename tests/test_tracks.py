@@ -9,7 +9,8 @@ import pytest
 from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import box_from_center_heading, invert_rigid, rotation_z, transform_points
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
-from drivetrack.tracks import (REJECTION_REASONS, TrackConfig, continuous_runs, depth_jobs, object_jobs,
+from drivetrack.depth.stage import depth_jobs
+from drivetrack.tracks import (REJECTION_REASONS, TrackConfig, continuous_runs, object_jobs,
                                object_stats, plan_segment, prepare_segment, rejection_stats, run_object_job,
                                segment_stats, write_object_outputs, write_table)
 from drivetrack.tracks.core import track_speeds
@@ -503,7 +504,7 @@ def test_unsafe_object_id_is_refused_by_the_writer(tmp_path):
 
 
 def test_staged_depth_gives_the_same_tracks_and_missing_maps_are_named():
-    from drivetrack.tracks import complete_depth, sparse_depth
+    from drivetrack.depth.stage import complete_depth, sparse_depth
 
     b = SceneBuilder()
     b.add_object("car", world_center(b, 10.0), spacing=0.25)

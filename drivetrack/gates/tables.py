@@ -21,7 +21,7 @@ from drivetrack.gates.config import PERCENTILES
 from drivetrack.outputs import DRIVETRACK, parse_clip_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
-#: The same percentiles for the same tracks under the labelled poses (``drivetrack.consistency``);
+#: The same percentiles for the same tracks under the labelled poses (``drivetrack.tracks.consistency``);
 #: written by annotate since pose refinement, absent from older outputs.
 LABEL_SPEED_ERR_COLUMNS = tuple(f"label_speed_err_{p}" for p in PERCENTILES)
 #: Derived: speed_err_p50 - label_speed_err_p50, m/s (what pose refinement did to the consistency).

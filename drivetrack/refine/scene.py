@@ -44,10 +44,10 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     roll = (np.zeros(len(boxes)) if roll_all is None else roll_all.copy()) if tilted else None
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
     # move each candidate to where its surface was at the frame time (with the labels' motion)
-    # before registering, as the track stage does (drivetrack.tracks.sweep).
+    # before registering, as the track stage does (drivetrack.tracks.sweep_motion).
     offsets = getattr(lidar, "capture_offset_s", None) if compensate_sweep_motion else None
     if offsets is not None:
-        from drivetrack.tracks.sweep import points_box_at_capture, scene_box_motion
+        from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
 
         box_velocity, box_yaw_rate = scene_box_motion(scene)
     object_rows = []

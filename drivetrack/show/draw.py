@@ -139,7 +139,7 @@ def clip_depth(clip: Clip, source: str, frames: np.ndarray, completer: str = "ne
     ``completer``); releases do not store depth stacks.
     """
     from drivetrack.tracks.config import TrackConfig
-    from drivetrack.tracks.depth_stage import DepthJob, complete_depth, sparse_depth
+    from drivetrack.depth.stage import DepthJob, complete_depth, sparse_depth
     from drivetrack.waymo.reader import load_scene
     from drivetrack.waymo.schema import CameraName
 

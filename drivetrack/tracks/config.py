@@ -1,8 +1,14 @@
-"""Every knob of the track stage, in one dataclass built once at the entry point."""
+"""Every knob of the track stage, in one dataclass built once at the entry point.
+
+The depth stage's knobs are defined, defaulted and checked by :class:`drivetrack.depth.config.DepthConfig`;
+``TrackConfig`` carries them flat so that its serialisation (``to_dict``, run.json, the release
+fingerprint) is one flat dict, and gives them back grouped as :attr:`TrackConfig.depth`.
+"""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
+from drivetrack.depth.config import DEPTH_FIELDS, DepthConfig
 from drivetrack.waymo.schema import BoxType, CameraName, LaserName
 
 __all__ = ["TrackConfig", "FOV_RUN_POLICIES", "TRACK_KERNELS"]
@@ -14,6 +20,8 @@ FOV_RUN_POLICIES = ("reject", "longest")
 
 #: Implementations of the track stage's global-shutter inner loop (``TrackConfig.kernel``).
 TRACK_KERNELS = ("numba", "numpy")
+
+_DEPTH = DepthConfig()
 
 
 @dataclass(frozen=True)
@@ -37,31 +45,12 @@ class TrackConfig:
         occlusion_ratio: a point is occluded at a frame when the depth map there is known and
             ``depth < occlusion_ratio * z`` (z = the point's z-depth from the camera). 0.95 is the
             released code's factor; 1.0 is a strict test.
-        depth_completer: name in the ``drivetrack.depth`` completer registry.
-        depth_completer_options: keyword arguments of that completer (e.g. ``max_reach_px``).
-        depth_batch: frames per completion batch (the GPU-queue unit).
-        depth_lasers: ``LaserName`` names whose returns build the occlusion depth maps (default
-            all five lidars).
-        depth_returns: return indices that build the depth maps. Default first returns only:
-            second returns at object edges put the surface *behind* an occluder into the map
-            and make occluded points look visible (measured: docs/benchmarks.md).
-        see_through_window_deg: drop from the sparse maps, before completion, the returns the
-            camera cannot see because the LiDAR saw them past a nearer surface (over a car
-            beside the camera, round a pole): :func:`drivetrack.depth.see_through_returns` with
-            quadrant windows of this angle (``f_u * tan(angle)`` pixels) and ``occlusion_ratio``.
-            The default 0.5 degree (18 px at Waymo's 1920 px width) spans about two scan lines
-            of the TOP LiDAR (64 beams over ~20 degrees). None keeps every return.
-        see_through_min_quadrants: quadrants (of 4) that must hold a nearer return.
-        blind_zone_laser: ``LaserName`` of the roof LiDAR beside the cameras (one of
-            ``depth_lasers``), or None. Below its lowest scan line in an image (its blind zone round
-            the vehicle), the sparse maps are bounded by that line's depth
-            (:func:`drivetrack.depth.bound_blind_zone`, column cells of
-            ``see_through_window_deg``, 0.5 degree when that is None): a car beside the camera
-            that no LiDAR sees there occludes instead of being unknown, and what other lidars
-            saw under or round it is dropped.
+        depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
+            see_through_window_deg, see_through_min_quadrants, blind_zone_laser: the depth
+            stage's knobs, see :class:`drivetrack.depth.config.DepthConfig`.
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
-            (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep`).
+            (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep_motion`).
         rolling_shutter: project with ``drivetrack.camera.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the
@@ -85,14 +74,15 @@ class TrackConfig:
     box_margin_m: float = 0.0
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
-    depth_completer: str = "nearest"
+    # The depth knobs (DepthConfig's fields, in its order; defaults from there).
+    depth_completer: str = _DEPTH.depth_completer
     depth_completer_options: dict = field(default_factory=dict, hash=False)
-    depth_batch: int = 16
-    depth_lasers: tuple[str, ...] = ("TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR")
-    depth_returns: tuple[int, ...] = (1,)
-    see_through_window_deg: float | None = 0.5
-    see_through_min_quadrants: int = 3
-    blind_zone_laser: str | None = "TOP"
+    depth_batch: int = _DEPTH.depth_batch
+    depth_lasers: tuple[str, ...] = _DEPTH.depth_lasers
+    depth_returns: tuple[int, ...] = _DEPTH.depth_returns
+    see_through_window_deg: float | None = _DEPTH.see_through_window_deg
+    see_through_min_quadrants: int = _DEPTH.see_through_min_quadrants
+    blind_zone_laser: str | None = _DEPTH.blind_zone_laser
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
     max_speed_deviation_mps: float | None = None
@@ -104,7 +94,7 @@ class TrackConfig:
 
     def __post_init__(self):
         for name, enum_type in (("object_types", BoxType), ("cameras", CameraName),
-                                ("lasers", LaserName), ("depth_lasers", LaserName)):
+                                ("lasers", LaserName)):
             values = getattr(self, name)
             if isinstance(values, str):
                 raise ValueError(f"TrackConfig.{name} must be a sequence of names, got the string {values!r}")
@@ -114,20 +104,10 @@ class TrackConfig:
                     raise ValueError(f"TrackConfig.{name}: unknown {enum_type.__name__} {value!r}; "
                                      f"expected one of {sorted(enum_type.__members__)}")
         object.__setattr__(self, "returns", tuple(int(r) for r in self.returns))
-        object.__setattr__(self, "depth_returns", tuple(int(r) for r in self.depth_returns))
-        if not set(self.depth_returns) <= {1, 2} or not self.depth_returns:
-            raise ValueError(f"TrackConfig.depth_returns must be a non-empty subset of (1, 2), "
-                             f"got {self.depth_returns}")
-        if self.see_through_window_deg is not None and not 0 < self.see_through_window_deg < 45:
-            raise ValueError(f"TrackConfig.see_through_window_deg must be None or in (0, 45) degrees, "
-                             f"got {self.see_through_window_deg}")
-        if self.see_through_min_quadrants not in (1, 2, 3, 4):
-            raise ValueError(f"TrackConfig.see_through_min_quadrants must be 1..4, got {self.see_through_min_quadrants}")
-        if self.blind_zone_laser is not None and self.blind_zone_laser not in self.depth_lasers:
-            raise ValueError(f"TrackConfig.blind_zone_laser must be None or one of depth_lasers "
-                             f"{self.depth_lasers}, got {self.blind_zone_laser!r}")
+        depth = DepthConfig.check({name: getattr(self, name) for name in DEPTH_FIELDS}, where="TrackConfig")
+        for name, value in depth.items():
+            object.__setattr__(self, name, value)
         object.__setattr__(self, "writers", tuple(self.writers))
-        object.__setattr__(self, "depth_completer_options", dict(self.depth_completer_options))
         if not set(self.returns) <= {1, 2}:
             raise ValueError(f"TrackConfig.returns must be among (1, 2), got {self.returns}")
         if self.fov_runs not in FOV_RUN_POLICIES:
@@ -160,7 +140,12 @@ class TrackConfig:
 
     @property
     def depth_laser_values(self) -> tuple[int, ...]:
-        return tuple(int(LaserName[name]) for name in self.depth_lasers)
+        return self.depth.depth_laser_values
+
+    @property
+    def depth(self) -> DepthConfig:
+        """The depth stage's knobs of this configuration, grouped."""
+        return DepthConfig(**{name: getattr(self, name) for name in DEPTH_FIELDS})
 
     def to_dict(self) -> dict:
         """JSON-ready dict (tuples become lists) for run.json / manifests."""

@@ -7,7 +7,7 @@ carried to every target frame tau by one transform per frame (``vehicle_from_box
 
 When the scene carries per-return capture times (``LidarReturns.capture_offset_s``) and
 ``TrackConfig.compensate_sweep_motion`` holds, ``p_box`` uses the box moved to each return's
-capture time (constant velocity and yaw rate from the clip's boxes, :mod:`drivetrack.tracks.sweep`).
+capture time (constant velocity and yaw rate from the clip's boxes, :mod:`drivetrack.tracks.sweep_motion`).
 
 Visibility of a point at tau: in front of the camera with trusted distortion, inside the image,
 and not behind the scene surface: with ``D = lookup_max4(depth_tau, pixel)`` (z-depth, metres),
@@ -34,9 +34,9 @@ import numpy as np
 from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.outputs import RejectionReason
-from drivetrack.tracks.depth_stage import SegmentContext
+from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
-from drivetrack.tracks.sweep import box_motion_world, points_box_at_capture
+from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "TrackSource", "run_object_job", "track_speeds", "rolling_shutter_projector",

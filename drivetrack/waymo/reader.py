@@ -27,7 +27,7 @@ from drivetrack.camera.model import CameraModel
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
-from drivetrack.waymo import sweep
+from drivetrack.waymo import capture_time
 from drivetrack.waymo.columns import (list_parts, range_images_from_columns, scalar_numpy,
                                       transforms_from_column)
 # list_segments, read_component and WaymoFormatError are the documented entry points of
@@ -315,11 +315,11 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
                       world_from_vehicle: np.ndarray, returns_read: Sequence[int]) -> np.ndarray:
     """Phase 2: move TOP returns into their frame's vehicle frame with the per-pixel pose.
 
-    Returns float32 [M] capture-time samples (s, :func:`drivetrack.waymo.sweep.pixel_time_offsets`
+    Returns float32 [M] capture-time samples (s, :func:`drivetrack.waymo.capture_time.pixel_time_offsets`
     of each TOP return's pixel pose; NaN for other lasers and where the ego stands still).
     """
     c = f.comp
-    ego_velocity = sweep.ego_velocity_world(world_from_vehicle, timestamps)
+    ego_velocity = capture_time.ego_velocity_world(world_from_vehicle, timestamps)
     time_samples = np.full(len(returns), np.nan, np.float32)
     values, shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
     cols = f.columns([values, shape])
@@ -365,7 +365,7 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
                                         f"col {int(cols_[j])}) of {f.row_keys(table, i)}")
                 returns.points_vehicle[block] = beam.apply_pixel_pose(
                     returns.points_vehicle[block], pixel_pose, world_from_vehicle[t])
-                time_samples[block] = sweep.pixel_time_offsets(
+                time_samples[block] = capture_time.pixel_time_offsets(
                     pixel_pose[:, 3:6], world_from_vehicle[t, :3, 3], ego_velocity[t])
     return time_samples
 
@@ -405,7 +405,7 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
         with_camera_projection: also fill ``LidarReturns.camera_projection`` from
             ``lidar_camera_projection``.
     ``LidarReturns.capture_offset_s`` is filled from the TOP per-pixel poses
-    (:mod:`drivetrack.waymo.sweep`: one ``a + b * col`` model per segment, 0 for other lasers).
+    (:mod:`drivetrack.waymo.capture_time`: one ``a + b * col`` model per segment, 0 for other lasers).
     Frames are ``vehicle_pose``'s timestamps in increasing order; rows of other components whose
     timestamp is not among them raise :class:`WaymoFormatError`.
 
@@ -473,12 +473,12 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
                                      expected=sorted(missing), found=sorted(calibrations))
             lidar_returns, source_stats["lidar_nonfinite_ranges"] = _read_lidar(
                 open_component("lidar"), calibrations, wanted, returns, timestamps, cal_file)
-            timing = sweep.SweepTiming()
+            timing = capture_time.SweepTiming()
             if np.any(lidar_returns.laser == LaserName.TOP):
                 samples = _apply_lidar_pose(open_component("lidar_pose"), lidar_returns,
                                             timestamps, world_from_vehicle, returns)
-                timing = sweep.fit_sweep_timing(lidar_returns.col, samples)
-            lidar_returns.capture_offset_s = sweep.capture_offsets(lidar_returns.laser,
+                timing = capture_time.fit_sweep_timing(lidar_returns.col, samples)
+            lidar_returns.capture_offset_s = capture_time.capture_offsets(lidar_returns.laser,
                                                                    lidar_returns.col, timing)
             if with_camera_projection:
                 lidar_returns.camera_projection = _read_camera_projection(

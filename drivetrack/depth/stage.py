@@ -1,27 +1,34 @@
-"""The depth stage: per (camera, frame) occlusion depth maps, computed once per segment.
+"""The depth stage of a segment: per (camera, frame) occlusion depth maps, staged for a queue.
 
 Split so an orchestrator can stage it: :func:`depth_jobs` lists the (camera, frame batch) units,
 :func:`sparse_depth` projects a batch's LiDAR (CPU), :func:`complete_depth` densifies it with the
-configured completer (the GPU-queue unit), and :func:`prepare_segment` assembles the results into
-the :class:`SegmentContext` shared read-only by every object job of the segment (or runs the whole
-stage in-process when no depth is given).
+configured completer (the GPU-queue unit). The pipeline's unit is a :class:`DepthBatch`
+(:func:`sparse_depth_batches` -> :func:`complete_depth_batch`, re-exported by
+:mod:`drivetrack.annotate`); the track stage takes the completed maps through
+:func:`drivetrack.tracks.context.prepare_segment`.
 
-Only frames that an accepted clip of that camera needs get a depth map.
+Only frames that an accepted clip of that camera needs get a depth map. The track-stage modules
+this one reads (``tracks.config``, ``tracks.plan``) are imported for type checking or inside the
+functions, so that ``drivetrack.tracks`` may import this module without a cycle.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
 from drivetrack.geometry import invert_rigid, transform_points
 from drivetrack.scene import Scene
-from drivetrack.tracks.config import TrackConfig
-from drivetrack.tracks.plan import ObjectJob, SegmentPlan, plan_segment
 from drivetrack.waymo.schema import CameraName
 
-__all__ = ["DepthJob", "DepthStack", "SegmentContext", "depth_jobs", "sparse_depth",
-           "complete_depth", "prepare_segment", "object_jobs"]
+if TYPE_CHECKING:
+    from drivetrack.annotate import AnnotateConfig
+    from drivetrack.tracks.config import TrackConfig
+    from drivetrack.tracks.plan import SegmentPlan
+
+__all__ = ["DepthJob", "DepthBatch", "needed_frames", "depth_jobs", "sparse_depth", "complete_depth",
+           "sparse_depth_batches", "complete_depth_batch"]
 
 
 @dataclass(frozen=True)
@@ -36,47 +43,8 @@ class DepthJob:
     frames: np.ndarray
 
 
-@dataclass
-class DepthStack:
-    """Completed depth maps of one camera.
-
-    Attributes:
-        frames: int64 [F], frame indices with a map (sorted).
-        maps: float32 [F, H, W], z-depth from the camera in metres, 0 = unknown.
-        slot: int64 [T], position of frame t in ``maps`` (-1 = no map).
-    """
-    frames: np.ndarray
-    maps: np.ndarray
-    slot: np.ndarray
-
-    def of_frame(self, t: int) -> np.ndarray:
-        s = int(self.slot[t])
-        if s < 0:
-            raise KeyError(f"no depth map for frame {t}")
-        return self.maps[s]
-
-
-@dataclass
-class SegmentContext:
-    """Everything the object jobs of one segment share (read-only, never copied per job).
-
-    Attributes:
-        plan: the segment plan (scene, config, camera poses, box points, jobs, rejections).
-        depth: camera value -> :class:`DepthStack`.
-    """
-    plan: SegmentPlan
-    depth: dict[int, DepthStack]
-
-    @property
-    def scene(self) -> Scene:
-        return self.plan.scene
-
-    @property
-    def config(self) -> TrackConfig:
-        return self.plan.config
-
-
-def _needed_frames(plan: SegmentPlan) -> dict[int, np.ndarray]:
+def needed_frames(plan: SegmentPlan) -> dict[int, np.ndarray]:
+    """Camera value -> int64 [F] sorted frames that an accepted clip of that camera needs."""
     needed: dict[int, set] = {}
     for job in plan.jobs:
         needed.setdefault(job.camera, set()).update(job.frames.tolist())
@@ -85,9 +53,11 @@ def _needed_frames(plan: SegmentPlan) -> dict[int, np.ndarray]:
 
 def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = None) -> list[DepthJob]:
     """The depth units of a segment: per camera, its needed frames in batches of ``depth_batch``."""
+    from drivetrack.tracks.plan import plan_segment
+
     plan = plan if plan is not None else plan_segment(scene, config)
     jobs = []
-    for camera, frames in _needed_frames(plan).items():
+    for camera, frames in needed_frames(plan).items():
         for start in range(0, frames.size, config.depth_batch):
             jobs.append(DepthJob(camera, frames[start:start + config.depth_batch]))
     return jobs
@@ -158,52 +128,63 @@ def complete_depth(sparse: np.ndarray, config: TrackConfig) -> np.ndarray:
     return apply_depth_bounds(dense, sparse)
 
 
-def _stack(scene: Scene, camera: int, frames: np.ndarray, maps: np.ndarray) -> DepthStack:
-    model = scene.cameras[camera].model
-    if maps.shape != (frames.size, model.height, model.width):
-        raise ValueError(f"segment {scene.segment!r} camera {CameraName(camera).name}: depth maps have "
-                         f"shape {maps.shape}, expected {(frames.size, model.height, model.width)}")
-    slot = np.full(scene.num_frames, -1, dtype=np.int64)
-    slot[frames] = np.arange(frames.size)
-    return DepthStack(frames, maps, slot)
+@dataclass
+class DepthBatch:
+    """Depth maps of one camera over a batch of frames of one segment.
 
-
-def prepare_segment(scene: Scene, config: TrackConfig, depth: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
-                    plan: SegmentPlan | None = None) -> SegmentContext:
-    """Plan the segment and attach its depth maps (one stack per camera, shared by all jobs).
-
-    Args:
-        depth: optional precomputed maps from a staged depth run: camera value ->
-            ``(frames int [F], maps float32 [F, H, W])``; they must cover every frame that
-            :func:`depth_jobs` lists. When None the depth stage runs here, batch by batch.
-        plan: optional result of :func:`plan_segment` (recomputed when None).
+    Attributes:
+        segment: segment name (for error messages and routing).
+        camera: ``CameraName`` value.
+        frames: int64 [B], frame indices.
+        maps: float32 [B, H, W], z-depth in metres from the camera, 0 = unknown; sparse maps
+            also hold blind-zone bounds as negative values (``drivetrack.depth.bound_blind_zone``).
+        dense: False for sparse LiDAR maps, True once completed.
+        method: the completer that produced dense maps ("" for sparse).
     """
-    plan = plan if plan is not None else plan_segment(scene, config)
-    needed = _needed_frames(plan)
-    stacks: dict[int, DepthStack] = {}
-    if depth is None:
-        for camera, frames in needed.items():
-            model = scene.cameras[camera].model
-            maps = np.zeros((frames.size, model.height, model.width), dtype=np.float32)
-            for start in range(0, frames.size, config.depth_batch):
-                job = DepthJob(camera, frames[start:start + config.depth_batch])
-                maps[start:start + job.frames.size] = complete_depth(sparse_depth(scene, config, job), config)
-            stacks[camera] = _stack(scene, camera, frames, maps)
-    else:
-        for camera, frames in needed.items():
-            if camera not in depth:
-                raise ValueError(f"segment {scene.segment!r}: no depth maps given for camera "
-                                 f"{CameraName(camera).name}")
-            given_frames, maps = depth[camera]
-            given_frames = np.asarray(given_frames, dtype=np.int64)
-            missing = np.setdiff1d(frames, given_frames)
-            if missing.size:
-                raise ValueError(f"segment {scene.segment!r} camera {CameraName(camera).name}: depth maps "
-                                 f"missing for frames {missing[:10].tolist()}")
-            stacks[camera] = _stack(scene, camera, given_frames, np.asarray(maps, dtype=np.float32))
-    return SegmentContext(plan, stacks)
+    segment: str
+    camera: int
+    frames: np.ndarray
+    maps: np.ndarray
+    dense: bool = False
+    method: str = ""
 
 
-def object_jobs(ctx: SegmentContext) -> list[ObjectJob]:
-    """The clips to annotate (after the planning filters; rejections are in ``ctx.plan``)."""
-    return list(ctx.plan.jobs)
+def sparse_depth_batches(scene: Scene, config: "AnnotateConfig", plan: SegmentPlan | None = None) -> list[DepthBatch]:
+    """Sparse LiDAR depth maps of every frame an accepted clip needs, in batches per camera."""
+    from drivetrack.tracks.plan import plan_segment
+
+    plan = plan if plan is not None else plan_segment(scene, config.track)
+    return [DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
+            for job in depth_jobs(scene, config.track, plan)]
+
+
+def complete_depth_batch(batch: DepthBatch, config: "AnnotateConfig", device: str | None = None) -> DepthBatch:
+    """Complete a sparse batch with the configured completer: the unit of the depth (GPU) queue.
+
+    ``device`` (e.g. ``"cuda:0"``) is passed to completers that take one (``nearest-torch``).
+    """
+    if batch.dense:
+        raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
+                         f"batch is already completed (by {batch.method!r})")
+    track = config.track
+    if device is not None:
+        options = {**track.depth_completer_options, "device": device}
+        track = type(track).from_dict({**track.to_dict(), "depth_completer_options": options})
+    maps = complete_depth(batch.maps, track)
+    return DepthBatch(batch.segment, batch.camera, batch.frames, maps, dense=True, method=track.depth_completer)
+
+
+def _depth_by_camera(batches: Iterable[DepthBatch]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    grouped: dict[int, list[DepthBatch]] = {}
+    for batch in batches:
+        if not batch.dense:
+            raise ValueError(f"segment {batch.segment!r} camera {CameraName(batch.camera).name}: "
+                             f"depth batch of frames {batch.frames[:5].tolist()}... is not completed")
+        grouped.setdefault(batch.camera, []).append(batch)
+    out = {}
+    for camera, parts in grouped.items():
+        frames = np.concatenate([p.frames for p in parts])
+        maps = np.concatenate([p.maps for p in parts])
+        order = np.argsort(frames, kind="stable")
+        out[camera] = (frames[order], maps[order])
+    return out
