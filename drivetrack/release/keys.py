@@ -23,15 +23,20 @@ __all__ = ["OUTPUT_MODULES", "RELEASE_MODULES", "sha256_json", "code_fingerprint
            "segment_key", "release_fingerprint"]
 
 OUTPUT_MODULES = (
-    "drivetrack", "drivetrack.annotate", "drivetrack.consistency", "drivetrack.depth", "drivetrack.depth.analytic",
-    "drivetrack.depth.completers", "drivetrack.depth.lookup", "drivetrack.depth.registry", "drivetrack.depth.sparse",
-    "drivetrack.depth.torch_nearest", "drivetrack.faults", "drivetrack.geometry", "drivetrack.layout",
-    "drivetrack.metrics", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.refine",
-    "drivetrack.refine_kernel", "drivetrack.rolling_shutter", "drivetrack.scene", "drivetrack.storage",
-    "drivetrack.tracks", "drivetrack.tracks.config", "drivetrack.tracks.core", "drivetrack.tracks.depth_stage",
-    "drivetrack.tracks.kernel", "drivetrack.tracks.plan", "drivetrack.tracks.stats", "drivetrack.tracks.sweep",
-    "drivetrack.tracks.writers", "drivetrack.waymo", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
-    "drivetrack.waymo.schema", "drivetrack.waymo.sweep", "drivetrack.waymo.writer",
+    "drivetrack", "drivetrack.annotate", "drivetrack.boxes", "drivetrack.camera", "drivetrack.camera.model",
+    "drivetrack.camera.rolling_shutter", "drivetrack.depth", "drivetrack.depth.completers",
+    "drivetrack.depth.config", "drivetrack.depth.lookup", "drivetrack.depth.registry",
+    "drivetrack.depth.sparse", "drivetrack.depth.stage", "drivetrack.depth.torch_nearest", "drivetrack.faults",
+    "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs",
+    "drivetrack.refine", "drivetrack.refine.config", "drivetrack.refine.kernel", "drivetrack.refine.motion",
+    "drivetrack.refine.poses", "drivetrack.refine.scene", "drivetrack.refine.select",
+    "drivetrack.refine.solver", "drivetrack.refine.terms", "drivetrack.scene", "drivetrack.storage",
+    "drivetrack.tracks", "drivetrack.tracks.config", "drivetrack.tracks.consistency",
+    "drivetrack.tracks.context", "drivetrack.tracks.core", "drivetrack.tracks.kernel", "drivetrack.tracks.plan",
+    "drivetrack.tracks.stats", "drivetrack.tracks.sweep_motion", "drivetrack.tracks.writers",
+    "drivetrack.waymo", "drivetrack.waymo.capture_time", "drivetrack.waymo.checks", "drivetrack.waymo.columns",
+    "drivetrack.waymo.components", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
+    "drivetrack.waymo.schema", "drivetrack.waymo.writer",
 )
 """Modules whose code can change a segment's outputs (clip files, its stats rows): the code part
 of a segment's content key. When unsure, a module belongs here (a needless recompute is cheap, a
@@ -39,18 +44,25 @@ stale reuse is wrong). tests/test_package.py checks that every module of the pac
 here or in :data:`RELEASE_MODULES`."""
 
 RELEASE_MODULES = (
-    "drivetrack.cli", "drivetrack.commands", "drivetrack.commands._release_common", "drivetrack.commands.annotate",
-    "drivetrack.commands.diff", "drivetrack.commands.evaluate", "drivetrack.commands.gates",
-    "drivetrack.commands.gc", "drivetrack.commands.info", "drivetrack.commands.publish", "drivetrack.commands.show",
+    "drivetrack.cli", "drivetrack.commands", "drivetrack.commands._progress",
+    "drivetrack.commands._release_common", "drivetrack.commands.annotate", "drivetrack.commands.diff",
+    "drivetrack.commands.evaluate", "drivetrack.commands.gates", "drivetrack.commands.gc",
+    "drivetrack.commands.info", "drivetrack.commands.publish", "drivetrack.commands.show",
     "drivetrack.commands.status", "drivetrack.commands.synth", "drivetrack.commands.verify",
-    "drivetrack.commands.versions", "drivetrack.evaluate", "drivetrack.gates", "drivetrack.gates.config",
+    "drivetrack.commands.versions", "drivetrack.evaluation", "drivetrack.evaluation.clips",
+    "drivetrack.evaluation.metrics", "drivetrack.evaluation.predictions", "drivetrack.evaluation.scoring",
+    "drivetrack.evaluation.truth", "drivetrack.gates", "drivetrack.gates.binding", "drivetrack.gates.config",
     "drivetrack.gates.report", "drivetrack.gates.run", "drivetrack.gates.suites", "drivetrack.gates.tables",
     "drivetrack.provenance", "drivetrack.release", "drivetrack.release.assemble", "drivetrack.release.cards",
-    "drivetrack.release.catalog", "drivetrack.release.errors", "drivetrack.release.keys",
-    "drivetrack.release.manifest", "drivetrack.release.publish", "drivetrack.release.status",
-    "drivetrack.release.status_pages", "drivetrack.release.store", "drivetrack.release.work", "drivetrack.show",
-    "drivetrack.synth", "drivetrack.synth.generate", "drivetrack.synth.ground_truth", "drivetrack.synth.preview",
-    "drivetrack.synth.raycast", "drivetrack.synth.sensors", "drivetrack.synth.texture", "drivetrack.synth.world",
+    "drivetrack.release.catalog", "drivetrack.release.contents", "drivetrack.release.errors",
+    "drivetrack.release.keys", "drivetrack.release.manifest", "drivetrack.release.publish",
+    "drivetrack.release.status", "drivetrack.release.status_pages", "drivetrack.release.store",
+    "drivetrack.release.work", "drivetrack.show", "drivetrack.show.clips", "drivetrack.show.draw",
+    "drivetrack.show.errors", "drivetrack.show.previews", "drivetrack.synth", "drivetrack.synth.boxes",
+    "drivetrack.synth.config", "drivetrack.synth.generate", "drivetrack.synth.ground_truth",
+    "drivetrack.synth.lidar_cast", "drivetrack.synth.preview", "drivetrack.synth.raycast",
+    "drivetrack.synth.render", "drivetrack.synth.sensors", "drivetrack.synth.state", "drivetrack.synth.tables",
+    "drivetrack.synth.texture", "drivetrack.synth.truth", "drivetrack.synth.world", "drivetrack.waymo.summary",
 )
 """Modules that do not change a segment's outputs but do change a release (commands, gates,
 release assembly and publishing, previews, evaluation, the synthetic source): they enter only
