@@ -7,8 +7,9 @@ carry run-specific values are compared after normalisation, and only those value
 
 - the absolute temporary paths of this run (``<out>``, ``<store>``, ``<source>``),
 - wall-clock times (ISO timestamps, Great Expectations run ids, ``*seconds`` fields and timings),
-- sha256 digests and byte sizes inside JSON/Markdown (they hash the files above, which carry
-  run-specific values themselves; the data files' own digests are compared directly),
+- sha256 digests and byte sizes inside JSON/Markdown, and the card's short gate-binding id (they
+  hash the files above, which carry run-specific values themselves, such as the statistics tables'
+  timing columns; the data files' own digests are compared directly),
 - the code fingerprint and git commit (they change with every commit by design), random ids
   (uuid4), the folder the package is installed in (the gate config's path).
 
@@ -35,6 +36,7 @@ GOLDEN = Path(__file__).parent / "golden" / "release.json"
 _TS = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?Z?|\d{8}T\d{6}\.\d+Z")
 _HEX64 = re.compile(r"\b[0-9a-f]{64}\b")
 _GIT = re.compile(r"\b(git [0-9a-f]{7,40}|\+g[0-9a-f]{7,40})(\.dirty)?\b")
+_BINDING = re.compile(r"(binding `)[0-9a-f]{8,64}(`)")  # the card's short binding id (hashes timed tables)
 _UUID = re.compile(r"\b[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}\b")
 _VOLATILE_KEY = re.compile(r"(second|timing|(^|_)size$|bytes|contentsize|^created|published|^code(_version)?$"
                            r"|fingerprint|run_id|run_time|time_utc|_utc$|^time$|duration)", re.I)
@@ -47,6 +49,7 @@ def _mask_text(text: str, bases: dict[str, str]) -> str:
         text = text.replace(f"file://{base}", name).replace(base, name)
     text = _TS.sub("<time>", text)
     text = _GIT.sub("<git>", text)
+    text = _BINDING.sub(r"\1<binding>\2", text)
     text = _UUID.sub("<uuid>", text)
     return _HEX64.sub("<sha256>", text)
 
