@@ -41,8 +41,8 @@ import numpy as np
 import pandas as pd
 
 from drivetrack import faults
-from drivetrack.outputs import (CLIP_PREFIX, LABEL_SPEED_ERR_COLUMNS, LAYOUTS, SPEED_ERR_COLUMNS, SPEED_PERCENTILES,
-                                TABLES, SegmentStatus, Stage)
+from drivetrack.outputs import (LABEL_SPEED_ERR_COLUMNS, SPEED_ERR_COLUMNS, SPEED_PERCENTILES, TABLES,
+                                SegmentStatus, Stage)
 from drivetrack.names import check_name
 from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
@@ -50,10 +50,11 @@ from drivetrack.scene import Scene
 # sparse_depth_batches, complete_depth_batch` is the documented pipeline API (docs/architecture.md).
 from drivetrack.depth.stage import DepthBatch, _depth_by_camera, complete_depth_batch, sparse_depth_batches
 from drivetrack.storage import write_json
+from drivetrack.tidy import remove_partial_files, remove_segment_clips
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, object_stats, plan_segment,
                                prepare_segment, rejection_stats, run_object_job, segment_stats,
                                write_object_outputs, write_table)
-from drivetrack.waymo.schema import CameraName, LaserName
+from drivetrack.waymo.schema import LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
            "complete_depth_batch", "refine_scene", "track_segment", "segment_tables", "write_segment_outputs", "write_tables",
@@ -66,7 +67,6 @@ MAX_ATTEMPTS = 2
 
 #: Prefix of the temporary files :func:`drivetrack.storage.atomic_local_path` writes beside a
 #: local output file before moving it into place.
-PARTIAL_PREFIX = ".partial-"
 
 #: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
 #: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
@@ -535,58 +535,6 @@ def _run_in_processes(jobs: list[tuple], workers: int, tmp_root: str,
         for job, process in running.values():
             process.join()
     return out
-
-
-def _ls(fs, path: str) -> list[str]:
-    try:
-        return [p.rstrip("/") for p in fs.ls(path, detail=False)] if fs.isdir(path) else []
-    except FileNotFoundError:
-        return []
-
-
-def remove_partial_files(out_url: str, storage_options: dict | None = None) -> list[str]:
-    """Remove every temporary ``.partial-*`` file from an output folder; returns their URLs.
-
-    Looks where writers put them: the folder itself, ``stats/`` and every split folder of each
-    clip layout (so files left by an earlier killed run go too). Run it only when no other run
-    writes into the same folder.
-    """
-    fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
-    base = base.rstrip("/")
-    folders = [base, f"{base}/stats"]
-    for folder in LAYOUTS.values():
-        folders += [p for p in _ls(fs, f"{base}/{folder}") if fs.isdir(p)]
-    removed = []
-    for folder in folders:
-        for path in _ls(fs, folder):
-            if path.rsplit("/", 1)[-1].startswith(PARTIAL_PREFIX):
-                fs.rm(path)
-                removed.append(fs.unstrip_protocol(path))
-    return removed
-
-
-def remove_segment_clips(out_url: str, split: str, segments: Iterable[str], keep: Iterable[str] = (),
-                         storage_options: dict | None = None) -> list[str]:
-    """Remove the clip files of ``segments`` of ``split`` (every layout); returns their URLs.
-
-    A clip file of segment S is ``waymo_{S}_{CAMERA}_{object_id}.npz`` with CAMERA a Waymo camera
-    name; paths relative to ``out_url`` in ``keep`` (files of segments that succeeded) stay.
-    """
-    fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
-    base = base.rstrip("/")
-    keep = set(keep)
-    prefixes = tuple(f"{CLIP_PREFIX}{segment}_{camera.name}_" for segment in segments
-                     for camera in CameraName if camera != CameraName.UNKNOWN)
-    removed = []
-    if not prefixes:
-        return removed
-    for folder in LAYOUTS.values():
-        for path in _ls(fs, f"{base}/{folder}/{split}"):
-            leaf = path.rsplit("/", 1)[-1]
-            if leaf.startswith(prefixes) and leaf.endswith(".npz") and f"{folder}/{split}/{leaf}" not in keep:
-                fs.rm(path)
-                removed.append(fs.unstrip_protocol(path))
-    return removed
 
 
 def annotate(source: str, split: str, segments: list[str], out_url: str, config: AnnotateConfig,

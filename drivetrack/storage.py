@@ -23,7 +23,11 @@ import numpy as np
 
 __all__ = ["is_local", "atomic_local_path", "write_bytes", "write_json", "write_parquet", "read_json",
            "write_npz", "StreamedArray", "NPZ_DATE_TIME", "NpyHeader", "NpzReader",
-           "read_npz_headers"]
+           "read_npz_headers", "PARTIAL_PREFIX"]
+
+#: Name prefix of the temporary files atomic local writes create beside their target (removed by
+#: :func:`drivetrack.tidy.remove_partial_files` when a killed process left them).
+PARTIAL_PREFIX = ".partial-"
 
 #: Fixed timestamp of every npz member, so identical arrays give identical bytes (and sha256).
 NPZ_DATE_TIME = (1980, 1, 1, 0, 0, 0)
@@ -48,7 +52,7 @@ def atomic_local_path(url: str, suffix: str = "", storage_options: dict | None =
     local = is_local(fs)
     if local:
         os.makedirs(parent or ".", exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=suffix, dir=parent or ".")
+        fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, suffix=suffix, dir=parent or ".")
     else:
         fd, tmp = tempfile.mkstemp(prefix="drivetrack-", suffix=suffix)
     os.close(fd)

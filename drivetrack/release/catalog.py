@@ -9,9 +9,9 @@ from drivetrack.names import is_valid_name
 from drivetrack.release.errors import InvalidVersionError, ManifestError, ReleaseError, VersionNotFoundError
 from drivetrack.release.manifest import (MANIFEST_NAME, SemVer, check_dataset, manifest_entries,
                                          parse_manifest, sha256_stream)
-from drivetrack.release.publish import (DEFAULT_DATASET, DEFAULT_WORKERS, _read_json, add_to_index,
-                                        claim_path, latest_path, move_latest, staging_prefix,
-                                        version_prefix)
+from drivetrack.release.pointers import (_read_json, add_to_index, claim_path, latest_path, move_latest,
+                                         staging_prefix, version_prefix)
+from drivetrack.release.publish import DEFAULT_DATASET, DEFAULT_WORKERS
 from drivetrack.release.store import TMP_DIR, Store, open_store
 
 

@@ -36,15 +36,11 @@ same publish with ``resume=True`` (reuses staged files whose sha256 matches) or 
 from __future__ import annotations
 
 import hashlib
-import json
 import os
-import random
 import socket
 import time
 import uuid
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from typing import Callable
 
 import fsspec
@@ -55,14 +51,17 @@ from drivetrack.release import cards as _cards
 from drivetrack.release import contents as _contents
 from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GateBindingError,
                                        GatesFailedError, InvalidSourceError, PublishConflictError,
-                                       PublishInterruptedError, ReleaseError, StagingCheckError,
+                                       PublishInterruptedError, StagingCheckError,
                                        VersionExistsError)
 from drivetrack.release.manifest import (CARD_NAME, CROISSANT_NAME, MANIFEST_FORMAT, MANIFEST_NAME,
-                                         RESERVED_NAMES, SUMS_NAME, FileEntry, SemVer, check_dataset,
+                                         RESERVED_NAMES, SUMS_NAME, FileEntry, check_dataset,
                                          check_release_path, check_version, code_version,
                                          counts_from_files, dump_manifest, read_run_json,
                                          render_sha256sums, seal_manifest, sha256_bytes, sha256_stream,
                                          splits_from_paths, statistics_from_parquet)
+from drivetrack.release.pointers import (_json_bytes, _now, _read_json, _run_pool, claim_path,
+                                         finish_committed_version, hash_object, staging_prefix,
+                                         version_prefix)
 from drivetrack.release.store import Store, iter_chunks, open_store
 
 DEFAULT_DATASET = "drivetrack-waymo"
@@ -71,33 +70,6 @@ DEFAULT_WORKERS = 8
 Progress = Callable[[str, dict], None]
 """``progress(event, info)``: events ``planned`` ({"files", "bytes"}), ``uploaded`` (per file),
 ``staged``, ``checked``, ``promoted``, ``committed``. Used for progress display and, in tests, to inject faults between steps."""
-
-
-# ---- layout ------------------------------------------------------------------------------
-
-def version_prefix(dataset: str, version: str) -> str:
-    return f"{dataset}/{version}"
-
-
-def staging_prefix(dataset: str, version: str) -> str:
-    return f"{dataset}/_staging/{version}"
-
-
-def claim_path(dataset: str, version: str) -> str:
-    return f"{dataset}/_txn/{version}.json"
-
-
-def index_path(dataset: str) -> str:
-    return f"{dataset}/versions.json"
-
-
-def latest_path(dataset: str) -> str:
-    return f"{dataset}/latest.json"
-
-
-def _now() -> tuple[str, float]:
-    t = time.time()
-    return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z"), t
 
 
 @dataclass
@@ -211,101 +183,6 @@ def check_gate_report(gate_report: dict, accept_failed_gates: str | None) -> Non
             f"quality gates failed ({summary['failed']} of {len(summary['results'])}: "
             f"{', '.join(failed[:10]) or 'see report'}); nothing was published. Fix the data or publish "
             f"with accept_failed_gates='<reason>' (CLI: --accept-failed-gates REASON)")
-
-
-# ---- helpers -----------------------------------------------------------------------------------
-
-def _run_pool(fn, items, workers: int):
-    """Map ``fn`` over ``items`` on a thread pool; re-raise the first error after all finished."""
-    if not items:
-        return []
-    with ThreadPoolExecutor(max_workers=max(1, min(workers, len(items)))) as pool:
-        futures = [pool.submit(fn, it) for it in items]
-        results, first_error = [], None
-        for fut in futures:
-            try:
-                results.append(fut.result())
-            except BaseException as e:  # noqa: BLE001 - collected and re-raised below
-                first_error = first_error or e
-                results.append(None)
-    if first_error is not None:
-        raise first_error
-    return results
-
-
-def hash_object(store: Store, rel: str) -> tuple[str, int]:
-    with store.open_read(rel) as f:
-        return sha256_stream(f)
-
-
-def _read_json(store: Store, rel: str) -> tuple[dict | None, str | None]:
-    data, token = store.read_with_token(rel)
-    if data is None:
-        return None, None
-    try:
-        return json.loads(data), token
-    except json.JSONDecodeError as e:
-        raise ReleaseError(f"{store.url_of(rel)} is not valid JSON ({e}); repair it with `drivetrack gc`") from e
-
-
-def _json_bytes(doc: dict) -> bytes:
-    return (json.dumps(doc, indent=1, sort_keys=True) + "\n").encode()
-
-
-def update_json_cas(store: Store, rel: str, update: Callable[[dict | None], dict | None],
-                    attempts: int = 100) -> dict | None:
-    """Read-modify-write ``rel`` with compare-and-swap on its previous value, retrying on conflict.
-
-    ``update(current)`` returns the new document, or ``None`` to leave the object unchanged.
-    """
-    for attempt in range(attempts):
-        current, token = _read_json(store, rel)
-        new = update(current)
-        if new is None:
-            return current
-        try:
-            store.compare_and_swap(rel, _json_bytes(new), token)
-            return new
-        except CasConflictError:
-            time.sleep(random.uniform(0, 0.01 * min(attempt + 1, 10)))
-    raise CasConflictError(f"{store.url_of(rel)}: gave up after {attempts} compare-and-swap conflicts")
-
-
-def add_to_index(store: Store, dataset: str, manifest: dict) -> None:
-    entry = {"version": manifest["version"], "created": manifest["created"],
-             "manifest_sha256": manifest["manifest_sha256"], "files": len(manifest["files"]),
-             "bytes": int(sum(f["size"] for f in manifest["files"]))}
-
-    def update(doc):
-        doc = doc or {"dataset": dataset, "versions": []}
-        if any(v["version"] == entry["version"] for v in doc["versions"]):
-            return None
-        doc["versions"] = sorted(doc["versions"] + [entry], key=lambda v: SemVer.parse(v["version"]))
-        doc["updated"] = _now()[0]
-        return doc
-
-    update_json_cas(store, index_path(dataset), update)
-
-
-def move_latest(store: Store, dataset: str, manifest: dict) -> str | None:
-    """Point ``latest.json`` at this version if it is the highest release; returns the latest version.
-
-    Pre-releases become latest only while no release exists; the move is a compare-and-swap on
-    the previous pointer, so concurrent publishes cannot move it backwards.
-    """
-    def rank(v: str):  # any release outranks any pre-release; then semver precedence
-        sv = SemVer.parse(v)
-        return (not sv.prerelease, sv)
-
-    def update(doc):
-        if doc is not None and rank(manifest["version"]) <= rank(doc["version"]):
-            return None
-        return {"dataset": dataset, "version": manifest["version"],
-                "manifest_sha256": manifest["manifest_sha256"], "updated": _now()[0],
-                "previous": doc["version"] if doc else None}
-
-    doc = update_json_cas(store, latest_path(dataset), update)
-    return doc["version"] if doc else None
 
 
 # ---- publish -----------------------------------------------------------------------------------
@@ -590,23 +467,7 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
 
     # 6. pointers (compare-and-swap) and clean-up; the version is already published here
     warnings: list[str] = []
-    latest = None
-    try:
-        add_to_index(store, dataset, manifest)
-        latest = move_latest(store, dataset, manifest)
-    except Exception as e:  # noqa: BLE001 - the release is committed; gc repairs the pointers
-        warnings.append(f"version committed, but updating versions.json/latest.json failed "
-                        f"({type(e).__name__}: {e}); run `drivetrack gc {store.url} --dataset {dataset}` "
-                        f"to repair them")
-    try:
-        store.delete_tree(spre)
-        store.delete(claim)
-        # Only while empty: concurrent publishes of other versions may be staging or hold claims.
-        store.prune_empty(f"{dataset}/_staging")
-        store.prune_empty(f"{dataset}/_txn")
-    except Exception as e:  # noqa: BLE001
-        warnings.append(f"version committed, but removing the staging prefix or claim failed ({e}); "
-                        f"`drivetrack gc` removes them")
+    latest = finish_committed_version(store, dataset, manifest, warnings)
     total = sum(e.size for e in entries)
     return PublishResult(
         dataset=dataset, version=version, store_url=store.url, version_url=store.url_of(vpre),
@@ -624,7 +485,7 @@ def _finish_committed(store: Store, source: _Source, sizes: dict[str, int], data
     from drivetrack.release.manifest import manifest_entries, parse_manifest
 
     t0 = time.perf_counter()
-    vpre, spre = version_prefix(dataset, version), staging_prefix(dataset, version)
+    vpre = version_prefix(dataset, version)
     rel = f"{vpre}/{MANIFEST_NAME}"
     manifest = parse_manifest(store.read_bytes(rel), store.url_of(rel))
     committed = {p: e for p, e in manifest_entries(manifest).items() if p not in RESERVED_NAMES}
@@ -648,17 +509,7 @@ def _finish_committed(store: Store, source: _Source, sizes: dict[str, int], data
             f"{'; '.join(problems[:3])}); published versions are immutable: choose a new version")
     warnings = [f"{store.url_of(vpre)} was already committed (an interrupted publish of this content); "
                 f"finished its index, latest pointer and clean-up"]
-    latest = None
-    try:
-        add_to_index(store, dataset, manifest)
-        latest = move_latest(store, dataset, manifest)
-    except Exception as e:  # noqa: BLE001 - the release is committed; gc repairs the pointers
-        warnings.append(f"updating versions.json/latest.json failed ({type(e).__name__}: {e}); run "
-                        f"`drivetrack gc {store.url} --dataset {dataset}` to repair them")
-    store.delete_tree(spre)
-    store.delete(claim_path(dataset, version))
-    store.prune_empty(f"{dataset}/_staging")
-    store.prune_empty(f"{dataset}/_txn")
+    latest = finish_committed_version(store, dataset, manifest, warnings)
     total = sum(e.size for e in committed.values())
     seconds = time.perf_counter() - t0
     return PublishResult(
