@@ -135,7 +135,18 @@ def test_tests_have_their_own_prefect_home_not_the_checkouts():
     home = Path(get_current_settings().home).resolve()
     assert home == Path(os.environ["PREFECT_HOME"]).resolve()
     assert not home.is_relative_to(REPO), f"the tests' PREFECT_HOME {home} is inside the checkout {REPO}"
-    assert "PREFECT_API_URL" not in os.environ or not os.environ["PREFECT_API_URL"].startswith("http")
+    # An API URL inherited from the shell (a `make serve` of this checkout) is dropped when the
+    # suite starts; checked in a fresh interpreter, since servers the tests start set their own.
+    import subprocess
+    import sys
+
+    probe = subprocess.run(
+        [sys.executable, "-c", "import os, runpy; runpy.run_path('conftest.py'); "
+                               "print(os.environ.get('PREFECT_API_URL', ''))"],
+        cwd=Path(__file__).parent, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PREFECT_API_URL": "http://127.0.0.1:4200/api"})
+    assert probe.returncode == 0, probe.stderr[-2000:]
+    assert probe.stdout.strip() == "", f"the tests would use an inherited server: {probe.stdout!r}"
 
 
 def test_make_system_deps_survives_an_offline_apt_get(tmp_path):
