@@ -28,7 +28,6 @@ import argparse
 import dataclasses
 import json
 import os
-import re
 import sys
 import time
 from pathlib import Path
@@ -290,19 +289,10 @@ def write_doc(rows: list[dict], machine: str, frames: int, full: dict | None = N
 
 
 def _replace_block(block: str) -> None:
-    """Replace this benchmark's block of docs/benchmarks.md (others edit the rest of the file
-    concurrently): read the whole text, replace only the block, write a temporary file in the same
-    folder and ``os.replace`` it, so the file is never seen truncated."""
-    text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-    if DOC_START in text:
-        if text.count(DOC_START) != 1 or text.find(DOC_END) < text.find(DOC_START):
-            raise ValueError(f"{DOC}: expected one {DOC_START} ... {DOC_END} block")
-        text = re.sub(re.escape(DOC_START) + ".*?" + re.escape(DOC_END), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    tmp = DOC.with_name(f".{DOC.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, DOC)
+    """Replace this benchmark's block of docs/benchmarks.md only (bench.run.replace_doc_block)."""
+    from bench.run import replace_doc_block
+
+    replace_doc_block(DOC, DOC_START, DOC_END, block)
 
 
 def main(argv: list[str] | None = None) -> int:

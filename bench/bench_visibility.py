@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
 import sys
 import tempfile
 import time
@@ -176,18 +174,10 @@ def to_markdown(r: dict, setup: dict, machine: str) -> str:
 
 
 def _replace_block(block: str) -> None:
-    """Replace this benchmark's block of docs/benchmarks.md only (atomic rename)."""
-    block = f"{DOC_START}\n{block}{DOC_END}"
-    text = DOC.read_text() if DOC.exists() else "# Benchmarks\n"
-    if DOC_START in text:
-        if text.count(DOC_START) != 1 or text.find(DOC_END) < text.find(DOC_START):
-            raise ValueError(f"{DOC}: expected one {DOC_START} ... {DOC_END} block")
-        text = re.sub(re.escape(DOC_START) + ".*?" + re.escape(DOC_END), lambda _: block, text, flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n" + block + "\n"
-    tmp = DOC.with_name(f".{DOC.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, DOC)
+    """Replace this benchmark's block of docs/benchmarks.md only (bench.run.replace_doc_block)."""
+    from bench.run import replace_doc_block
+
+    replace_doc_block(DOC, DOC_START, DOC_END, f"{DOC_START}\n{block}{DOC_END}")
 
 
 def main(argv: list[str] | None = None) -> int:

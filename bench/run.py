@@ -9,10 +9,29 @@ with the machine description, so that the recorded numbers always come from a ru
 from __future__ import annotations
 
 import importlib
+import os
+import re
 import pkgutil
 import sys
 import time
 from pathlib import Path
+
+
+def replace_doc_block(doc: Path, start: str, end: str, block: str) -> None:
+    """Replace the one ``start ... end`` block of ``doc`` (docs/benchmarks.md) by ``block`` (which
+    holds both markers), or append it. Others edit the rest of the file concurrently: the whole text
+    is read, only the block replaced, and a temporary file in the same folder ``os.replace``d, so
+    the file is never seen truncated."""
+    text = doc.read_text() if doc.exists() else "# Benchmarks\n"
+    if start in text:
+        if text.count(start) != 1 or text.find(end) < text.find(start):
+            raise ValueError(f"{doc}: expected one {start} ... {end} block")
+        text = re.sub(re.escape(start) + ".*?" + re.escape(end), lambda _: block, text, flags=re.S)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = doc.with_name(f".{doc.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, doc)
 
 
 def machine_description() -> str:
