@@ -229,3 +229,35 @@ def tiny_segment(root, split: str = "training", segment: str = SEGMENT, *, skip:
         lb + "speed.z": [0.0, 0.0, 0.0, None],
     })
     return paths
+
+
+def assert_official_component(path: str, name: str):
+    """The parquet file ``path`` of component ``name`` has exactly the official columns, with
+    compatible arrow types, BROTLI compression and at least one row; returns its table."""
+    from drivetrack.waymo.schema import COMPONENTS, types_compatible
+
+    table = pq.read_table(path)
+    comp = COMPONENTS[name]
+    assert table.column_names == [c.name for c in comp.columns], name
+    for col in comp.columns:
+        assert types_compatible(col.type, table.schema.field(col.name).type), (name, col.name)
+    meta = pq.ParquetFile(path).metadata
+    assert all(meta.row_group(0).column(i).compression == "BROTLI" for i in range(meta.num_columns))
+    assert table.num_rows > 0, name
+    return table
+
+
+def expect_format_error(exc_info, split: str, component: str, column: str, *fragments: str) -> None:
+    """The raised error is a WaymoFormatError naming the file (split, component, segment), the
+    column and every fragment (found values, rules)."""
+    from drivetrack.waymo.reader import WaymoFormatError
+
+    err = exc_info.value
+    msg = str(err)
+    assert isinstance(err, WaymoFormatError), msg
+    assert f"/{split}/{component}/{SEGMENT}.parquet" in msg and "file://" in msg
+    assert f"segment {SEGMENT!r}" in msg and f"component {component!r}" in msg
+    assert column in msg, msg
+    for fragment in fragments:
+        assert fragment in msg, (fragment, msg)
+    assert err.component == component and err.segment == SEGMENT

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _waymo_parquet import SEGMENT, TIMESTAMPS, flat, rigid, tiny_segment, write_component
+from _waymo_parquet import expect_format_error, SEGMENT, TIMESTAMPS, flat, rigid, tiny_segment, write_component
 from drivetrack.names import InvalidNameError
 from drivetrack.waymo import reader
 from drivetrack.waymo.summary import segment_summary
@@ -37,14 +37,7 @@ R1 = "[LiDARComponent].range_image_return1.values"
 
 
 def _expect(exc_info, component: str, column: str, *fragments: str):
-    err = exc_info.value
-    msg = str(err)
-    assert isinstance(err, WaymoFormatError), msg
-    assert f"/{SPLIT}/{component}/{SEGMENT}.parquet" in msg and "file://" in msg
-    assert f"segment {SEGMENT!r}" in msg and f"component {component!r}" in msg
-    assert column in msg, msg
-    for fragment in fragments:
-        assert fragment in msg, (fragment, msg)
+    expect_format_error(exc_info, SPLIT, component, column, *fragments)
 
 
 def _load(root, **kw):

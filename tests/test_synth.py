@@ -8,6 +8,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from _waymo_parquet import assert_official_component
 
 from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import invert_rigid, matrix_from_flat, rotation_from_rpy, transform_points
@@ -82,15 +83,7 @@ def test_every_component_has_every_column_with_official_types(segment):
     seg = summary["segment"]
     assert sorted(summary["files"]) == sorted(WRITTEN)
     for name in WRITTEN:
-        path = f"{root}/training/{name}/{seg}.parquet"
-        table = pq.read_table(path)
-        comp = COMPONENTS[name]
-        assert table.column_names == [c.name for c in comp.columns], name
-        for col in comp.columns:
-            assert types_compatible(col.type, table.schema.field(col.name).type), (name, col.name)
-        meta = pq.ParquetFile(path).metadata
-        assert all(meta.row_group(0).column(i).compression == "BROTLI" for i in range(meta.num_columns))
-        assert table.num_rows > 0, name
+        table = assert_official_component(f"{root}/training/{name}/{seg}.parquet", name)
         assert set(table.column("key.segment_context_name").to_pylist()) == {seg}
 
 

@@ -8,10 +8,11 @@ import os
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from _waymo_parquet import assert_official_component
 
 from drivetrack.geometry import invert_rigid, matrix_from_flat
 from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
-from drivetrack.waymo.schema import COMPONENTS, BoxType, CameraName, LaserName, types_compatible
+from drivetrack.waymo.schema import COMPONENTS, BoxType, CameraName, LaserName
 
 CAMERAS = ("FRONT", "FRONT_LEFT", "SIDE_LEFT", "SIDE_RIGHT")
 HARD = SynthConfig(seed=7, frames=6, preset="small", cameras=CAMERAS, world="hard")
@@ -36,15 +37,7 @@ def test_hard_world_writes_the_official_schema(hard):
     root, summary, _ = hard
     seg = summary["segment"]
     for name in summary["files"]:
-        path = f"{root}/training/{name}/{seg}.parquet"
-        table = pq.read_table(path)
-        comp = COMPONENTS[name]
-        assert table.column_names == [c.name for c in comp.columns], name
-        for col in comp.columns:
-            assert types_compatible(col.type, table.schema.field(col.name).type), (name, col.name)
-        meta = pq.ParquetFile(path).metadata
-        assert all(meta.row_group(0).column(i).compression == "BROTLI" for i in range(meta.num_columns))
-        assert table.num_rows > 0, name
+        assert_official_component(f"{root}/training/{name}/{seg}.parquet", name)
     assert len(summary["files"]) == 13
 
 

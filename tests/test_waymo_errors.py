@@ -5,7 +5,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from _waymo_parquet import SEGMENT, TIMESTAMPS, flat, tiny_segment, top_range, write_component
+from _waymo_parquet import expect_format_error, SEGMENT, TIMESTAMPS, flat, tiny_segment, top_range, write_component
 from drivetrack.waymo import reader
 from drivetrack.waymo.reader import WaymoFormatError
 
@@ -16,16 +16,7 @@ R1 = "[LiDARComponent].range_image_return1."
 
 
 def _expect(exc_info, component: str, column: str, *fragments: str):
-    err = exc_info.value
-    msg = str(err)
-    assert isinstance(err, ValueError)
-    assert f"/{SPLIT}/{component}/{SEGMENT}.parquet" in msg and "file://" in msg
-    assert f"segment {SEGMENT!r}" in msg
-    assert f"component {component!r}" in msg
-    assert column in msg
-    for fragment in fragments:
-        assert fragment in msg, (fragment, msg)
-    assert err.component == component and err.segment == SEGMENT
+    expect_format_error(exc_info, SPLIT, component, column, *fragments)
 
 
 def _load(root, **kw):
