@@ -33,6 +33,22 @@ PARTIAL_PREFIX = ".partial-"
 NPZ_DATE_TIME = (1980, 1, 1, 0, 0, 0)
 
 
+def _file_mode() -> int:
+    """Mode of a new regular file under this process's umask (``open`` would give it).
+
+    ``tempfile.mkstemp`` creates files 0600 whatever the umask; the files it stands in for are
+    outputs that other users (a web server, a release publisher) must read. Read once at import;
+    ``os.umask`` only reads by setting, so it is restored at once.
+    """
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+#: Permission bits of the files written atomically here (``0o666`` minus the umask at import).
+FILE_MODE = _file_mode()
+
+
 def is_local(fs) -> bool:
     """Whether the fsspec filesystem ``fs`` is the local disk (paths are OS paths)."""
     protocols = fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)
@@ -55,6 +71,7 @@ def atomic_local_path(url: str, suffix: str = "", storage_options: dict | None =
         fd, tmp = tempfile.mkstemp(prefix=PARTIAL_PREFIX, suffix=suffix, dir=parent or ".")
     else:
         fd, tmp = tempfile.mkstemp(prefix="drivetrack-", suffix=suffix)
+    os.fchmod(fd, FILE_MODE)
     os.close(fd)
     try:
         yield tmp

@@ -1,7 +1,9 @@
 """drivetrack.storage: atomic, deterministic writes through fsspec."""
 import hashlib
+import os
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from drivetrack.storage import StreamedArray, atomic_local_path, write_npz
@@ -127,3 +129,22 @@ def test_a_corrupt_json_record_is_an_error_naming_the_file_not_none(tmp_path):
     assert read_json(str(tmp_path / "missing.json"), missing_ok=True) is None
     with pytest.raises(FileNotFoundError, match="missing.json"):
         read_json(str(tmp_path / "missing.json"))
+
+
+def test_atomic_writes_get_the_umask_mode_not_mkstemp_0600(tmp_path):
+    """Files written atomically are readable as ``open`` would make them (0o666 minus the umask),
+    not mkstemp's owner-only 0600: a web server or another user publishing the folder reads them."""
+    import stat
+
+    from drivetrack.storage import FILE_MODE, write_bytes, write_json, write_parquet
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert FILE_MODE == 0o666 & ~mask
+    written = [write_bytes(str(tmp_path / "a.bin"), b"x"), write_json(str(tmp_path / "b.json"), {"a": 1}),
+               write_parquet(str(tmp_path / "c.parquet"), pd.DataFrame({"a": [1]}))]
+    for path in written:
+        assert stat.S_IMODE(os.stat(path).st_mode) == FILE_MODE, path
+    # and a file written by plain open() in the same folder has the same bits
+    (tmp_path / "d").write_bytes(b"x")
+    assert stat.S_IMODE(os.stat(tmp_path / "d").st_mode) == FILE_MODE
