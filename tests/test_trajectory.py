@@ -92,17 +92,21 @@ def test_trajectory_follows_accelerating_and_turning_objects_between_frames(moti
     query = times[rows] + np.tile([-0.045, -0.02, 0.0, 0.015, 0.045], len(times))
     centre, yaw, _, _, velocity, _ = trajectory.motion(rows, query)
     true_centre, true_yaw = motion(query)
-    # Hermite through the labels with second-order tangents: about a millimetre (exact for constant
-    # acceleration); constant velocity from the label is off by a dt^2 / 2 ~ 7 mm at 45 ms here
-    # inside the labelled span; beyond an object's end the end cubic extrapolates (looser)
-    inner = (query >= times[0]) & (query <= times[-1])
+    # local quadratic through the labels: exact for constant acceleration, a few millimetres on a
+    # 12 m circle at 9-12 m/s
     error = np.linalg.norm(centre - true_centre, axis=-1)
-    assert error[inner].max() < (1e-9 if motion is _straight else 1e-3)
-    assert error.max() < (1e-9 if motion is _straight else 5e-3)
-    assert np.abs(np.angle(np.exp(1j * (yaw - true_yaw))))[inner].max() < 1e-4
+    assert error.max() < (1e-9 if motion is _straight else 4e-3)
+    # the old model: constant finite-difference velocity from the label (7-38 mm here)
+    from drivetrack.tracks.sweep_motion import box_motion_world
+
+    world_from_box = np.tile(np.eye(4), (len(times), 1, 1))
+    world_from_box[:, :3, 3] = scene.boxes.center
+    old = scene.boxes.center[rows] + (query - times[rows])[:, None] * box_motion_world(world_from_box, times)[0][rows]
+    assert error.max() < np.linalg.norm(old - true_centre, axis=-1).max() / 5
+    assert np.abs(np.angle(np.exp(1j * (yaw - true_yaw)))).max() < 5e-4
     eps = 1e-6
     true_velocity = (motion(query + eps)[0] - motion(query - eps)[0]) / (2 * eps)
-    assert np.abs(velocity - true_velocity)[inner].max() < (1e-6 if motion is _straight else 0.05)
+    assert np.abs(velocity - true_velocity).max() < (1e-6 if motion is _straight else 0.15)
     # the labels themselves are reproduced exactly
     at_labels = trajectory.world_from_box(np.arange(len(times)), times)
     np.testing.assert_allclose(at_labels[:, :3, 3], scene.boxes.center, atol=1e-12)

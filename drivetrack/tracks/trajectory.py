@@ -11,15 +11,21 @@ sample time ``time_s[k]`` (seconds since the scene's first frame):
 - ``label_time="auto"``: the convention whose boxes, moved to each return's capture time, leave
   fewer return-metres outside the boxes (:func:`label_time_residual`), one choice per segment.
 
-Motion model: between two consecutive samples of an object, a cubic Hermite curve in world
-position and world yaw, with tangents from second-order finite differences over the object's
-samples (three-point formulas for uneven spacing, one-sided at the ends); exact for constant
-acceleration and constant yaw acceleration. Pitch and roll in the world frame (a yaw-only label in
-a pitching ego frame, or a refined 6-DOF box) are interpolated linearly. Beyond an object's first
-or last sample the end cubic is extrapolated (at most half a frame period in practice). An
-object with one sample moves with its ``speed`` column (world velocity in the vehicle frame) when
-finite, else stands still. Samples pass through the labels exactly: smoothing would move the
-labels themselves, which the pose refinement (issue 8) owns.
+Motion model: around each sample, constant acceleration in world position and constant yaw
+acceleration, ``p(t) = p_k + v_k tau + a_k tau^2 / 2`` with ``tau = t - time_s[k]``; ``v_k`` and
+``a_k`` by least squares over the object's samples up to :data:`WINDOW_HALF` before and after
+(through the sample itself: the label is reproduced exactly; exact for constant acceleration).
+A clip frame's image and a return of frame k are placed from sample k, never more than a sweep
+away. Why not a spline through the samples: under ``sweep`` two consecutive samples of an object
+behind the ego lie on both sides of the sweep's start and may be a millisecond apart; a fit over
+a window is robust to that, a spline's tangents are not. Pitch and roll in the world frame are
+held from the sample: a refined 6-DOF box's (``Boxes.pitch`` / ``roll``, issue 8) as they
+are; for yaw-only labels, whose world tilt is the ego's frame-to-frame pitch and roll rather than
+the object's, a straight line in time per object fitted to them (objects stand on the road, whose
+slope changes slowly). An object with one sample moves with its ``speed`` column (world
+velocity in the vehicle frame) when finite, else stands still. Positions and yaw pass through
+the labels exactly: smoothing would move the labels themselves, which the pose refinement
+(issue 8) owns.
 
 Times are float64 seconds relative to ``scene.timestamps_micros[0]``.
 """
@@ -42,6 +48,8 @@ TIME_MODELS = ("trajectory", "velocity")
 
 #: Returns this far (metres) outside a box still count for :func:`label_time_residual`.
 RESIDUAL_MARGIN_M = 0.6
+#: Samples on each side of a row in its local quadratic fit.
+WINDOW_HALF = 2
 #: Only boxes whose two conventions differ by at least this (metres) vote in ``auto``.
 MIN_VOTE_SHIFT_M = 0.02
 
@@ -78,9 +86,8 @@ class BoxTrajectory:
         time_s: float64 [K], the sample (label) time of the row.
         centre: float64 [K, 3], metres, world box centre at ``time_s``.
         yaw, pitch, roll: float64 [K], radians, world orientation (``Rz Ry Rx``) at ``time_s``.
-        velocity: float64 [K, 3], m/s, world velocity of the centre at ``time_s``.
-        yaw_rate: float64 [K], rad/s.
-        prev, next: int64 [K], the object's previous / next sample row (itself when none).
+        velocity, acceleration: float64 [K, 3], m/s and m/s^2, of the centre at ``time_s``.
+        yaw_rate, yaw_acceleration: float64 [K], rad/s and rad/s^2.
     """
     label_time: str
     frame_time_s: np.ndarray
@@ -90,52 +97,24 @@ class BoxTrajectory:
     pitch: np.ndarray
     roll: np.ndarray
     velocity: np.ndarray
+    acceleration: np.ndarray
     yaw_rate: np.ndarray
-    prev: np.ndarray
-    next: np.ndarray
+    yaw_acceleration: np.ndarray
 
     def motion(self, rows: np.ndarray, time_s: np.ndarray):
         """State of the objects of box rows ``rows`` (int [N]) at ``time_s`` (float [N], s).
 
         Returns ``(centre [N, 3] m, yaw [N], pitch [N], roll [N] rad, velocity [N, 3] m/s,
-        yaw_rate [N] rad/s)``, world frame, on the Hermite segment that holds ``time_s`` (the
-        row's segment towards that time; the other one at an object's ends).
+        yaw_rate [N] rad/s)``, world frame, from the row's own sample (module docstring).
         """
         rows = np.asarray(rows, np.int64).reshape(-1)
-        t = np.broadcast_to(np.asarray(time_s, np.float64), rows.shape)
-        later = t >= self.time_s[rows]
-        a = np.where(later, rows, self.prev[rows])
-        b = np.where(later, self.next[rows], rows)
-        single = a == b                                   # at an end: use the other side's segment
-        a = np.where(single & later, self.prev[rows], a)
-        b = np.where(single & ~later, self.next[rows], b)
-        h = self.time_s[b] - self.time_s[a]
-        alone = h <= 0                                    # one-sample object: constant velocity
-        h = np.where(alone, 1.0, h)
-        s = (t - self.time_s[a]) / h
-        s2, s3 = s * s, s * s * s
-        h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
-        d00, d10, d01, d11 = 6 * s2 - 6 * s, 3 * s2 - 4 * s + 1, -6 * s2 + 6 * s, 3 * s2 - 2 * s
-        pa, pb, va, vb = self.centre[a], self.centre[b], self.velocity[a], self.velocity[b]
-        hh = h[:, None]
-        centre = h00[:, None] * pa + (h10 * h)[:, None] * va + h01[:, None] * pb + (h11 * h)[:, None] * vb
-        velocity = (d00[:, None] * pa + (d10 * h)[:, None] * va + d01[:, None] * pb + (d11 * h)[:, None] * vb) / hh
-        ya = self.yaw[a]
-        yb = ya + _wrap(self.yaw[b] - ya)
-        wa, wb = self.yaw_rate[a], self.yaw_rate[b]
-        yaw = h00 * ya + h10 * h * wa + h01 * yb + h11 * h * wb
-        yaw_rate = (d00 * ya + d10 * h * wa + d01 * yb + d11 * h * wb) / h
-        sc = np.clip(s, 0.0, 1.0)
-        pitch = (1 - sc) * self.pitch[a] + sc * self.pitch[b]
-        roll = (1 - sc) * self.roll[a] + sc * self.roll[b]
-        if alone.any():
-            dt = t[alone] - self.time_s[a[alone]]
-            centre[alone] = self.centre[a[alone]] + dt[:, None] * self.velocity[a[alone]]
-            velocity[alone] = self.velocity[a[alone]]
-            yaw[alone] = self.yaw[a[alone]] + dt * self.yaw_rate[a[alone]]
-            yaw_rate[alone] = self.yaw_rate[a[alone]]
-            pitch[alone], roll[alone] = self.pitch[a[alone]], self.roll[a[alone]]
-        return centre, yaw, pitch, roll, velocity, yaw_rate
+        tau = np.broadcast_to(np.asarray(time_s, np.float64), rows.shape) - self.time_s[rows]
+        t1 = tau[:, None]
+        centre = self.centre[rows] + t1 * self.velocity[rows] + 0.5 * t1 * t1 * self.acceleration[rows]
+        velocity = self.velocity[rows] + t1 * self.acceleration[rows]
+        yaw = self.yaw[rows] + tau * self.yaw_rate[rows] + 0.5 * tau * tau * self.yaw_acceleration[rows]
+        yaw_rate = self.yaw_rate[rows] + tau * self.yaw_acceleration[rows]
+        return centre, yaw, self.pitch[rows].copy(), self.roll[rows].copy(), velocity, yaw_rate
 
     def world_from_box(self, rows: np.ndarray, time_s: np.ndarray) -> np.ndarray:
         """float64 [N, 4, 4]: the objects of box rows ``rows`` (int [N]) at ``time_s`` (float [N], s)."""
@@ -147,58 +126,47 @@ class BoxTrajectory:
         return out
 
 
-def _neighbours(keys: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """prev / next rows of the same key in time (int64 [K]; the row itself when none)."""
+def _window(keys: np.ndarray, time_s: np.ndarray, half: int) -> np.ndarray:
+    """int64 [K, 2 half]: the rows of the same key up to ``half`` samples before and after each
+    row in time (-1 where the object has fewer)."""
     k = time_s.shape[0]
     order = np.lexsort((time_s, keys))
-    same_prev = np.zeros(k, dtype=bool)
-    same_prev[1:] = keys[order][1:] == keys[order][:-1]
-    same_next = np.zeros(k, dtype=bool)
-    same_next[:-1] = same_prev[1:]
-    position = np.arange(k)
-    prev = np.empty(k, np.int64)
-    nxt = np.empty(k, np.int64)
-    prev[order] = order[np.where(same_prev, position - 1, position)]
-    nxt[order] = order[np.where(same_next, position + 1, position)]
-    return prev, nxt
-
-
-def _derivative(values: np.ndarray, time_s: np.ndarray, prev: np.ndarray, nxt: np.ndarray) -> np.ndarray:
-    """Second-order finite-difference d values / dt (float64 [K, D]) along each object's samples.
-
-    Three-point formulas for uneven spacing: central inside, one-sided at the ends (exact for
-    quadratics); two samples give their slope, one sample 0. ``values`` are already unwrapped
-    against their neighbours by the caller where angles are concerned (see :func:`build_trajectory`).
-    """
-    k = time_s.shape[0]
-    out = np.zeros_like(values)
-    has_prev, has_next = prev != np.arange(k), nxt != np.arange(k)
-    inner = has_prev & has_next
-    # interior: t_-1, t_0, t_1
-    i = np.flatnonzero(inner)
-    h1 = (time_s[i] - time_s[prev[i]])[:, None]
-    h2 = (time_s[nxt[i]] - time_s[i])[:, None]
-    out[i] = (-h2 / (h1 * (h1 + h2)) * values[prev[i]] + (h2 - h1) / (h1 * h2) * values[i]
-              + h1 / (h2 * (h1 + h2)) * values[nxt[i]])
-    # start: t_0, t_1, t_2 (t_2 = next of next, when it exists)
-    for end, near in ((has_next & ~has_prev, nxt), (has_prev & ~has_next, prev)):
-        j = np.flatnonzero(end)
-        if j.size == 0:
-            continue
-        n1 = near[j]
-        n2 = near[n1]
-        three = n2 != n1
-        h1 = (time_s[n1] - time_s[j])[:, None]
-        slope = (values[n1] - values[j]) / h1
-        out[j] = slope
-        if three.any():
-            jj, m1, m2 = j[three], n1[three], n2[three]
-            a = (time_s[m1] - time_s[jj])[:, None]           # signed (negative towards the past)
-            b = (time_s[m2] - time_s[jj])[:, None]
-            # f'(0) from f(0), f(a), f(b): exact for quadratics
-            out[jj] = (-(a + b) / (a * b) * values[jj] + b / (a * (b - a)) * values[m1]
-                       - a / (b * (b - a)) * values[m2])
+    sorted_keys = keys[order]
+    position = np.empty(k, np.int64)
+    position[order] = np.arange(k)
+    out = np.full((k, 2 * half), -1, np.int64)
+    col = 0
+    for step in [*range(-half, 0), *range(1, half + 1)]:
+        other = position + step
+        ok = (other >= 0) & (other < k)
+        ok[ok] = sorted_keys[other[ok]] == keys[ok]
+        out[ok, col] = order[other[ok]]
+        col += 1
     return out
+
+
+def _local_quadratic(delta: np.ndarray, tau: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and second time derivatives (float64 [K, D] each) at each row: least squares
+    ``v tau + a tau^2 / 2 = delta`` over its window (``delta`` float64 [K, W, D], the neighbours'
+    values minus the row's; ``tau`` float64 [K, W], their times minus the row's; ``valid`` bool
+    [K, W]); one neighbour: its slope and 0; none: 0."""
+    k, _, d = delta.shape
+    tau = np.where(valid, tau, 0.0)
+    delta = np.where(valid[..., None], delta, 0.0)
+    x1, x2 = tau, 0.5 * tau * tau
+    s11, s12, s22 = (x1 * x1).sum(1), (x1 * x2).sum(1), (x2 * x2).sum(1)
+    b1, b2 = (x1[..., None] * delta).sum(1), (x2[..., None] * delta).sum(1)
+    det = s11 * s22 - s12 * s12
+    count = valid.sum(1)
+    quad = (count >= 2) & (det > 1e-9 * np.maximum(s11 * s22, 1e-300))
+    velocity = np.zeros((k, d))
+    acceleration = np.zeros((k, d))
+    safe = np.where(quad, det, 1.0)[:, None]
+    velocity[quad] = ((s22[:, None] * b1 - s12[:, None] * b2) / safe)[quad]
+    acceleration[quad] = ((s11[:, None] * b2 - s12[:, None] * b1) / safe)[quad]
+    line = ~quad & (count >= 1) & (s11 > 0)
+    velocity[line] = (b1 / np.where(s11 > 0, s11, 1.0)[:, None])[line]
+    return velocity, acceleration
 
 
 def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame") -> BoxTrajectory:
@@ -211,59 +179,46 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
     """
     boxes = scene.boxes
     k = len(boxes)
-    frame_time = (np.asarray(scene.timestamps_micros, np.int64)[boxes.frame]
-                  - int(scene.timestamps_micros[0])) * 1e-6 if k else np.zeros(0)
+    frame_time = ((np.asarray(scene.timestamps_micros, np.int64)[boxes.frame]
+                   - int(scene.timestamps_micros[0])) * 1e-6) if k else np.zeros(0)
     time_s = frame_time + np.asarray(label_offset_s, np.float64).reshape(k)
     world_from_vehicle = np.asarray(scene.world_from_vehicle, np.float64)[boxes.frame]
     world_from_box = world_from_vehicle @ boxes.vehicle_from_box() if k else np.zeros((0, 4, 4))
     yaw, pitch, roll = _euler_zyx(world_from_box[:, :3, :3])
     keys = np.unique(boxes.object_id.astype(str), return_inverse=True)[1] if k else np.zeros(0, np.int64)
-    prev, nxt = _neighbours(keys, time_s)
+    if k and boxes.pitch is None and boxes.roll is None:
+        # Yaw-only labels in the frame of a pitching, rolling ego tilt the object in the world by
+        # the ego's tilt, which changes frame to frame. Objects stand on the road: their world
+        # tilt changes slowly, so take it as a straight line in time per object (least squares).
+        pitch, roll = (_linear_in_time(a, time_s, keys) for a in (pitch, roll))
     centre = world_from_box[:, :3, 3].copy()
-    # neighbours' yaw unwrapped near each row's own
-    unwrapped_prev = yaw + _wrap(yaw[prev] - yaw)
-    unwrapped_next = yaw + _wrap(yaw[nxt] - yaw)
-    # derivative of yaw with neighbours' angles expressed near this row's
-    yaw_rate = _angle_derivative(yaw, unwrapped_prev, unwrapped_next, time_s, prev, nxt)
-    velocity = _derivative(centre, time_s, prev, nxt)
-    alone = (prev == np.arange(k)) & (nxt == np.arange(k))
+    window = _window(keys, time_s, WINDOW_HALF)                                             # [K, W]
+    valid = window >= 0
+    w = np.where(valid, window, np.arange(k)[:, None])
+    tau = time_s[w] - time_s[:, None]
+    velocity, acceleration = _local_quadratic(centre[w] - centre[:, None], tau, valid)
+    turn = _wrap(yaw[w] - yaw[:, None])[..., None]                    # neighbours' yaw, unwrapped
+    yaw_rate, yaw_acceleration = (a[:, 0] for a in _local_quadratic(turn, tau, valid))
+    alone = (window < 0).all(axis=1)
     if alone.any():
         speed = np.asarray(boxes.speed, np.float64)[alone]
         ok = np.isfinite(speed).all(axis=1)
-        v_world = np.einsum("nij,nj->ni", world_from_vehicle[alone, :3, :3], np.where(ok[:, None], speed, 0.0))
-        velocity[alone] = v_world
-    return BoxTrajectory(label_time, frame_time, time_s, centre, yaw, pitch, roll, velocity, yaw_rate, prev, nxt)
+        velocity[alone] = np.einsum("nij,nj->ni", world_from_vehicle[alone, :3, :3], np.where(ok[:, None], speed, 0.0))
+    return BoxTrajectory(label_time, frame_time, time_s, centre, yaw, pitch, roll, velocity, acceleration,
+                         yaw_rate, yaw_acceleration)
 
 
-def _angle_derivative(yaw, yaw_prev, yaw_next, time_s, prev, nxt) -> np.ndarray:
-    """d yaw / dt [K] with :func:`_derivative`'s formulas on angles unwrapped locally."""
-    k = yaw.shape[0]
-    # Build a [K, 3] local table (prev, self, next) and reuse the scalar formulas.
-    out = np.zeros(k)
-    has_prev, has_next = prev != np.arange(k), nxt != np.arange(k)
-    i = np.flatnonzero(has_prev & has_next)
-    h1 = time_s[i] - time_s[prev[i]]
-    h2 = time_s[nxt[i]] - time_s[i]
-    out[i] = (-h2 / (h1 * (h1 + h2)) * yaw_prev[i] + (h2 - h1) / (h1 * h2) * yaw[i]
-              + h1 / (h2 * (h1 + h2)) * yaw_next[i])
-    for end, near, near_yaw in ((has_next & ~has_prev, nxt, yaw_next), (has_prev & ~has_next, prev, yaw_prev)):
-        j = np.flatnonzero(end)
-        if j.size == 0:
-            continue
-        n1 = near[j]
-        n2 = near[n1]
-        y1 = near_yaw[j]
-        a = time_s[n1] - time_s[j]
-        out[j] = (y1 - yaw[j]) / a
-        three = n2 != n1
-        if three.any():
-            jj, m1, m2 = j[three], n1[three], n2[three]
-            y1 = y1[three]
-            y2 = y1 + _wrap(yaw[m2] - y1)
-            a = time_s[m1] - time_s[jj]
-            b = time_s[m2] - time_s[jj]
-            out[jj] = -(a + b) / (a * b) * yaw[jj] + b / (a * (b - a)) * y1 - a / (b * (b - a)) * y2
-    return out
+def _linear_in_time(values: np.ndarray, time_s: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """float64 [K]: per key (int [K]), the least-squares line through ``values`` over ``time_s``
+    evaluated at each row's time (the mean for a key with one time)."""
+    count = np.bincount(keys).astype(np.float64)
+    mean_t = np.bincount(keys, time_s) / count
+    mean_v = np.bincount(keys, values) / count
+    dt = time_s - mean_t[keys]
+    var = np.bincount(keys, dt * dt)
+    cov = np.bincount(keys, dt * (values - mean_v[keys]))
+    slope = np.where(var > 0, cov / np.where(var > 0, var, 1.0), 0.0)
+    return mean_v[keys] + slope[keys] * dt
 
 
 def sweep_label_offsets(scene, box_point_offsets: np.ndarray, box_point_index: np.ndarray) -> np.ndarray:
