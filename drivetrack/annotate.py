@@ -206,11 +206,20 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
     object_ids = sorted({job.object_id for job in plan_segment(scene, config.track, select_points=False).jobs})
     if not object_ids:
         return scene
+    label_offset_s = None
+    if config.track.time_model == "trajectory":      # returns are registered at the labels' time
+        from drivetrack.tracks.trajectory import carry_label_times, scene_label_times
+
+        label_offset_s = scene_label_times(scene, config.track)[0]
     boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,
                                         lasers=config.track.laser_values, returns=config.track.returns,
-                                        compensate_sweep_motion=config.track.compensate_sweep_motion)
-    return dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
-                               box_refinement={oid: r.summary() for oid, r in results.items()})
+                                        compensate_sweep_motion=config.track.compensate_sweep_motion,
+                                        label_offset_s=label_offset_s)
+    refined = dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
+                                  box_refinement={oid: r.summary() for oid, r in results.items()})
+    if label_offset_s is not None:
+        carry_label_times(scene, refined, config.track)
+    return refined
 
 
 def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: AnnotateConfig,

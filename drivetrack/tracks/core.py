@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivetrack.camera.model import CameraModel
-from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.geometry import invert_rigid
 from drivetrack.outputs import RejectionReason
 from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
@@ -90,6 +90,8 @@ class ObjectTracks:
         rejection: None, or a :class:`drivetrack.outputs.RejectionReason` when no track survived.
         time_model, label_time: ``TrackConfig.time_model`` and the label-time convention the
             clip's poses used (``frame`` / ``sweep``; ``auto`` resolved per segment).
+        time_residual_m: mean distance (metres) outside the box of the clip's candidate returns,
+            each with the box at its capture time (0 when every return lies inside).
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -128,6 +130,7 @@ class ObjectTracks:
     rejection: str | None = None
     time_model: str = "velocity"
     label_time: str = "frame"
+    time_residual_m: float = float("nan")
     _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -409,6 +412,8 @@ class ClipPoses:
     """Where an object is in each clip frame's image, at that image's capture time (T frames).
 
     Attributes:
+        vehicle_from_box: float64 [T, 4, 4], the object at the frame time, in the vehicle frame of
+            the frame (the labelled box under ``time_model="velocity"``).
         world_from_box: float64 [T, 4, 4], the object at the image's pose time.
         camera_from_box: float64 [T, 4, 4], camera (at the image pose) from that box; with
             ``shift_camera`` float64 [T, 3] (metres, added in the camera frame; 0 under the
@@ -421,6 +426,7 @@ class ClipPoses:
     A rolling-shutter projection moves a point ``p`` linearly from its pose-time position with
     ``velocity_world + yaw_rate_world z x (p - centre)``.
     """
+    vehicle_from_box: np.ndarray
     world_from_box: np.ndarray
     camera_from_box: np.ndarray
     shift_camera: np.ndarray
@@ -452,7 +458,9 @@ def clip_poses(plan, camera: int, frames: np.ndarray, rows: np.ndarray) -> ClipP
         world_from_box = trajectory.world_from_box(rows, image_time)
         camera_from_box = geometry.camera_from_world[frames] @ world_from_box
         zeros = np.zeros((frames.size, 3))
-        return ClipPoses(world_from_box, camera_from_box, zeros, zeros.copy(), velocity, yaw_rate,
+        vehicle_from_box = invert_rigid(scene.world_from_vehicle[frames]) @ trajectory.world_from_box(
+            rows, trajectory.frame_time_s[rows])
+        return ClipPoses(vehicle_from_box, world_from_box, camera_from_box, zeros, zeros.copy(), velocity, yaw_rate,
                          trajectory, decision)
     timestamps = scene.timestamps_micros[frames].astype(np.int64)
     vehicle_from_box = scene.boxes.vehicle_from_box(rows)
@@ -463,7 +471,7 @@ def clip_poses(plan, camera: int, frames: np.ndarray, rows: np.ndarray) -> ClipP
     # object along its velocity by the difference (camera frame shift per clip frame).
     shift_world = image_offset_s[:, None] * velocity_world                                  # [T,3]
     shift_camera = np.einsum("tij,tj->ti", geometry.camera_from_world[frames, :3, :3], shift_world)
-    return ClipPoses(world_from_box, camera_from_box, shift_camera, shift_world, velocity_world,
+    return ClipPoses(vehicle_from_box, world_from_box, camera_from_box, shift_camera, shift_world, velocity_world,
                      np.zeros(frames.size))
 
 
@@ -480,10 +488,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     t_count = frames.size
     timestamps = scene.timestamps_micros[frames].astype(np.int64)
 
-    # full pose: refined boxes may carry pitch and roll (drivetrack.refine); labels are yaw-only
-    vehicle_from_box = boxes.vehicle_from_box(rows)                                          # [T,4,4]
-    world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box                    # labels
     poses = clip_poses(plan, job.camera, frames, rows)
+    # the object at each frame time (points3d, speeds): refined boxes may carry pitch and roll
+    # (drivetrack.refine); the trajectory levels yaw-only labels' ego tilt
+    vehicle_from_box = poses.vehicle_from_box                                                # [T,4,4]
+    world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
     camera_from_box, shift_camera = poses.camera_from_box, poses.shift_camera
 
     lidar_rows, source_clip = plan.box_points(rows)
@@ -647,8 +656,16 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         rejection=None if keep.any() else RejectionReason.NO_VISIBLE_POINTS,
         time_model=config.time_model,
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
+        time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
     )
     return result
+
+
+def _outside_box_m(points_box: np.ndarray, size: np.ndarray) -> float:
+    """Mean distance (metres) of box-frame points float [n, 3] outside boxes of ``size`` [n, 3]; NaN if none."""
+    if points_box.shape[0] == 0:
+        return float("nan")
+    return float(np.linalg.norm(np.maximum(np.abs(points_box) - size / 2.0, 0.0), axis=-1).mean())
 
 
 def _summarise_tracks(tracks: np.ndarray, visibles: np.ndarray, source_frames: np.ndarray,

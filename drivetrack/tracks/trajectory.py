@@ -6,8 +6,9 @@ sample time ``time_s[k]`` (seconds since the scene's first frame):
 - ``label_time="frame"``: ``lidar_box`` lives at its frame's timestamp (Waymo's ``label.proto``
   convention for ``camera_synced_box``);
 - ``label_time="sweep"``: ``lidar_box`` sits where the object was when the TOP sweep passed its
-  centre: frame time + :func:`sweep_label_offsets` (from the returns' own capture times,
-  ``LidarReturns.capture_offset_s``);
+  centre: frame time + :func:`sweep_label_offsets`, from the sweep's time law (offset linear in
+  the azimuth about the lidar, whose position is fitted too) that the returns' own capture times
+  (``LidarReturns.capture_offset_s``) give, :func:`fit_sweep_law`;
 - ``label_time="auto"``: the convention whose boxes, moved to each return's capture time, leave
   fewer return-metres outside the boxes (:func:`label_time_residual`), one choice per segment.
 
@@ -38,7 +39,7 @@ import numpy as np
 from drivetrack.waymo.schema import LaserName
 
 __all__ = ["LABEL_TIMES", "TIME_MODELS", "BoxTrajectory", "build_trajectory", "sweep_label_offsets",
-           "label_time_residual", "segment_trajectory", "points_box_at"]
+           "label_time_residual", "segment_trajectory", "points_box_at", "fit_sweep_law"]
 
 #: ``TrackConfig.label_time`` values.
 LABEL_TIMES = ("frame", "sweep", "auto")
@@ -221,47 +222,81 @@ def _linear_in_time(values: np.ndarray, time_s: np.ndarray, keys: np.ndarray) ->
     return mean_v[keys] + slope[keys] * dt
 
 
-def sweep_label_offsets(scene, box_point_offsets: np.ndarray, box_point_index: np.ndarray) -> np.ndarray:
+def _ego_motion_vehicle(scene) -> tuple[np.ndarray, np.ndarray]:
+    """``(velocity float64 [T, 3] m/s, yaw_rate float64 [T] rad/s)`` of the ego in the vehicle
+    frame of each frame, by finite differences of the frame poses (0 for a one-frame scene)."""
+    world_from_vehicle = np.asarray(scene.world_from_vehicle, np.float64)
+    t = (np.asarray(scene.timestamps_micros, np.int64) - int(scene.timestamps_micros[0])) * 1e-6
+    if t.size < 2:
+        return np.zeros((t.size, 3)), np.zeros(t.size)
+    velocity_world = np.gradient(world_from_vehicle[:, :3, 3], t, axis=0)
+    yaw = np.unwrap(np.arctan2(world_from_vehicle[:, 1, 0], world_from_vehicle[:, 0, 0]))
+    return np.einsum("tji,tj->ti", world_from_vehicle[:, :3, :3], velocity_world), np.gradient(yaw, t)
+
+
+def fit_sweep_law(scene, max_samples: int = 100_000) -> tuple[float, float, np.ndarray] | None:
+    """The TOP sweep's time law, ``offset = a + b * azimuth about the lidar``, from the returns.
+
+    Each TOP return i of frame f (``capture_offset_s`` o_i, point p_i in the vehicle frame of the
+    frame) was captured from the lidar at ``l + v_f o_i``, turned by ``w_f o_i`` (ego velocity and
+    yaw rate in that frame, :func:`_ego_motion_vehicle`): ``o_i = a + b * (atan2(p_i - l - v_f o_i)
+    - w_f o_i)``. ``(a s, b s/rad, l float64 [2] metres, the lidar's horizontal position in the
+    vehicle frame)`` by Gauss-Newton over returns away from the sweep's seam at the rear;
+    None when the scene has fewer than 100 usable returns.
+    """
+    lidar = scene.lidar
+    offsets = getattr(lidar, "capture_offset_s", None)
+    if offsets is None:
+        return None
+    top = np.flatnonzero((lidar.laser == int(LaserName.TOP)) & (offsets != 0))
+    top = top[:: max(1, top.size // max_samples)]
+    if top.size < 100:
+        return None
+    velocity, yaw_rate = _ego_motion_vehicle(scene)
+    o = offsets[top].astype(np.float64)
+    q0 = lidar.points_vehicle[top, :2] - velocity[lidar.frame[top], :2] * o[:, None]
+    turn = yaw_rate[lidar.frame[top]] * o
+    keep = np.abs(np.arctan2(q0[:, 1], q0[:, 0])) < 2.7
+    o, q0, turn = o[keep], q0[keep], turn[keep]
+    if o.size < 100:
+        return None
+    theta = np.zeros(4)                                              # a, b, lx, ly
+    for _ in range(8):
+        q = q0 - theta[2:]
+        r2 = (q * q).sum(-1)
+        phi = np.arctan2(q[:, 1], q[:, 0]) - turn
+        residual = theta[0] + theta[1] * phi - o
+        jac = np.stack([np.ones_like(o), phi, theta[1] * q[:, 1] / r2, -theta[1] * q[:, 0] / r2], -1)
+        if theta[1] == 0.0:                                          # first step: the linear fit
+            jac = jac[:, :2]
+        step = np.linalg.lstsq(jac, -residual, rcond=None)[0]
+        theta[:step.size] += step
+    return float(theta[0]), float(theta[1]), theta[2:].copy()
+
+
+def sweep_label_offsets(scene, box_point_offsets: np.ndarray | None = None,
+                        box_point_index: np.ndarray | None = None) -> np.ndarray:
     """float64 [K], seconds: when the TOP sweep passed each box's centre, minus its frame time.
 
-    From the capture times of the box's own TOP returns (``box_point_*``: CSR over box rows, as
-    :class:`drivetrack.tracks.plan.SegmentPlan` holds them): ``median(dt_i + b (az_c - az_i))``
-    with ``az`` the azimuth about the vehicle origin and ``b`` the sweep's seconds per radian,
-    fitted over all TOP returns of the scene. A box without TOP returns gets ``a + b az_c`` from
-    that fit; a scene without capture times gets 0 everywhere.
+    The fixed point of ``o = a + b * (atan2(c - l - v o) - w o)`` for each box centre c (vehicle
+    frame of its frame), with the sweep law of :func:`fit_sweep_law`: the box is taken where the
+    object was when the sweep passed it, seen from where the lidar was then. A scene without
+    capture times, or whose law cannot be fitted, gets 0 everywhere. (The box point arguments are
+    accepted for callers that have them; the law uses every TOP return of the scene.)
     """
-    boxes, lidar = scene.boxes, scene.lidar
+    boxes = scene.boxes
     k = len(boxes)
     out = np.zeros(k)
-    offsets = getattr(lidar, "capture_offset_s", None)
-    if offsets is None or k == 0:
+    law = fit_sweep_law(scene) if k else None
+    if law is None:
         return out
-    top = np.flatnonzero((lidar.laser == int(LaserName.TOP)) & (offsets != 0))
-    if top.size < 10:
-        return out
-    top = top[:: max(1, top.size // 200_000)]
-    az = np.arctan2(lidar.points_vehicle[top, 1], lidar.points_vehicle[top, 0])
-    fit = np.abs(az) < 2.8
-    design = np.stack([np.ones(int(fit.sum())), az[fit]], -1)
-    (a, b), *_ = np.linalg.lstsq(design, offsets[top][fit].astype(np.float64), rcond=None)
-    az_c = np.arctan2(boxes.center[:, 1], boxes.center[:, 0])
-    out[:] = a + b * az_c
-    counts = np.diff(box_point_offsets)
-    owner = np.repeat(np.arange(k), counts)
-    index = np.asarray(box_point_index, np.int64)
-    is_top = lidar.laser[index] == int(LaserName.TOP)
-    owner, index = owner[is_top], index[is_top]
-    if index.size:
-        az_i = np.arctan2(lidar.points_vehicle[index, 1], lidar.points_vehicle[index, 0])
-        estimate = offsets[index].astype(np.float64) + b * _wrap(az_c[owner] - az_i)
-        order = np.lexsort((estimate, owner))
-        estimate, owner = estimate[order], owner[order]
-        first = np.searchsorted(owner, np.arange(k), side="left")
-        last = np.searchsorted(owner, np.arange(k), side="right")
-        has = last > first
-        lo = estimate[np.clip((first + last - 1) // 2, 0, max(estimate.size - 1, 0))]
-        hi = estimate[np.clip((first + last) // 2, 0, max(estimate.size - 1, 0))]
-        out[has] = 0.5 * (lo[has] + hi[has])
+    a, b, origin = law
+    velocity, yaw_rate = _ego_motion_vehicle(scene)
+    frame = boxes.frame
+    centre = np.asarray(boxes.center, np.float64)[:, :2]
+    for _ in range(6):
+        q = centre - origin - velocity[frame, :2] * out[:, None]
+        out = a + b * (_wrap(np.arctan2(q[:, 1], q[:, 0]) - yaw_rate[frame] * out))
     return out
 
 
@@ -293,50 +328,79 @@ def label_time_residual(scene, trajectory: BoxTrajectory, rows: np.ndarray, lida
     return float(outside.mean()) if outside.size else float("nan")
 
 
-def segment_trajectory(plan, label_time: str) -> tuple[BoxTrajectory, dict]:
-    """The segment's trajectory under ``label_time`` (``frame`` / ``sweep`` / ``auto``), cached on the plan.
+def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
+    """``(label_offset_s float64 [K], decision)``: each box row's label time minus its frame time
+    under ``config.label_time`` (a :class:`drivetrack.tracks.TrackConfig`), and the decision.
 
-    Returns ``(trajectory, decision)``; ``decision`` holds ``label_time`` (the convention used),
-    ``requested``, ``residual_frame_m`` and ``residual_sweep_m`` (:func:`label_time_residual` over
-    the returns of boxes whose conventions differ by >= :data:`MIN_VOTE_SHIFT_M`; NaN when not
-    computed or no box votes) and ``votes`` (boxes that voted).
+    ``decision`` holds ``label_time`` (the convention used), ``requested``, ``residual_frame_m``
+    and ``residual_sweep_m`` (:func:`label_time_residual` over the returns of boxes whose two
+    conventions differ by >= :data:`MIN_VOTE_SHIFT_M`; NaN unless ``auto`` and some box votes)
+    and ``votes`` (such boxes). Cached on the scene (``scene.__dict__["_label_times"]``);
+    :func:`carry_label_times` hands the decision on to a scene with refined boxes, so that the
+    labels decide once and the refined boxes keep their convention.
     """
-    cache = plan.__dict__.setdefault("_trajectories", {})
+    label_time = config.label_time
+    if label_time not in LABEL_TIMES:
+        raise ValueError(f"segment {scene.segment!r}: TrackConfig.label_time must be one of {LABEL_TIMES}, "
+                         f"got {label_time!r}")
+    cache = scene.__dict__.setdefault("_label_times", {})
     if label_time in cache:
         return cache[label_time]
-    if label_time not in LABEL_TIMES:
-        raise ValueError(f"segment {plan.scene.segment!r}: TrackConfig.label_time must be one of {LABEL_TIMES}, "
-                         f"got {label_time!r}")
-    scene = plan.scene
     k = len(scene.boxes)
     decision = {"requested": label_time, "residual_frame_m": float("nan"), "residual_sweep_m": float("nan"),
-                "votes": 0}
-    if label_time == "frame":
-        trajectory = build_trajectory(scene, np.zeros(k), "frame")
+                "votes": 0, "label_time": "frame"}
+    chosen = cache.get("chosen")           # carried from the labels by carry_label_times
+    if label_time == "frame" or (chosen == "frame" and label_time == "auto"):
+        offsets = np.zeros(k)
+        if chosen is not None:
+            decision.update(cache["decision"])
     else:
-        sweep = sweep_label_offsets(scene, plan.box_point_offsets, plan.box_point_index)
-        by_sweep = build_trajectory(scene, sweep, "sweep")
-        if label_time == "sweep":
-            trajectory = by_sweep
-        else:
+        sweep = sweep_label_offsets(scene)
+        offsets = sweep
+        decision["label_time"] = "sweep"
+        if label_time == "auto" and chosen is not None:
+            decision.update(cache["decision"])
+        elif label_time == "auto":
+            by_sweep = build_trajectory(scene, sweep, "sweep")
             by_frame = build_trajectory(scene, np.zeros(k), "frame")
             shift = np.linalg.norm(by_frame.velocity, axis=-1) * np.abs(sweep)
             voters = np.flatnonzero(shift >= MIN_VOTE_SHIFT_M)
-            # candidates from uncompensated boxes grown by the margin: the plan's own selection
-            # already assumed a convention (frame) and would favour it
+            # candidates from uncompensated boxes grown by the margin: a selection that assumed a
+            # convention would favour it
             from drivetrack.boxes import returns_in_boxes
 
-            config = plan.config
-            offsets, index = returns_in_boxes(scene, voters, config.laser_values, config.returns,
-                                              RESIDUAL_MARGIN_M, config.ground_clearance_m, False)
-            rows = np.repeat(np.arange(k), np.diff(offsets))
-            lidar_rows = index
+            box_offsets, index = returns_in_boxes(scene, voters, config.laser_values, config.returns,
+                                                  RESIDUAL_MARGIN_M, config.ground_clearance_m, False)
+            rows = np.repeat(np.arange(k), np.diff(box_offsets))
             if scene.lidar.capture_offset_s is not None and rows.size:
-                decision["residual_frame_m"] = label_time_residual(scene, by_frame, rows, lidar_rows)
-                decision["residual_sweep_m"] = label_time_residual(scene, by_sweep, rows, lidar_rows)
+                decision["residual_frame_m"] = label_time_residual(scene, by_frame, rows, index)
+                decision["residual_sweep_m"] = label_time_residual(scene, by_sweep, rows, index)
             decision["votes"] = int(voters.size)
-            sweep_better = decision["residual_sweep_m"] < decision["residual_frame_m"]
-            trajectory = by_sweep if sweep_better else by_frame
-    decision["label_time"] = trajectory.label_time
-    cache[label_time] = (trajectory, decision)
+            if not decision["residual_sweep_m"] < decision["residual_frame_m"]:
+                offsets = np.zeros(k)
+                decision["label_time"] = "frame"
+    decision["requested"] = label_time
+    cache[label_time] = (offsets, decision)
     return cache[label_time]
+
+
+def carry_label_times(source, target, config) -> None:
+    """Hand ``source``'s label-time decision (:func:`scene_label_times`) on to ``target``, the same
+    segment with refined boxes: ``target`` then uses the same convention without re-deciding."""
+    if config.time_model != "trajectory":
+        return
+    _, decision = scene_label_times(source, config)
+    target.__dict__["_label_times"] = {"chosen": decision["label_time"], "decision": dict(decision)}
+
+
+def segment_trajectory(plan, label_time: str | None = None) -> tuple[BoxTrajectory, dict]:
+    """The segment's :class:`BoxTrajectory` under the plan's ``TrackConfig.label_time`` (or
+    ``label_time`` when given) and the decision of :func:`scene_label_times`; cached on the plan."""
+    import dataclasses
+
+    config = plan.config if label_time is None else dataclasses.replace(plan.config, label_time=label_time)
+    cache = plan.__dict__.setdefault("_trajectories", {})
+    if config.label_time not in cache:
+        offsets, decision = scene_label_times(plan.scene, config)
+        cache[config.label_time] = (build_trajectory(plan.scene, offsets, decision["label_time"]), decision)
+    return cache[config.label_time]
