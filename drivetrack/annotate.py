@@ -402,13 +402,16 @@ def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[Ob
     columns = list(LABEL_SPEED_ERR_COLUMNS)
     if objects.empty:
         return objects.assign(**{c: pd.Series(dtype=float) for c in columns})
-    if scene.box_labels is None:   # the tracks were carried with the labels: same figures
+    if scene.box_labels is None and all(t.time_model == "velocity" for t in tracks):
+        # the tracks were carried with the labels themselves: same figures
         return objects.assign(**{c: objects[s] for c, s in zip(columns, SPEED_ERR_COLUMNS)})
+    # refined poses, or the trajectory (which levels yaw-only labels' ego tilt, docs/time.md)
+    labels = scene.box_labels if scene.box_labels is not None else scene.boxes
     rows = {}
     for t in tracks:
         if t.rejection is not None:
             continue
-        errors = label_speed_errors(scene, scene.box_labels, t)
+        errors = label_speed_errors(scene, labels, t)
         errors = errors[np.isfinite(errors)]
         rows[(t.camera_name, t.object_id)] = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
                                               else np.full(len(SPEED_PERCENTILES), np.nan))

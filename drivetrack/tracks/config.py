@@ -30,7 +30,8 @@ class TrackConfig:
 
     Attributes:
         object_types: ``BoxType`` names annotated (default vehicles only).
-        cameras: ``CameraName`` names annotated (default the three front cameras).
+        cameras: ``CameraName`` names annotated (default the three front cameras; all five may be
+            named, SIDE_LEFT / SIDE_RIGHT are 1920x886; docs/time.md).
         lasers: ``LaserName`` names whose returns form the object point clouds (default all).
         returns: return indices used for object points (1 = first, 2 = second).
         min_frames: minimum length, in frames, of the continuous run in view (paper: 24).

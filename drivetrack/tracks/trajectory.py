@@ -187,11 +187,19 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
     world_from_box = world_from_vehicle @ boxes.vehicle_from_box() if k else np.zeros((0, 4, 4))
     yaw, pitch, roll = _euler_zyx(world_from_box[:, :3, :3])
     keys = np.unique(boxes.object_id.astype(str), return_inverse=True)[1] if k else np.zeros(0, np.int64)
-    if k and boxes.pitch is None and boxes.roll is None:
+    if k:
         # Yaw-only labels in the frame of a pitching, rolling ego tilt the object in the world by
         # the ego's tilt, which changes frame to frame. Objects stand on the road: their world
-        # tilt changes slowly, so take it as a straight line in time per object (least squares).
-        pitch, roll = (_linear_in_time(a, time_s, keys) for a in (pitch, roll))
+        # tilt changes slowly, so take it as a straight line in time per object (least squares),
+        # for objects whose boxes are all yaw-only (a refined 6-DOF pose is kept as it is).
+        box_pitch, box_roll = boxes.tilt()
+        flat = (np.ones(k, bool) if box_pitch is None
+                else (box_pitch == 0) & (box_roll == 0))
+        level = np.bincount(keys, ~flat, minlength=keys.max() + 1)[keys] == 0
+        if level.any():
+            fitted = [_linear_in_time(a, time_s, keys) for a in (pitch, roll)]
+            pitch = np.where(level, fitted[0], pitch)
+            roll = np.where(level, fitted[1], roll)
     centre = world_from_box[:, :3, 3].copy()
     window = _window(keys, time_s, WINDOW_HALF)                                             # [K, W]
     valid = window >= 0
