@@ -99,10 +99,7 @@ def run_scenario(label_time: str, noise: float, args, models: tuple[str, ...]) -
             tracks = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
             clips = evaluate_tracks(tracks, f"{tmp}/src").clips
             rows = clip_rows(tracks, clips, f"{tmp}/src", role_of)
-            stage_s = {}
-            timings = getattr(result, "timings", None) or {}
-            if isinstance(timings, dict):
-                stage_s = {k: float(v) for k, v in timings.items() if isinstance(v, (int, float))}
+            stage_s = {k: float(v) for k, v in (result.timings_s or {}).items()}
             out["models"][model] = {"annotate_s": annotate_s, "stage_s": stage_s, "clips": rows,
                                     "summary": summarise(rows)}
     return out
