@@ -49,6 +49,9 @@ TIME_MODELS = ("trajectory", "velocity")
 
 #: Returns this far (metres) outside a box still count for :func:`label_time_residual`.
 RESIDUAL_MARGIN_M = 0.6
+#: At most this many boxes vote in ``auto`` (bounds its cost; the ones with the largest
+#: difference between the conventions are not preferred: an even stride over the scene).
+MAX_VOTERS = 48
 #: Samples on each side of a row in its local quadratic fit.
 WINDOW_HALF = 2
 #: Only boxes whose two conventions differ by at least this (metres) vote in ``auto``.
@@ -343,7 +346,7 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
     ``decision`` holds ``label_time`` (the convention used), ``requested``, ``residual_frame_m``
     and ``residual_sweep_m`` (:func:`label_time_residual` over the returns of boxes whose two
     conventions differ by >= :data:`MIN_VOTE_SHIFT_M`; NaN unless ``auto`` and some box votes)
-    and ``votes`` (such boxes). Cached on the scene (``scene.__dict__["_label_times"]``);
+    and ``votes`` (such boxes, at most :data:`MAX_VOTERS`). Cached on the scene (``scene.__dict__["_label_times"]``);
     :func:`carry_label_times` hands the decision on to a scene with refined boxes, so that the
     labels decide once and the refined boxes keep their convention.
     """
@@ -373,6 +376,8 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
             by_frame = build_trajectory(scene, np.zeros(k), "frame")
             shift = np.linalg.norm(by_frame.velocity, axis=-1) * np.abs(sweep)
             voters = np.flatnonzero(shift >= MIN_VOTE_SHIFT_M)
+            if voters.size > MAX_VOTERS:       # evenly strided: the decision is per segment
+                voters = voters[np.linspace(0, voters.size - 1, MAX_VOTERS).round().astype(np.int64)]
             # candidates from uncompensated boxes grown by the margin: a selection that assumed a
             # convention would favour it
             from drivetrack.boxes import returns_in_boxes
