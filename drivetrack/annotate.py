@@ -206,11 +206,20 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
     object_ids = sorted({job.object_id for job in plan_segment(scene, config.track, select_points=False).jobs})
     if not object_ids:
         return scene
+    label_offset_s = None
+    if config.track.time_model == "trajectory":      # returns are registered at the labels' time
+        from drivetrack.tracks.trajectory import carry_label_times, scene_label_times
+
+        label_offset_s = scene_label_times(scene, config.track)[0]
     boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,
                                         lasers=config.track.laser_values, returns=config.track.returns,
-                                        compensate_sweep_motion=config.track.compensate_sweep_motion)
-    return dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
-                               box_refinement={oid: r.summary() for oid, r in results.items()})
+                                        compensate_sweep_motion=config.track.compensate_sweep_motion,
+                                        label_offset_s=label_offset_s)
+    refined = dataclasses.replace(scene, boxes=boxes, box_labels=scene.boxes,
+                                  box_refinement={oid: r.summary() for oid, r in results.items()})
+    if label_offset_s is not None:
+        carry_label_times(scene, refined, config.track)
+    return refined
 
 
 def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: AnnotateConfig,
@@ -393,13 +402,16 @@ def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[Ob
     columns = list(LABEL_SPEED_ERR_COLUMNS)
     if objects.empty:
         return objects.assign(**{c: pd.Series(dtype=float) for c in columns})
-    if scene.box_labels is None:   # the tracks were carried with the labels: same figures
+    if scene.box_labels is None and all(t.time_model == "velocity" for t in tracks):
+        # the tracks were carried with the labels themselves: same figures
         return objects.assign(**{c: objects[s] for c, s in zip(columns, SPEED_ERR_COLUMNS)})
+    # refined poses, or the trajectory (which levels yaw-only labels' ego tilt, docs/time.md)
+    labels = scene.box_labels if scene.box_labels is not None else scene.boxes
     rows = {}
     for t in tracks:
         if t.rejection is not None:
             continue
-        errors = label_speed_errors(scene, scene.box_labels, t)
+        errors = label_speed_errors(scene, labels, t)
         errors = errors[np.isfinite(errors)]
         rows[(t.camera_name, t.object_id)] = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
                                               else np.full(len(SPEED_PERCENTILES), np.nan))

@@ -47,14 +47,17 @@ def inside_box(points_box: np.ndarray, size: np.ndarray, margin: float, clearanc
 
 
 def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, clearance: float,
-                     compensate_sweep_motion: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     compensate_sweep_motion: bool = True,
+                     label_offset_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """LiDAR returns inside box rows ``rows`` (int [R]) of ``scene.boxes``, as CSR over all K rows.
 
     A return belongs to a box when it is of ``lasers`` / ``returns`` (:func:`return_mask`), lies
     inside the box grown by ``margin`` (metres, < 0 shrinks) and at least ``clearance`` above the
     box bottom (:func:`inside_box`). With ``compensate_sweep_motion`` and
     ``lidar.capture_offset_s``, the box is moved to each return's capture time first
-    (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`). Per frame, returns are sorted by x
+    (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`), from the box's label time:
+    ``label_offset_s`` float [K] (label time minus frame time, s; None: 0, boxes at the frame
+    time; :func:`drivetrack.tracks.trajectory.scene_label_times`). Per frame, returns are sorted by x
     once; each box then tests only the slab of returns whose x is within its horizontal radius.
 
     Returns:
@@ -87,7 +90,8 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
             radius = 0.5 * float(np.hypot(size[0], size[1]) if boxes.pitch is None and boxes.roll is None
                                  else np.linalg.norm(size)) + grow          # a tilted box reaches further
             if dt is not None:
-                radius += max_dt * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance
+                lag = 0.0 if label_offset_s is None else abs(float(label_offset_s[row]))
+                radius += (max_dt + lag) * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance
             lo, hi = np.searchsorted(xs, [center[0] - radius, center[0] + radius], side="left")
             candidates = order[lo:hi]
             near = np.abs(points[candidates, 1] - center[1]) <= radius
@@ -96,7 +100,8 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
                 box_from_vehicle = invert_rigid(boxes.vehicle_from_box(row))
                 local = transform_points(box_from_vehicle, points[candidates])
             else:
-                local = points_box_at_capture(points[candidates], dt[candidates], center, boxes.heading[row],
+                row_dt = dt[candidates] if label_offset_s is None else dt[candidates] - label_offset_s[row]
+                local = points_box_at_capture(points[candidates], row_dt, center, boxes.heading[row],
                                               velocity[row], yaw_rate[row], *boxes.tilt(row))
             inside = inside_box(local, size, margin, clearance)
             per_row[int(row)] = np.sort(frame_index[candidates[inside]])

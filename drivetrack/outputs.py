@@ -96,12 +96,14 @@ OBJECT_COLUMNS = (
     *SPEED_ERR_COLUMNS,
     "num_nonfinite_visible", "num_visible_outside_image", "num_candidates",
     "num_dropped_invisible", "num_dropped_speed", "projection",
+    "time_model", "label_time", "time_residual_m",
 )
 #: ``stats/segments.parquet``: one row per segment.
 SEGMENT_COLUMNS = (
     "split", "segment", "status", "error", "num_frames", "num_objects_labelled",
     "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
     *(f"rejected_{r}" for r in REJECTION_REASONS),
+    "label_time", "label_time_residual_frame_m", "label_time_residual_sweep_m",
 )
 #: ``stats/rejections.parquet``: one row per rejected clip.
 REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")

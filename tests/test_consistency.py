@@ -14,8 +14,10 @@ from drivetrack.tracks import TrackConfig
 
 @pytest.fixture(scope="module")
 def tracked(synth_source, synth_segments, tmp_path_factory):
-    """Tracks carried with the labels as read (no refinement, no sweep compensation) + scene."""
-    config = AnnotateConfig(track=TrackConfig(compensate_sweep_motion=False), refine_poses=False)
+    """Tracks carried with the labels as read (no refinement, no sweep compensation, no
+    trajectory: it levels the labels' ego tilt) + scene."""
+    config = AnnotateConfig(track=TrackConfig(compensate_sweep_motion=False, time_model="velocity"),
+                            refine_poses=False)
     segment = synth_segments[0]
     result = annotate_segment(synth_source, "training", segment, str(tmp_path_factory.mktemp("cons")),
                               config, keep_tracks=True)

@@ -13,7 +13,8 @@ __all__ = ["refine_scene_boxes"]
 
 
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
-                       returns=None, compensate_sweep_motion: bool = True):
+                       returns=None, compensate_sweep_motion: bool = True,
+                       label_offset_s: np.ndarray | None = None):
     """Refine every object of ``scene`` over its labelled frames; returns boxes usable as labels.
 
     For each object (``object_ids`` or all), the candidates are the returns (of ``lasers`` /
@@ -21,7 +22,9 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     grown by ``config.candidate_margin_m``; :func:`refine_object_poses` runs on them. When the
     scene carries per-return capture times (``LidarReturns.capture_offset_s``) and
     ``compensate_sweep_motion`` holds, candidates are first moved to the frame time with the
-    labels' motion, as the track stage does.
+    labels' motion, as the track stage does; to each box's label time when ``label_offset_s``
+    (float [K], label time minus frame time, s; :func:`drivetrack.tracks.trajectory.scene_label_times`)
+    is given, else to the frame time.
 
     Returns:
         ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
@@ -79,7 +82,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner, row_tilt)
         else:
             r = rows[owner]
-            local = points_box_at_capture(p, offsets[index], boxes.center[r], boxes.heading[r], box_velocity[r],
+            dt = offsets[index] if label_offset_s is None else offsets[index] - label_offset_s[r]
+            local = points_box_at_capture(p, dt, boxes.center[r], boxes.heading[r], box_velocity[r],
                                           box_yaw_rate[r], *(boxes.tilt(r)))
         inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
         if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time

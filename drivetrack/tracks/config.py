@@ -30,7 +30,8 @@ class TrackConfig:
 
     Attributes:
         object_types: ``BoxType`` names annotated (default vehicles only).
-        cameras: ``CameraName`` names annotated (default the three front cameras).
+        cameras: ``CameraName`` names annotated (default the three front cameras; all five may be
+            named, SIDE_LEFT / SIDE_RIGHT are 1920x886; docs/time.md).
         lasers: ``LaserName`` names whose returns form the object point clouds (default all).
         returns: return indices used for object points (1 = first, 2 = second).
         min_frames: minimum length, in frames, of the continuous run in view (paper: 24).
@@ -51,6 +52,17 @@ class TrackConfig:
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
             (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep_motion`).
+        time_model: how an object is placed at each pixel's capture time. ``trajectory``
+            (default): its continuous-time trajectory (:mod:`drivetrack.tracks.trajectory`:
+            cubic Hermite in world position and yaw through the labels at their label times),
+            evaluated at the image time (global shutter) or at each point's solved row/column
+            time (rolling shutter), and at each LiDAR return's capture time; ``velocity``: the
+            box moved along its finite-difference velocity from the frame time to the image pose
+            time, returns with constant velocity and yaw rate (before issue 16; for comparison).
+        label_time: when a ``lidar_box`` was true: ``frame`` (its frame's timestamp), ``sweep``
+            (when the TOP sweep passed its centre) or ``auto`` (default: the convention with the
+            smaller residual against the returns, one choice per segment, recorded in
+            ``stats/segments.parquet``). Used by ``time_model="trajectory"``.
         rolling_shutter: project with ``drivetrack.camera.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the
@@ -85,6 +97,8 @@ class TrackConfig:
     blind_zone_laser: str | None = _DEPTH.blind_zone_laser
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
+    time_model: str = "trajectory"
+    label_time: str = "auto"
     max_speed_deviation_mps: float | None = None
     max_tracks_per_object: int | None = None
     seed: int = 0
@@ -118,6 +132,12 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.fov_samples_per_axis must be >= 2, got {self.fov_samples_per_axis}")
         if not self.occlusion_ratio > 0:
             raise ValueError(f"TrackConfig.occlusion_ratio must be > 0, got {self.occlusion_ratio}")
+        from drivetrack.tracks.trajectory import LABEL_TIMES, TIME_MODELS
+
+        if self.time_model not in TIME_MODELS:
+            raise ValueError(f"TrackConfig.time_model must be one of {TIME_MODELS}, got {self.time_model!r}")
+        if self.label_time not in LABEL_TIMES:
+            raise ValueError(f"TrackConfig.label_time must be one of {LABEL_TIMES}, got {self.label_time!r}")
         if self.kernel not in TRACK_KERNELS:
             raise ValueError(f"TrackConfig.kernel must be one of {TRACK_KERNELS}, got {self.kernel!r}")
         if self.chunk_points < 1 or self.depth_batch < 1:

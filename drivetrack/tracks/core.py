@@ -32,14 +32,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivetrack.camera.model import CameraModel
-from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.geometry import invert_rigid
 from drivetrack.outputs import RejectionReason
 from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture
+from drivetrack.tracks.trajectory import points_box_at, segment_trajectory
 from drivetrack.waymo.schema import BoxType, CameraName
 
-__all__ = ["ObjectTracks", "TrackSource", "run_object_job", "track_speeds", "rolling_shutter_projector",
+__all__ = ["ObjectTracks", "TrackSource", "ClipPoses", "clip_poses", "run_object_job", "track_speeds", "rolling_shutter_projector",
            "image_time_offsets", "fill_invalid_positions", "points_per_chunk", "frames_per_chunk"]
 
 #: Point-frames per chunk of the streamed outputs: a chunk's [k, T, 2 + 3] float32 (and the
@@ -87,6 +88,10 @@ class ObjectTracks:
         num_candidates: returns inside the box over the clip (before the visibility filter).
         num_dropped_invisible, num_dropped_speed: candidates dropped by each filter.
         rejection: None, or a :class:`drivetrack.outputs.RejectionReason` when no track survived.
+        time_model, label_time: ``TrackConfig.time_model`` and the label-time convention the
+            clip's poses used (``frame`` / ``sweep``; ``auto`` resolved per segment).
+        time_residual_m: mean distance (metres) outside the box of the clip's candidate returns,
+            each with the box at its capture time (0 when every return lies inside).
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -123,6 +128,9 @@ class ObjectTracks:
     num_dropped_invisible: int = 0
     num_dropped_speed: int = 0
     rejection: str | None = None
+    time_model: str = "velocity"
+    label_time: str = "frame"
+    time_residual_m: float = float("nan")
     _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -174,10 +182,11 @@ class _NumpyProjection:
     """
 
     def __init__(self, model, rolling, projector, frames_meta, frames, camera_from_box, shift_camera,
-                 world_from_box, shift_world, velocity_world):
+                 world_from_box, shift_world, velocity_world, yaw_rate_world=None):
         self.model, self.rolling, self.projector, self.frames_meta = model, rolling, projector, frames_meta
         self.frames, self.camera_from_box, self.shift_camera = frames, camera_from_box, shift_camera
         self.world_from_box, self.shift_world, self.velocity_world = world_from_box, shift_world, velocity_world
+        self.yaw_rate_world = yaw_rate_world
 
     def project(self, chunk: np.ndarray):
         points_camera = _carry(self.camera_from_box, chunk) + self.shift_camera[:, None]   # [T, n, 3]
@@ -187,9 +196,14 @@ class _NumpyProjection:
             pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
             valid = np.zeros(points_camera.shape[:2], dtype=bool)
             for tau, t in enumerate(self.frames.tolist()):
+                world = _carry(self.world_from_box[tau:tau + 1], chunk)[0] + self.shift_world[tau]
                 velocity = np.broadcast_to(self.velocity_world[tau], chunk.shape)
-                px, ok, _ = self.projector(self.frames_meta, t, _carry(self.world_from_box[tau:tau + 1], chunk)[0]
-                                           + self.shift_world[tau], velocity)
+                if self.yaw_rate_world is not None and self.yaw_rate_world[tau] != 0.0:
+                    # rigid motion: v + w z x (p - c), the object's yaw rate about the world z
+                    lever = world - self.world_from_box[tau, :3, 3]
+                    velocity = velocity + self.yaw_rate_world[tau] * np.stack(
+                        [-lever[:, 1], lever[:, 0], np.zeros(lever.shape[0])], axis=-1)
+                px, ok, _ = self.projector(self.frames_meta, t, world, velocity)
                 pixels[tau], valid[tau] = px, ok
             valid &= points_camera[..., 0] > 0
         return points_camera, pixels, valid
@@ -393,6 +407,74 @@ def _use_kernel(config) -> bool:
     return NUMBA_AVAILABLE
 
 
+@dataclass
+class ClipPoses:
+    """Where an object is in each clip frame's image, at that image's capture time (T frames).
+
+    Attributes:
+        vehicle_from_box: float64 [T, 4, 4], the object at the frame time, in the vehicle frame of
+            the frame (the labelled box under ``time_model="velocity"``).
+        world_from_box: float64 [T, 4, 4], the object at the image's pose time.
+        camera_from_box: float64 [T, 4, 4], camera (at the image pose) from that box; with
+            ``shift_camera`` float64 [T, 3] (metres, added in the camera frame; 0 under the
+            trajectory) it maps box-frame points to the camera frame for a global shutter.
+        shift_world: float64 [T, 3], the same shift in the world frame.
+        velocity_world: float64 [T, 3], m/s, box-centre velocity at the image's pose time.
+        yaw_rate_world: float64 [T], rad/s, about the world z (0 under ``time_model="velocity"``).
+        trajectory: the segment's :class:`drivetrack.tracks.trajectory.BoxTrajectory` (None under
+            ``time_model="velocity"``); ``decision`` its label-time decision (dict, or None).
+    A rolling-shutter projection moves a point ``p`` linearly from its pose-time position with
+    ``velocity_world + yaw_rate_world z x (p - centre)``.
+    """
+    vehicle_from_box: np.ndarray
+    world_from_box: np.ndarray
+    camera_from_box: np.ndarray
+    shift_camera: np.ndarray
+    shift_world: np.ndarray
+    velocity_world: np.ndarray
+    yaw_rate_world: np.ndarray
+    trajectory: object = None
+    decision: dict | None = None
+
+
+def clip_poses(plan, camera: int, frames: np.ndarray, rows: np.ndarray) -> ClipPoses:
+    """The object's pose in each clip frame's image of ``camera``, at the image's capture time.
+
+    ``frames`` int [T] clip frames, ``rows`` int [T] the object's box rows there. The one place
+    that poses objects for projection (tracks, and visibility code that must agree with them).
+    ``TrackConfig.time_model`` "trajectory": the segment's trajectory (label time per
+    ``TrackConfig.label_time``) at the image pose time; "velocity": the labelled box moved along
+    its finite-difference velocity from the frame time to the image pose time.
+    """
+    scene, config = plan.scene, plan.config
+    geometry = plan.cameras[camera]
+    frames = np.asarray(frames, np.int64)
+    rows = np.asarray(rows, np.int64)
+    image_offset_s = image_time_offsets(scene, camera, frames)
+    if config.time_model == "trajectory":
+        trajectory, decision = segment_trajectory(plan, config.label_time)
+        image_time = trajectory.frame_time_s[rows] + image_offset_s
+        _, _, _, _, velocity, yaw_rate = trajectory.motion(rows, image_time)
+        world_from_box = trajectory.world_from_box(rows, image_time)
+        camera_from_box = geometry.camera_from_world[frames] @ world_from_box
+        zeros = np.zeros((frames.size, 3))
+        vehicle_from_box = invert_rigid(scene.world_from_vehicle[frames]) @ trajectory.world_from_box(
+            rows, trajectory.frame_time_s[rows])
+        return ClipPoses(vehicle_from_box, world_from_box, camera_from_box, zeros, zeros.copy(), velocity, yaw_rate,
+                         trajectory, decision)
+    timestamps = scene.timestamps_micros[frames].astype(np.int64)
+    vehicle_from_box = scene.boxes.vehicle_from_box(rows)
+    world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
+    camera_from_box = geometry.camera_from_vehicle[frames] @ vehicle_from_box
+    velocity_world = _box_velocity_world(world_from_box, timestamps)
+    # Boxes and LiDAR are at the frame timestamp, the image at its pose timestamp: move the
+    # object along its velocity by the difference (camera frame shift per clip frame).
+    shift_world = image_offset_s[:, None] * velocity_world                                  # [T,3]
+    shift_camera = np.einsum("tij,tj->ti", geometry.camera_from_world[frames, :3, :3], shift_world)
+    return ClipPoses(vehicle_from_box, world_from_box, camera_from_box, shift_camera, shift_world, velocity_world,
+                     np.zeros(frames.size))
+
+
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     """Point tracks of one accepted clip (see the module docstring). Pure: writes nothing."""
     from drivetrack.depth import lookup_max4
@@ -406,16 +488,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     t_count = frames.size
     timestamps = scene.timestamps_micros[frames].astype(np.int64)
 
-    # full pose: refined boxes may carry pitch and roll (drivetrack.refine); labels are yaw-only
-    vehicle_from_box = boxes.vehicle_from_box(rows)                                          # [T,4,4]
+    poses = clip_poses(plan, job.camera, frames, rows)
+    # the object at each frame time (points3d, speeds): refined boxes may carry pitch and roll
+    # (drivetrack.refine); the trajectory levels yaw-only labels' ego tilt
+    vehicle_from_box = poses.vehicle_from_box                                                # [T,4,4]
     world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
-    camera_from_box = geometry.camera_from_vehicle[frames] @ vehicle_from_box
-    velocity_world = _box_velocity_world(world_from_box, timestamps)
-    # Boxes and LiDAR are at the frame timestamp, the image at its pose timestamp: move the
-    # object along its velocity by the difference (camera frame shift per clip frame).
-    image_offset_s = image_time_offsets(scene, job.camera, frames)
-    shift_world = image_offset_s[:, None] * velocity_world                                  # [T,3]
-    shift_camera = np.einsum("tij,tj->ti", geometry.camera_from_world[frames, :3, :3], shift_world)
+    camera_from_box, shift_camera = poses.camera_from_box, poses.shift_camera
 
     lidar_rows, source_clip = plan.box_points(rows)
     n_candidates = lidar_rows.size
@@ -427,10 +505,19 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     n = lidar_rows.size
     # Points in their box's frame, computed once: p_box = box_from_vehicle_t X_t.
     box_from_vehicle = invert_rigid(vehicle_from_box)
-    if config.compensate_sweep_motion and lidar.capture_offset_s is not None:
+    if poses.trajectory is not None:
+        # ... with the object at each return's capture time, on its trajectory
+        offsets_s = (lidar.capture_offset_s[lidar_rows].astype(np.float64)
+                     if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
+        world_from_vehicle = scene.world_from_vehicle[frames][source_clip]                   # [n,4,4]
+        points_world = (np.einsum("nij,nj->ni", world_from_vehicle[:, :3, :3], lidar.points_vehicle[lidar_rows])
+                        + world_from_vehicle[:, :3, 3])
+        p_box = points_box_at(poses.trajectory, rows[source_clip],
+                              poses.trajectory.frame_time_s[rows][source_clip] + offsets_s, points_world)
+    elif config.compensate_sweep_motion and lidar.capture_offset_s is not None:
         # ... with the box at each return's capture time (object motion during the sweep).
         yaw_rate = box_motion_world(world_from_box, timestamps * 1e-6)[1]
-        velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], velocity_world)
+        velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], poses.velocity_world)
         p_box = points_box_at_capture(lidar.points_vehicle[lidar_rows], lidar.capture_offset_s[lidar_rows],
                                       boxes.center[rows][source_clip], boxes.heading[rows][source_clip],
                                       velocity_vehicle[source_clip], yaw_rate[source_clip],
@@ -503,7 +590,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # result crossing processes must not carry the segment's JPEGs)
         shutter_meta = dataclasses.replace(frames_meta, jpeg=[None] * len(frames_meta.jpeg))
         projection = _NumpyProjection(model, rolling, projector, shutter_meta, frames, camera_from_box,
-                                      shift_camera, world_from_box, shift_world, velocity_world)
+                                      shift_camera, poses.world_from_box, poses.shift_world, poses.velocity_world,
+                                      poses.yaw_rate_world)
         parts: list[tuple[np.ndarray, np.ndarray]] = []
         keep = np.zeros(n, dtype=bool)
         speeds = np.zeros(n, dtype=np.float64)
@@ -566,8 +654,18 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         num_candidates=int(n_candidates), num_dropped_invisible=dropped_invisible,
         num_dropped_speed=dropped_speed,
         rejection=None if keep.any() else RejectionReason.NO_VISIBLE_POINTS,
+        time_model=config.time_model,
+        label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
+        time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
     )
     return result
+
+
+def _outside_box_m(points_box: np.ndarray, size: np.ndarray) -> float:
+    """Mean distance (metres) of box-frame points float [n, 3] outside boxes of ``size`` [n, 3]; NaN if none."""
+    if points_box.shape[0] == 0:
+        return float("nan")
+    return float(np.linalg.norm(np.maximum(np.abs(points_box) - size / 2.0, 0.0), axis=-1).mean())
 
 
 def _summarise_tracks(tracks: np.ndarray, visibles: np.ndarray, source_frames: np.ndarray,

@@ -189,13 +189,19 @@ def select_object_points(scene: Scene, config: TrackConfig, rows: np.ndarray) ->
     A return belongs to a box when it is of a selected laser and return index, lies inside the
     box grown by ``box_margin_m`` and at least ``ground_clearance_m`` above the box bottom. With
     ``config.compensate_sweep_motion`` and ``lidar.capture_offset_s``, the box is moved to each
-    return's capture time first. See :func:`drivetrack.boxes.returns_in_boxes`.
+    return's capture time first, from the box's label time under ``time_model="trajectory"``
+    (:func:`drivetrack.tracks.trajectory.scene_label_times`). See :func:`drivetrack.boxes.returns_in_boxes`.
 
     Returns:
         ``(offsets int64 [K + 1], index int64 [P])`` (rows not in ``rows`` get no points).
     """
+    label_offset_s = None
+    if config.time_model == "trajectory" and config.compensate_sweep_motion:
+        from drivetrack.tracks.trajectory import scene_label_times
+
+        label_offset_s = scene_label_times(scene, config)[0]
     return returns_in_boxes(scene, rows, config.laser_values, config.returns, config.box_margin_m,
-                            config.ground_clearance_m, config.compensate_sweep_motion)
+                            config.ground_clearance_m, config.compensate_sweep_motion, label_offset_s)
 
 
 def _unit_grid(n: int) -> np.ndarray:

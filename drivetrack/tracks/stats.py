@@ -30,6 +30,7 @@ def _object_row(t: ObjectTracks, file: str) -> dict:
         "num_visible_outside_image": int(t.num_visible_outside_image),
         "num_candidates": int(t.num_candidates), "num_dropped_invisible": int(t.num_dropped_invisible),
         "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
+        "time_model": t.time_model, "label_time": t.label_time, "time_residual_m": float(t.time_residual_m),
     }
     row.update({c: float(v) for c, v in zip(SPEED_ERR_COLUMNS, pct)})
     return row
@@ -80,7 +81,25 @@ def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
         for table_row in rejection_stats(plan, results).itertuples():
             counts[table_row.reason] += 1
     row.update({f"rejected_{r}": int(c) for r, c in counts.items()})
+    row.update(_label_time_row(plan))
     return pd.DataFrame([row], columns=list(SEGMENT_COLUMNS))
+
+
+def _label_time_row(plan: SegmentPlan | None) -> dict:
+    """The segment's label-time decision (:func:`drivetrack.tracks.trajectory.segment_trajectory`):
+    ``label_time`` ("" when the segment has no plan or uses ``time_model="velocity"``, which
+    takes labels at the frame time) and the two conventions' residuals (NaN unless ``auto``)."""
+    row = {"label_time": "", "label_time_residual_frame_m": float("nan"),
+           "label_time_residual_sweep_m": float("nan")}
+    if plan is None:
+        return row
+    if plan.config.time_model != "trajectory":
+        return {**row, "label_time": "frame"}
+    from drivetrack.tracks.trajectory import segment_trajectory
+
+    decision = segment_trajectory(plan, plan.config.label_time)[1]
+    return {"label_time": decision["label_time"], "label_time_residual_frame_m": decision["residual_frame_m"],
+            "label_time_residual_sweep_m": decision["residual_sweep_m"]}
 
 
 def write_table(url: str, table: pd.DataFrame) -> str:

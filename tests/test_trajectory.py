@@ -1,0 +1,159 @@
+"""drivetrack.tracks.trajectory: continuous-time box trajectories and the label-time decision."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from drivetrack.scene import Boxes, LidarReturns
+from drivetrack.tracks import TrackConfig
+from drivetrack.tracks.trajectory import (build_trajectory, points_box_at, segment_trajectory,
+                                          sweep_label_offsets)
+from drivetrack.waymo.schema import LaserName
+
+SWEEP_S = 0.1
+SIZE = np.array([4.5, 2.0, 1.5])
+
+
+def _sweep_offset(xy: np.ndarray) -> np.ndarray:
+    """The synthetic TOP law: azimuth +pi at -50 ms, -pi at +50 ms (drivetrack.synth.config)."""
+    return -np.arctan2(xy[..., 1], xy[..., 0]) / (2 * np.pi) * SWEEP_S
+
+
+def _circle(t, radius=12.0, speed=9.0, accel=2.5):
+    """Centre [.., 3] and heading of a car on a circle (left turn) while accelerating."""
+    s = speed * t + 0.5 * accel * t * t
+    angle = s / radius
+    centre = np.stack([radius * np.sin(angle), 4.0 + radius * (1 - np.cos(angle)), np.full_like(t, 0.75)], -1)
+    return centre, angle
+
+
+def _straight(t, x0=-6.0, speed=12.0, accel=-4.0):
+    """A car braking beside the ego (y = 4 m), heading 0."""
+    centre = np.stack([x0 + speed * t + 0.5 * accel * t * t, np.full_like(t, 4.0), np.full_like(t, 0.75)], -1)
+    return centre, np.zeros_like(t)
+
+
+def _scene(motion, label_time: str, frames: int = 12, with_returns: bool = True):
+    """A static ego at the world origin and one object following ``motion``, labelled per
+    ``label_time``; TOP returns on its ego-facing side at their true capture times."""
+    times = np.arange(frames) * 0.1
+    label_times = times.copy()
+    if label_time == "sweep":
+        for _ in range(8):      # fixed point: when the sweep passes the centre
+            label_times = times + _sweep_offset(motion(label_times)[0])
+    centre, heading = motion(label_times)
+    boxes = Boxes(object_id=np.array(["car"] * frames, dtype=object), frame=np.arange(frames, dtype=np.int32),
+                  center=centre, size=np.tile(SIZE, (frames, 1)), heading=heading,
+                  type=np.ones(frames, np.int8), speed=np.full((frames, 3), np.nan),
+                  num_lidar_points_in_box=np.full(frames, -1))
+    gx, gz = np.meshgrid(np.linspace(-2.1, 2.1, 30), np.linspace(-0.5, 0.6, 6))
+    body = np.stack([gx.ravel(), np.full(gx.size, -1.0), gz.ravel()], -1)              # right side face
+    points, frame, offsets = [], [], []
+    for t in range(frames if with_returns else 0):
+        dt = np.zeros(body.shape[0])
+        for _ in range(8):
+            c, h = motion(times[t] + dt)
+            rot = np.stack([np.cos(h), -np.sin(h), np.sin(h), np.cos(h)], -1).reshape(-1, 2, 2)
+            world = np.concatenate([c[:, :2] + np.einsum("nij,nj->ni", rot, body[:, :2]), c[:, 2:] + body[:, 2:]], -1)
+            dt = _sweep_offset(world)
+        points.append(world)
+        frame.append(np.full(world.shape[0], t, np.int32))
+        offsets.append(dt)
+    m = sum(p.shape[0] for p in points)
+    counts = np.bincount(np.concatenate(frame), minlength=frames) if m else np.zeros(frames, np.int64)
+    lidar = LidarReturns(
+        points_vehicle=np.concatenate(points) if m else np.zeros((0, 3)),
+        frame=np.concatenate(frame) if m else np.zeros(0, np.int32),
+        laser=np.full(m, int(LaserName.TOP), np.int8), return_index=np.ones(m, np.int8),
+        row=np.zeros(m, np.int32), col=np.zeros(m, np.int32), intensity=np.zeros(m, np.float32),
+        frame_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        capture_offset_s=np.concatenate(offsets).astype(np.float32) if m else None)
+    scene = SimpleNamespace(segment="unit", boxes=boxes, lidar=lidar, timestamps_micros=(times * 1e6).astype(np.int64),
+                            world_from_vehicle=np.tile(np.eye(4), (frames, 1, 1)))
+    return scene, times, label_times
+
+
+def _plan(scene, label_time="auto"):
+    from drivetrack.boxes import returns_in_boxes
+
+    config = TrackConfig(label_time=label_time)
+    offsets, index = returns_in_boxes(scene, np.arange(len(scene.boxes)), config.laser_values, config.returns,
+                                      0.0, 0.0, False)
+    return SimpleNamespace(scene=scene, config=config, box_point_offsets=offsets, box_point_index=index)
+
+
+@pytest.mark.parametrize("motion", [_circle, _straight])
+def test_trajectory_follows_accelerating_and_turning_objects_between_frames(motion):
+    scene, times, _ = _scene(motion, "frame", with_returns=False)
+    trajectory = build_trajectory(scene, np.zeros(len(scene.boxes)), "frame")
+    rows = np.repeat(np.arange(len(times)), 5)
+    query = times[rows] + np.tile([-0.045, -0.02, 0.0, 0.015, 0.045], len(times))
+    centre, yaw, _, _, velocity, _ = trajectory.motion(rows, query)
+    true_centre, true_yaw = motion(query)
+    # local quadratic through the labels: exact for constant acceleration, a few millimetres on a
+    # 12 m circle at 9-12 m/s
+    error = np.linalg.norm(centre - true_centre, axis=-1)
+    assert error.max() < (1e-9 if motion is _straight else 4e-3)
+    # the old model: constant finite-difference velocity from the label (7-38 mm here)
+    from drivetrack.tracks.sweep_motion import box_motion_world
+
+    world_from_box = np.tile(np.eye(4), (len(times), 1, 1))
+    world_from_box[:, :3, 3] = scene.boxes.center
+    old = scene.boxes.center[rows] + (query - times[rows])[:, None] * box_motion_world(world_from_box, times)[0][rows]
+    assert error.max() < np.linalg.norm(old - true_centre, axis=-1).max() / 5
+    assert np.abs(np.angle(np.exp(1j * (yaw - true_yaw)))).max() < 5e-4
+    eps = 1e-6
+    true_velocity = (motion(query + eps)[0] - motion(query - eps)[0]) / (2 * eps)
+    assert np.abs(velocity - true_velocity).max() < (1e-6 if motion is _straight else 0.15)
+    # the labels themselves are reproduced exactly
+    at_labels = trajectory.world_from_box(np.arange(len(times)), times)
+    np.testing.assert_allclose(at_labels[:, :3, 3], scene.boxes.center, atol=1e-12)
+
+
+def test_trajectory_handles_single_and_empty_objects():
+    scene, times, _ = _scene(_straight, "frame", frames=1, with_returns=False)
+    scene.boxes.speed[:] = [3.0, 0.0, 0.0]
+    trajectory = build_trajectory(scene, np.zeros(1))
+    centre = trajectory.motion(np.array([0]), np.array([0.02]))[0]
+    np.testing.assert_allclose(centre[0], scene.boxes.center[0] + [0.06, 0, 0], atol=1e-12)
+    empty = trajectory.world_from_box(np.zeros(0, np.int64), np.zeros(0))
+    assert empty.shape == (0, 4, 4)
+
+
+@pytest.mark.parametrize("label_time", ["frame", "sweep"])
+def test_sweep_label_offsets_and_both_conventions(label_time):
+    scene, times, label_times = _scene(_straight, label_time)
+    plan = _plan(scene, label_time)
+    offsets = sweep_label_offsets(scene, plan.box_point_offsets, plan.box_point_index)
+    # the object sits 4 m to the left: the sweep passes it ~25 ms before the frame time
+    truth = _sweep_offset(_straight(times)[0])
+    assert np.abs(offsets - truth).max() < 2e-3
+    trajectory, decision = segment_trajectory(plan, label_time)
+    assert decision["label_time"] == label_time
+    np.testing.assert_allclose(trajectory.time_s, label_times, atol=2e-3 if label_time == "sweep" else 0)
+    # under the right convention every return lies on the box surface at its capture time
+    lidar = scene.lidar
+    rows = lidar.frame.astype(np.int64)
+    local = points_box_at(trajectory, rows, times[rows] + lidar.capture_offset_s, lidar.points_vehicle)
+    assert np.abs(local[:, 1] + 1.0).max() < 0.01
+
+
+@pytest.mark.parametrize("label_time", ["frame", "sweep"])
+@pytest.mark.parametrize("motion", [_circle, _straight])
+def test_auto_picks_the_convention_of_the_labels(label_time, motion):
+    scene, _, _ = _scene(motion, label_time)
+    trajectory, decision = segment_trajectory(_plan(scene), "auto")
+    assert decision["requested"] == "auto" and decision["votes"] > 0
+    assert decision["label_time"] == label_time == trajectory.label_time
+    wrong = "residual_sweep_m" if label_time == "frame" else "residual_frame_m"
+    right = "residual_frame_m" if label_time == "frame" else "residual_sweep_m"
+    assert decision[right] < 0.5 * decision[wrong]
+
+
+def test_track_config_checks_time_settings():
+    with pytest.raises(ValueError, match="time_model"):
+        TrackConfig(time_model="spline")
+    with pytest.raises(ValueError, match="label_time"):
+        TrackConfig(label_time="capture")
