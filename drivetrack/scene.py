@@ -174,6 +174,8 @@ class Scene:
             ``boxes`` are the labels themselves.
         source_stats: counts of what the reader dropped from the source as data, e.g.
             ``lidar_nonfinite_ranges`` (NaN / inf range values, no return).
+        lidar_origins: ``LaserName`` value -> float64 [3], metres, the lidar's position in the
+            vehicle frame (``lidar_calibration.extrinsic``); empty when no lidar was read.
     """
     segment: str
     split: str
@@ -186,6 +188,7 @@ class Scene:
     box_refinement: dict[str, dict] = field(default_factory=dict)
     box_labels: Boxes | None = None
     source_stats: dict[str, int] = field(default_factory=dict)
+    lidar_origins: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:

@@ -46,6 +46,10 @@ class TrackConfig:
         occlusion_ratio: a point is occluded at a frame when the depth map there is known and
             ``depth < occlusion_ratio * z`` (z = the point's z-depth from the camera). 0.95 is the
             released code's factor; 1.0 is a strict test.
+        back_face_max_deg: a point is also occluded at a frame when its surface normal (from the
+            object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
+            with the direction to the camera: its face turns away and its own object hides it.
+            None: the depth test alone (the paper's method).
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser: the depth
             stage's knobs, see :class:`drivetrack.depth.config.DepthConfig`.
@@ -86,6 +90,7 @@ class TrackConfig:
     box_margin_m: float = 0.0
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
+    back_face_max_deg: float | None = 90.0
     # The depth knobs (DepthConfig's fields, in its order; defaults from there).
     depth_completer: str = _DEPTH.depth_completer
     depth_completer_options: dict = field(default_factory=dict, hash=False)
@@ -132,6 +137,9 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.fov_samples_per_axis must be >= 2, got {self.fov_samples_per_axis}")
         if not self.occlusion_ratio > 0:
             raise ValueError(f"TrackConfig.occlusion_ratio must be > 0, got {self.occlusion_ratio}")
+        if self.back_face_max_deg is not None and not 0 < self.back_face_max_deg <= 180:
+            raise ValueError(f"TrackConfig.back_face_max_deg must be None or in (0, 180], got "
+                             f"{self.back_face_max_deg!r}")
         from drivetrack.tracks.trajectory import LABEL_TIMES, TIME_MODELS
 
         if self.time_model not in TIME_MODELS:

@@ -92,6 +92,9 @@ class ObjectTracks:
             clip's poses used (``frame`` / ``sweep``; ``auto`` resolved per segment).
         time_residual_m: mean distance (metres) outside the box of the clip's candidate returns,
             each with the box at its capture time (0 when every return lies inside).
+        num_unreliable_normals: candidates whose surface normal is too poorly supported for the
+            back-face test (:mod:`drivetrack.visibility.facing`; the depth test alone decides for
+            them); 0 when ``TrackConfig.back_face_max_deg`` is None.
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -131,6 +134,7 @@ class ObjectTracks:
     time_model: str = "velocity"
     label_time: str = "frame"
     time_residual_m: float = float("nan")
+    num_unreliable_normals: int = 0
     _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -526,6 +530,28 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
             + box_from_vehicle[source_clip, :3, 3]
 
+    # Back faces (drivetrack.visibility.facing): normals from the object's own returns, turned
+    # towards the ego that saw them; None when the test is off (the paper's depth test alone).
+    surfels = centres_box = None
+    if config.back_face_max_deg is not None:
+        from drivetrack.visibility import camera_centres_box, sensor_positions, surfel_normals
+
+        sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
+        sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
+                      + box_from_vehicle[source_clip, :3, 3])
+        surfels = surfel_normals(p_box, sensor_box)
+        centres_box = camera_centres_box(camera_from_box, shift_camera)
+
+    def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
+        """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them)."""
+        if surfels is None:
+            return None
+        from drivetrack.visibility import SurfelNormals, facing_mask
+
+        idx = np.arange(start, stop) if where is None else where
+        return facing_mask(p_box[idx], SurfelNormals(surfels.normal[idx], surfels.reliable[idx]), centres_box,
+                           float(config.back_face_max_deg))
+
     projector = rolling_shutter_projector() if config.rolling_shutter else None
     # A camera whose shutter data say global shutter at every clip frame projects exactly like
     # the global path (rolling_shutter.shutter_state's fallback): skip the per-frame loop.
@@ -564,6 +590,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         keep = status == kernel.KEPT
         kept = int(keep.sum())
         kept_box = np.ascontiguousarray(p_box[keep])
+        kept_rows = np.flatnonzero(keep)
         query_source = source_clip[keep]
         visibles = np.empty((kept, t_count), dtype=bool)
         query_pixels = np.empty((kept, 2), dtype=np.float32)
@@ -579,9 +606,20 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
                                float(config.occlusion_ratio), tracks, visibles[start:stop], no_points3d, False)
+            faces = facing(0, 0, kept_rows[start:stop])
+            if faces is not None:
+                visibles[start:stop] &= faces.T
             checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
                                               float(model.width), float(model.height), query_pixels[start:stop])
         del scratch_tracks
+        if surfels is not None:
+            # points seen only on back faces are not kept (as points the depth test hides everywhere)
+            seen = visibles.any(axis=1)
+            if not seen.all():
+                status[kept_rows[~seen]] = kernel.DROPPED_INVISIBLE
+                keep = status == kernel.KEPT
+                kept_box, query_source = np.ascontiguousarray(kept_box[seen]), query_source[seen]
+                visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
@@ -604,6 +642,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
             visible = ok & ~occluded
+            faces = facing(start, start + chunk.shape[0])
+            if faces is not None:
+                visible &= faces
             stop = start + chunk.shape[0]
             # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
             if t_count > 1 and duration_s > 0:
@@ -657,6 +698,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         time_model=config.time_model,
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
         time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
+        num_unreliable_normals=0 if surfels is None else surfels.num_unreliable,
     )
     return result
 

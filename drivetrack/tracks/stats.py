@@ -31,6 +31,7 @@ def _object_row(t: ObjectTracks, file: str) -> dict:
         "num_candidates": int(t.num_candidates), "num_dropped_invisible": int(t.num_dropped_invisible),
         "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
         "time_model": t.time_model, "label_time": t.label_time, "time_residual_m": float(t.time_residual_m),
+        "num_unreliable_normals": int(t.num_unreliable_normals),
     }
     row.update({c: float(v) for c, v in zip(SPEED_ERR_COLUMNS, pct)})
     return row

@@ -463,10 +463,12 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
                                           with_images)
 
         lidar_returns = _empty_returns(len(timestamps))
+        lidar_origins: dict[int, np.ndarray] = {}
         if lasers is None or len(lasers):
             cal_file = open_component("lidar_calibration")
             calibrations = _read_lidar_calibration(cal_file)
             wanted = set(calibrations) if lasers is None else {int(x) for x in lasers}
+            lidar_origins = {laser: cal.vehicle_from_lidar[:3, 3].copy() for laser, cal in calibrations.items()}
             missing = wanted - set(calibrations)
             if missing:
                 raise cal_file.error("requested laser has no calibration", column=KEY_LASER,
@@ -489,7 +491,7 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
                      world_from_vehicle=world_from_vehicle, cameras=camera_frames,
                      lidar=lidar_returns, boxes=boxes,
                      source_files={name: f.url for name, f in files.items()},
-                     source_stats=source_stats)
+                     source_stats=source_stats, lidar_origins=lidar_origins)
     finally:
         for f in files.values():
             f.close()

@@ -1,0 +1,111 @@
+"""Back faces: which of an object's points turn away from the camera at each frame.
+
+The depth-ratio test (``d_map < occlusion_ratio * z``) cannot see a surface that lies less than
+``1 - occlusion_ratio`` of the distance behind another: at 50 m and 0.95 that is 2.5 m, a whole
+car, so the far faces of cars seen obliquely were called visible (docs/benchmarks.md, "Visibility
+and time on the hard world": 33% of back-face point-frames). Each object's own returns give its
+surface: a point whose outward normal points away from the camera is on a face its own object
+hides, at any distance.
+
+Normals: PCA over each return's ``k`` nearest neighbours among the clip's returns of the object
+in its box frame (``drivetrack.refine.kernel.knn`` / ``normals``, the refinement's estimator),
+oriented towards the lidar that saw the return (a lidar sees the outside of a surface), placed
+by its ``lidar_calibration`` extrinsic (:func:`sensor_positions`; :data:`SENSOR_VEHICLE_M` where a
+scene has none). The position matters for objects beside the ego: a car 1.5 m away has its roof
+below the roof lidar and above a point at bumper height, so one stand-in point for every lidar
+turned its roof normals inwards and called the roof a back face. A normal is *unreliable* when
+its neighbourhood is too thin to fix a plane: fewer than ``k`` returns, the ``k``-th neighbour
+farther than ``max_neighbour_m``, or planarity below ``min_planarity``; unreliable points are
+never called back faces (the depth test alone decides for them).
+
+Shapes: n points, T frames; metres, box frame unless named otherwise.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
+           "facing_mask"]
+
+#: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
+#: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
+SENSOR_VEHICLE_M = np.array([1.4, 0.0, 2.2])
+
+
+def sensor_positions(lasers: np.ndarray, origins: dict[int, np.ndarray]) -> np.ndarray:
+    """float64 [n, 3]: the vehicle-frame position of the lidar of each return.
+
+    ``lasers`` int [n] (``LaserName`` values), ``origins`` laser -> float64 [3] (``Scene.lidar_origins``).
+    """
+    table = np.tile(SENSOR_VEHICLE_M, (8, 1))
+    for laser, origin in origins.items():
+        if 0 <= int(laser) < table.shape[0]:
+            table[int(laser)] = origin
+    return table[np.asarray(lasers, dtype=np.int64)]
+
+
+@dataclass
+class SurfelNormals:
+    """Per-point surface normals of one object.
+
+    Attributes:
+        normal: float64 [n, 3], unit, box frame, outward (towards the sensor side).
+        reliable: bool [n], whether the neighbourhood fixes a plane (see the module docstring).
+    """
+    normal: np.ndarray
+    reliable: np.ndarray
+
+    @property
+    def num_unreliable(self) -> int:
+        return int((~self.reliable).sum())
+
+
+def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: int = 12,
+                   max_neighbour_m: float = 0.5, min_planarity: float = 0.2) -> SurfelNormals:
+    """Normals of every point float64 [n, 3] of one object, from its own point cloud.
+
+    Args:
+        points_box: float64 [n, 3], the object's returns in its box frame (all clip frames).
+        sensor_box: float64 [n, 3], the sensor position of each return's frame, in the box frame
+            of that frame (normals are turned to face it).
+        neighbours: k of the k-nearest-neighbour PCA.
+        max_neighbour_m: the k-th neighbour must lie within this distance.
+        min_planarity: smallest ``(l2 - l1) / l3`` of the neighbourhood's covariance.
+    """
+    from drivetrack.refine.kernel import knn, normals
+
+    points_box = np.ascontiguousarray(points_box, dtype=np.float64)
+    n = points_box.shape[0]
+    if n < neighbours:
+        return SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool))
+    dist, index = knn(points_box, neighbours)
+    normal, planarity = normals(points_box, index)
+    flip = np.einsum("ni,ni->n", normal, sensor_box - points_box) < 0
+    normal[flip] *= -1.0
+    reliable = (dist[:, -1] <= max_neighbour_m) & (planarity >= min_planarity)
+    return SurfelNormals(normal, reliable)
+
+
+def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) -> np.ndarray:
+    """float64 [T, 3]: the camera centre in the box frame of each frame.
+
+    ``camera_from_box`` float64 [T, 4, 4] and ``shift_camera`` float64 [T, 3] (metres, added in
+    the camera frame) map box points as ``R p + t + shift``; the centre solves ``R p + t + shift = 0``.
+    """
+    rotation, translation = camera_from_box[:, :3, :3], camera_from_box[:, :3, 3] + shift_camera
+    return -np.einsum("tji,tj->ti", rotation, translation)
+
+
+def facing_mask(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.ndarray,
+                max_angle_deg: float) -> np.ndarray:
+    """bool [T, n]: the point's face turns towards the camera (or its normal is unreliable).
+
+    A face turns towards the camera when the angle between its outward normal and the direction
+    to the camera centre is below ``max_angle_deg`` (90: any face not turned away).
+    """
+    to_camera = centres_box[:, None, :] - points_box[None]                         # [T, n, 3]
+    cosine = np.einsum("tni,ni->tn", to_camera, surfels.normal) / np.maximum(
+        np.linalg.norm(to_camera, axis=-1), 1e-9)
+    return (cosine > np.cos(np.radians(max_angle_deg))) | ~surfels.reliable[None]
