@@ -138,53 +138,51 @@ def _f(x, digits=3):
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
 
 
-def to_markdown(r: dict, setup: dict, machine: str) -> str:
-    lines = [
-        "## Visibility and time on the hard world (before the fixes)", "",
-        f"`bench/bench_visibility.py`: one `SynthConfig(world=\"hard\")` segment (docs/synthetic.md: "
-        f"oblique cars 20-70 m away, a car sliding behind a van, 0.3 m poles and a low sign, pedestrians "
-        f"by cars, cars passing 1.5-1.8 m beside the ego, a turning car, a crossing cyclist; cameras "
-        f"triggered as the TOP sweep passes them, `lidar_box` at the frame time), preset `{setup['preset']}`, "
-        f"{setup['frames']} frames, seed {setup['seed']}, cameras {', '.join(CAMERAS)}. Annotated with the "
-        f"default pipeline (`AnnotateConfig()`; clip selection widened: all cameras and object types, "
-        f"`min_frames` 8, `max_camera_distance_m` 75) and scored against the exact truth. OA here is "
-        f"pooled over every matched (track, frame) whose true pixel is inside the image; back faces are "
-        f"point-frames whose face turns away from the camera (truth `facing`), always truly occluded. "
-        f"Generation {setup['generate_s']:.0f} s, annotation {setup['annotate_s']:.0f} s wall. "
-        f"Machine: {machine}.", "",
-        f"Pooled OA **{_f(r['pooled_oa'])}** over {r['point_frames']} point-frames, {len(r['per_clip_oa'])} clips. "
-        f"False \"visible\": **{_f(r['back_face_false_visible'])}** of {r['back_face_point_frames']} back-face "
-        f"point-frames, {_f(r['occluded_by_other_false_visible'])} of {r['occluded_by_other_point_frames']} "
-        f"point-frames occluded by another object; truly visible point-frames called visible: "
-        f"{_f(r['visible_recall'])} of {r['visible_point_frames']}.", "",
-        "| distance (camera to point) | point-frames | OA | back-face false visible |", "|---|---|---|---|"]
-    lines += [f"| {d['bin']} | {d['point_frames']} | {_f(d['oa'])} | {_f(d['back_face_false_visible'])} |"
-              for d in r["by_distance"]]
-    lines += ["", "| object role | point-frames | OA | back-face false visible |", "|---|---|---|---|"]
-    lines += [f"| {d['role']} | {d['point_frames']} | {_f(d['oa'])} | {_f(d['back_face_false_visible'])} |"
-              for d in r["by_role"]]
-    lines += ["", "| camera | objects | clips | median px error | AJ | OA |", "|---|---|---|---|---|---|"]
-    lines += [f"| {d['camera']} | {d['objects']} | {d['clips']} | {_f(d['pixel_error_median'], 2)} | "
-              f"{_f(d['aj'])} | {_f(d['oa'])} |" for d in r["by_camera_motion"]]
-    lines += ["", "OA per clip (TAP-Vid, query mode `first`):", "",
-              "| camera | object | tracks | frames | OA | AJ |", "|---|---|---|---|---|---|"]
-    lines += [f"| {c['camera']} | `{c['object'][:8]}` ({c['role']}) | {c['tracks']} | {c['frames']} | "
-              f"{_f(c['oa'])} | {_f(c['aj'])} |" for c in r["per_clip_oa"]]
+#: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
+VARIANTS = {
+    "depth-ratio (paper)": {"back_face_max_deg": None},
+    "depth-ratio + back faces (default)": {},
+}
+COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
+
+
+def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
+    """The comparison block: one column per variant, the same segment and truth."""
+    names = list(results)
+    lines = ["## Visibility on the hard world: back faces from each object's own surface", "",
+             f"`bench/bench_visibility.py` (same segment and scoring as the block above: preset "
+             f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
+             f"type, `min_frames` 8, `max_camera_distance_m` 75), annotated once per variant in one run. "
+             f"Annotation wall time per variant: "
+             + ", ".join(f"{n} {setup['annotate_s'][n]:.0f} s" for n in names) + f". Machine: {machine}.", "",
+             "| measure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+
+    def row(label, get, digits=3):
+        lines.append(f"| {label} | " + " | ".join(_f(get(results[n]), digits) for n in names) + " |")
+
+    row("pooled OA", lambda r: r["pooled_oa"], 4)
+    row("back-face point-frames called visible", lambda r: r["back_face_false_visible"])
+    row("point-frames occluded by another object called visible", lambda r: r["occluded_by_other_false_visible"])
+    row("truly visible point-frames called visible", lambda r: r["visible_recall"], 4)
+    for i, (_, _, label) in enumerate(DISTANCE_BINS):
+        row(f"OA {label}", lambda r, i=i: r["by_distance"][i]["oa"], 4)
+        row(f"back faces called visible {label}", lambda r, i=i: r["by_distance"][i]["back_face_false_visible"])
+    for i, d in enumerate(results[names[0]]["by_camera_motion"]):
+        row(f"AJ {d['camera']} {d['objects']}", lambda r, i=i: r["by_camera_motion"][i]["aj"])
+    lines += ["", "OA per clip (query mode `first`):", "", "| camera | object | " + " | ".join(names) + " |",
+              "|---|---|" + "---|" * len(names)]
+    per = {n: {(c["camera"], c["object"]): c for c in results[n]["per_clip_oa"]} for n in names}
+    for key, c in per[names[0]].items():
+        lines.append(f"| {c['camera']} | `{c['object'][:8]}` ({c['role']}) | "
+                     + " | ".join(_f(per[n].get(key, {}).get("oa")) for n in names) + " |")
     return "\n".join(lines) + "\n"
 
 
-def _replace_block(block: str) -> None:
-    """Replace this benchmark's block of docs/benchmarks.md only (bench.run.replace_doc_block)."""
-    from bench.run import replace_doc_block
-
-    replace_doc_block(DOC, DOC_START, DOC_END, f"{DOC_START}\n{block}{DOC_END}")
-
-
 def main(argv: list[str] | None = None) -> int:
-    from bench.run import machine_description
+    from bench.run import machine_description, replace_doc_block
     from drivetrack.annotate import AnnotateConfig, annotate_segment
     from drivetrack.evaluation import evaluate_tracks
-    from drivetrack.synth import SynthConfig, generate_segment
+    from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
     from drivetrack.tracks import TrackConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -193,37 +191,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--workers", type=int, default=2, help="threads rendering the cameras")
     ap.add_argument("--no-docs", action="store_true", help="do not rewrite the block in docs/benchmarks.md")
+    ap.add_argument("--json", help="also write the summaries to this file")
     args = ap.parse_args(argv if argv is not None else [])
-    config = AnnotateConfig(track=TrackConfig(
-        cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
-        max_camera_distance_m=75.0))
+    results, annotate_s = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
                                                          cameras=CAMERAS, world="hard"),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
-        start = time.perf_counter()
-        result = annotate_segment(f"{tmp}/src", "training", seg, f"{tmp}/out", config, keep_tracks=True)
-        if result.status != "done":
-            raise RuntimeError(f"annotation of {seg} failed at {result.stage}: {result.error}")
-        annotate_s = time.perf_counter() - start
-        tracks = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
-        clips = evaluate_tracks(tracks, f"{tmp}/src").clips
-        pf = point_frames(tracks, f"{tmp}/src")
-        summary = summarise(pf, clips)
-        from drivetrack.synth import load_ground_truth
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
         role_of = dict(zip(objects["object_id"].astype(str), objects["role"].astype(str)))
-        for c in summary["per_clip_oa"]:
-            c["role"] = role_of[c["object"]]
-    setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed,
-             "generate_s": generate_s, "annotate_s": annotate_s}
-    print(json.dumps({**setup, **{k: v for k, v in summary.items() if k != "per_clip_oa"}}, indent=1))
-    markdown = to_markdown(summary, setup, machine_description())
+        for k, (name, overrides) in enumerate(VARIANTS.items()):
+            config = AnnotateConfig(track=TrackConfig(
+                cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
+                max_camera_distance_m=75.0, **overrides))
+            start = time.perf_counter()
+            result = annotate_segment(f"{tmp}/src", "training", seg, f"{tmp}/out{k}", config, keep_tracks=True)
+            if result.status != "done":
+                raise RuntimeError(f"annotation of {seg} failed at {result.stage}: {result.error}")
+            annotate_s[name] = time.perf_counter() - start
+            tracks = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
+            clips = evaluate_tracks(tracks, f"{tmp}/src").clips
+            summary = summarise(point_frames(tracks, f"{tmp}/src"), clips)
+            for c in summary["per_clip_oa"]:
+                c["role"] = role_of[c["object"]]
+            results[name] = summary
+            print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
+    setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
+             "annotate_s": annotate_s}
+    if args.json:
+        Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
+    markdown = compare_markdown(results, setup, machine_description())
     print(markdown)
     if not args.no_docs:
-        _replace_block(markdown)
+        replace_doc_block(DOC, COMPARE_START, COMPARE_END, f"{COMPARE_START}\n{markdown}{COMPARE_END}")
     return 0
 
 
