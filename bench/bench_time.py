@@ -145,18 +145,13 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.run import machine_description, replace_doc_block
+    from bench.run import add_hard_world_arguments, machine_description, replace_doc_block
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="medium", choices=["small", "medium", "full"])
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--workers", type=int, default=2, help="threads rendering the cameras")
+    add_hard_world_arguments(ap)
     ap.add_argument("--models", default="velocity,trajectory",
                     help="comma-separated TrackConfig.time_model values (\"main\": no time_model argument)")
     ap.add_argument("--scenarios", default="all", help="'all' or e.g. 'frame:0,sweep:0.05'")
-    ap.add_argument("--json", default=None, help="also write the raw results here")
-    ap.add_argument("--no-docs", action="store_true", help="do not rewrite the block in docs/benchmarks.md")
     args = ap.parse_args(argv if argv is not None else [])
     scenarios = SCENARIOS if args.scenarios == "all" else tuple(
         (s.split(":")[0], float(s.split(":")[1])) for s in args.scenarios.split(","))

@@ -1,10 +1,11 @@
-"""Visibility and time on the hard synthetic world (issues 15 and 16), before any fix.
+"""Visibility on the hard synthetic world (issue 15): the paper's depth test against ours, one run.
 
 Generates one hard-world segment (``SynthConfig(world="hard")``: oblique cars 20-70 m away, a car
 sliding behind a van, poles and a low sign, pedestrians by cars, cars passing close beside the
 ego, a turning car, a crossing cyclist; cameras triggered as the TOP sweep passes them), annotates
-it with the current default pipeline (``drivetrack.annotate.annotate_segment``, default
-``AnnotateConfig``; only the clip selection is widened: all five cameras, every object type,
+it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; the default with the back-face
+test of ``drivetrack.visibility``), each with the default pipeline otherwise
+(``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
 clips at all) and scores the tracks against the exact truth:
 
@@ -16,7 +17,10 @@ clips at all) and scores the tracks against the exact truth:
 - OA by camera-to-point distance (<20 m, 20-40, 40-60, 60+);
 - per camera and per moving / static object: median pixel error (truth-visible frames) and AJ.
 
-    .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~8 min, ~5 GB)
+The figures before any fix (issues 15 and 16) stay in docs/benchmarks.md as measured; this
+script writes the comparison block (``bench_visibility_compare``).
+
+    .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python -m bench.run visibility
 """
@@ -179,19 +183,14 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench.run import machine_description, replace_doc_block
+    from bench.run import add_hard_world_arguments, machine_description, replace_doc_block
     from drivetrack.annotate import AnnotateConfig, annotate_segment
     from drivetrack.evaluation import evaluate_tracks
     from drivetrack.synth import SynthConfig, generate_segment, load_ground_truth
     from drivetrack.tracks import TrackConfig
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="medium", choices=["small", "medium", "full"])
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=7)
-    ap.add_argument("--workers", type=int, default=2, help="threads rendering the cameras")
-    ap.add_argument("--no-docs", action="store_true", help="do not rewrite the block in docs/benchmarks.md")
-    ap.add_argument("--json", help="also write the summaries to this file")
+    add_hard_world_arguments(ap)
     args = ap.parse_args(argv if argv is not None else [])
     results, annotate_s = {}, {}
     with tempfile.TemporaryDirectory() as tmp:

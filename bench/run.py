@@ -34,6 +34,17 @@ def replace_doc_block(doc: Path, start: str, end: str, block: str) -> None:
     os.replace(tmp, doc)
 
 
+def add_hard_world_arguments(parser) -> None:
+    """The options of the benchmarks that generate one hard-world segment and score it
+    (bench_visibility, bench_time): preset, frames, seed, render workers, --json, --no-docs."""
+    parser.add_argument("--preset", default="medium", choices=["small", "medium", "full"])
+    parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--workers", type=int, default=2, help="threads rendering the cameras")
+    parser.add_argument("--json", default=None, help="also write the raw results to this file")
+    parser.add_argument("--no-docs", action="store_true", help="do not rewrite the block in docs/benchmarks.md")
+
+
 def machine_description() -> str:
     """One line: cores, CPU model, memory, Python; written beside every benchmark figure."""
     import os
