@@ -4,7 +4,9 @@ Each reader below is written from the public loader it names (our code, their re
 
 - ``aharley/alltracker`` ``datasets/drivetrackdataset.py``: glob ``*.npz`` in one folder,
   ``np.load(allow_pickle=True)``, ``video`` / ``tracks`` / ``visibles``, transpose to time-major,
-  drop tracks with any non-finite value, out-of-image -> invisible, keep tracks visible twice.
+  drop tracks with any non-finite value, skip clips with fewer than ``traj_per_sample`` (512)
+  tracks, out-of-image -> invisible, keep tracks visible twice, drop tracks that go far out of
+  bounds, keep tracks visible in frame 0, and skip the clip unless 512 remain.
 - ``chandlj/pips2`` ``datasets/drivetrackdataset.py`` (the DriveTrack authors' PIPs++ fork):
   split each clip into 24-frame chunks, keep full chunks of the camera's size, keep tracks
   visible in the chunk, keep chunks with >= 256 tracks; the dataset then needs the points
@@ -53,27 +55,50 @@ def drivetrack_file_of(tapvid3d_file: str, split_dir: str) -> str:
 
 # ---- aharley/alltracker: datasets/drivetrackdataset.py ------------------------------------------
 
-def alltracker_style_read(path: str):
-    """(rgbs [S,H,W,3], trajs [S,N',2], visibs [S,N'], kept track indices) as that loader builds them."""
+def alltracker_style_read(path: str, traj_per_sample: int = 512, crop_size=(384, 512)):
+    """(rgbs [S,H,W,3], trajs [S,N',2], visibs [S,N'], kept track indices, accepted, reason) as that
+    loader builds them when it indexes the folder: drop tracks with a non-finite value; a clip with
+    fewer than ``traj_per_sample`` tracks is skipped; out-of-image -> invisible; keep tracks
+    visible twice (``utils.data.standardize_test_data``); drop tracks that ever go farther than
+    2 max(H, W) from the crop centre; keep tracks visible in frame 0; a clip keeps its place only
+    with ``traj_per_sample`` such tracks (its random trim to 10,000 tracks is left out: it only
+    subsamples)."""
     ds = np.load(path, allow_pickle=True)
     rgbs, trajs, visibs = ds["video"], ds["tracks"], ds["visibles"]
     trajs = np.transpose(trajs, (1, 0, 2)).astype(np.float32)                # S, N, 2
     visibs = np.transpose(visibs, (1, 0)).astype(np.float32)                 # S, N
+    valids = visibs.copy()
     kept = np.flatnonzero(np.isfinite(trajs.sum(0).sum(1)))                  # any NaN/inf -> dropped
-    trajs, visibs = trajs[:, kept], visibs[:, kept].copy()
+    trajs, visibs, valids = trajs[:, kept], visibs[:, kept].copy(), valids[:, kept]
+    if trajs.shape[1] < traj_per_sample:
+        return rgbs, trajs, visibs, kept, False, "fewer finite tracks than traj_per_sample"
     s, h, w, _ = rgbs.shape
     outside = (trajs[..., 0] > w - 1) | (trajs[..., 0] < 0) | (trajs[..., 1] > h - 1) | (trajs[..., 1] < 0)
     visibs[outside] = 0
-    twice = visibs.sum(0) > 1                                                # "tracks that make sense"
-    return rgbs, trajs[:, twice], visibs[:, twice], kept[twice]
+    twice = (valids * visibs).sum(0) > 1                                     # "tracks that make sense"
+    trajs, visibs, valids, kept = trajs[:, twice], visibs[:, twice], valids[:, twice], kept[twice]
+    if trajs.shape[1] < traj_per_sample:
+        return rgbs, trajs, visibs, kept, False, "fewer tracks visible twice than traj_per_sample"
+    centre = np.array(crop_size[::-1], np.float32) / 2.0
+    close = np.all(np.linalg.norm(trajs - centre, axis=-1) < max(h, w) * 2, axis=0)
+    trajs, visibs, valids, kept = trajs[:, close], visibs[:, close], valids[:, close], kept[close]
+    if trajs.shape[1] < traj_per_sample:
+        return rgbs, trajs, visibs, kept, False, "fewer tracks near the crop than traj_per_sample"
+    first = (valids[0] * visibs[0]) > 0
+    trajs, visibs, kept = trajs[:, first], visibs[:, first], kept[first]
+    if trajs.shape[1] < traj_per_sample:
+        return rgbs, trajs, visibs, kept, False, "fewer tracks visible in frame 0 than traj_per_sample"
+    return rgbs, trajs, visibs, kept, True, ""
 
 
 def test_alltracker_style_loader_reads_every_clip(split_dir):
     paths = sorted(glob.glob(os.path.join(split_dir, "*.npz")))             # flat glob, as theirs
     assert paths
-    kept_fraction = []
+    kept_fraction, accepted_at_512 = [], []
     for path in paths:
-        rgbs, trajs, visibs, kept = alltracker_style_read(path)
+        # its per-track rules, without its clip-size threshold: every clip has tracks it can use
+        rgbs, trajs, visibs, kept, accepted, reason = alltracker_style_read(path, traj_per_sample=1)
+        assert accepted, f"{path}: {reason}"
         with np.load(path, allow_pickle=False) as z:                         # and no pickle needed
             tracks, visibles = z["tracks"], z["visibles"]
         s, h, w, c = rgbs.shape
@@ -81,19 +106,24 @@ def test_alltracker_style_loader_reads_every_clip(split_dir):
         assert trajs.shape[0] == s and trajs.shape[2] == 2 and visibs.shape == trajs.shape[:2]
         assert np.all(np.isfinite(trajs))
         # our tracks are finite at every frame (hidden frames hold the nearest valid position),
-        # so their NaN rule drops none: only the visible-twice rule can remove a track
+        # so their NaN rule drops none, and they stay near the image (no far out-of-bounds drop)
         assert np.all(np.isfinite(tracks))
-        twice = np.flatnonzero(visibles.sum(axis=1) >= 2)
-        assert set(kept.tolist()) <= set(twice.tolist())
-        assert len(kept) >= 0.99 * len(twice)  # only their stricter last-pixel-column rule differs
+        twice_first = np.flatnonzero((visibles.sum(axis=1) >= 2) & visibles[:, 0])
+        assert set(kept.tolist()) <= set(twice_first.tolist())
+        assert len(kept) >= 0.99 * len(twice_first)  # only their stricter last-pixel-column rule differs
         # their out-of-image rule (x > W-1) only removes points of the last pixel column/row
         ours = visibles[kept].T
         theirs = visibs.astype(bool)
         lost = ours & ~theirs
         assert np.all((trajs[..., 0][lost] > w - 1) | (trajs[..., 1][lost] > h - 1))
         kept_fraction.append(kept.size / tracks.shape[0])
-        assert kept.size > 0, f"{path}: the alltracker-style loader keeps no track"
-    print(f"alltracker-style: kept fraction of tracks per clip {np.round(kept_fraction, 3).tolist()}")
+        # at its default of 512 tracks per sample, a clip is indexed iff 512 of them pass
+        at_512 = alltracker_style_read(path)
+        assert at_512[4] == (len(kept) >= 512), (path, at_512[5])
+        accepted_at_512.append(at_512[4])
+    print(f"alltracker-style: kept fraction of tracks per clip {np.round(kept_fraction, 3).tolist()}; "
+          f"clips indexed at traj_per_sample=512: {sum(accepted_at_512)} of {len(paths)}")
+    assert any(accepted_at_512), "no clip has the 512 frame-0-visible tracks alltracker samples"
 
 
 # ---- chandlj/pips2: datasets/drivetrackdataset.py (24-frame chunks) ---------------------------------
