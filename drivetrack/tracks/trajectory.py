@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivetrack.geometry import rotation_from_rpy
 from drivetrack.waymo.schema import LaserName
 
 __all__ = ["LABEL_TIMES", "TIME_MODELS", "BoxTrajectory", "build_trajectory", "sweep_label_offsets",
@@ -63,21 +64,12 @@ def _wrap(a):
 
 
 def _euler_zyx(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(yaw, pitch, roll) float64 [...] of rotations [..., 3, 3] = Rz(yaw) Ry(pitch) Rx(roll)."""
+    """(yaw, pitch, roll) float64 [...] of rotations [..., 3, 3] = Rz(yaw) Ry(pitch) Rx(roll)
+    (the inverse of ``drivetrack.geometry.rotation_from_rpy``)."""
     yaw = np.arctan2(rotation[..., 1, 0], rotation[..., 0, 0])
     pitch = np.arcsin(np.clip(-rotation[..., 2, 0], -1.0, 1.0))
     roll = np.arctan2(rotation[..., 2, 1], rotation[..., 2, 2])
     return yaw, pitch, roll
-
-
-def _rotation_zyx(yaw, pitch, roll) -> np.ndarray:
-    """float64 [..., 3, 3] = Rz(yaw) Ry(pitch) Rx(roll)."""
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    out = np.empty(np.shape(yaw) + (3, 3))
-    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
-    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2] = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
-    out[..., 2, 0], out[..., 2, 1], out[..., 2, 2] = -sp, cp * sr, cp * cr
-    return out
 
 
 @dataclass
@@ -124,7 +116,7 @@ class BoxTrajectory:
         """float64 [N, 4, 4]: the objects of box rows ``rows`` (int [N]) at ``time_s`` (float [N], s)."""
         centre, yaw, pitch, roll, _, _ = self.motion(rows, time_s)
         out = np.zeros(centre.shape[:1] + (4, 4))
-        out[:, :3, :3] = _rotation_zyx(yaw, pitch, roll)
+        out[:, :3, :3] = rotation_from_rpy(roll, pitch, yaw)
         out[:, :3, 3] = centre
         out[:, 3, 3] = 1.0
         return out
