@@ -33,6 +33,7 @@ import tempfile
 import time
 import traceback
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -283,7 +284,7 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
                        depth_fn: Callable[[list[DepthBatch]], tuple[list[DepthBatch], dict]] | None = None,
                        on_stage: StageCallback | None = None, hash_sources: bool = True,
                        write_segment_stats: bool = False, raise_errors: bool = False,
-                       keep_tracks: bool = False) -> SegmentResult:
+                       keep_tracks: bool = False, threads: int = 1) -> SegmentResult:
     """One segment through every stage (:data:`STAGES`): ingest, refine, plan, depth, tracks, write.
 
     The one staged pipeline of a segment, for the CLI (:func:`annotate_segment`) and the release
@@ -295,12 +296,18 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
       reported with the depth stage;
     - ``on_stage(stage, state, info)`` hears every stage start, finish and failure (progress).
 
+    ``threads``: with 2 or more, the depth maps (sparse and completed) of the cameras' batches and,
+    unless ``map_fn`` is given, the object jobs run in a pool of that many threads (their kernels
+    release the GIL); the results are the same and in the same order as with one.
+
     ``hash_sources``: record the sha256 of each source file (``run.json``). ``write_segment_stats``:
     also write this segment's ``stats/*.parquet`` into ``out_url`` (a per-segment folder).
     A failure comes back as a failed :class:`SegmentResult` naming the stage and the error; with
     ``raise_errors`` the error itself is raised after ``on_stage`` heard it.
     """
     result = SegmentResult(split=split, segment=segment, status=SegmentStatus.RUNNING)
+    pool = ThreadPoolExecutor(max_workers=threads) if threads >= 2 else None
+    in_threads = pool.map if pool is not None else map
     plan = None
     tracks: list[ObjectTracks] = []
     stage, start = Stage.INGEST, time.perf_counter()
@@ -335,16 +342,16 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": len(plan.jobs), "unit": "object jobs"})
 
         begin(Stage.DEPTH)
-        batches = sparse_depth_batches(scene, config, plan)
+        batches = sparse_depth_batches(scene, config, plan, map_fn=in_threads)
         if depth_fn is None:
-            dense, info = [complete_depth_batch(b, config) for b in batches], {}
+            dense, info = list(in_threads(lambda b: complete_depth_batch(b, config), batches)), {}
         else:
             dense, info = depth_fn(batches)
         end({"count": len(batches), "unit": "depth batches", **info})
         del batches
 
         begin(Stage.TRACKS)
-        tracks = track_segment(scene, dense, config, plan, map_fn=map_fn)
+        tracks = track_segment(scene, dense, config, plan, map_fn=map_fn or (in_threads if pool else None))
         del dense
         end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
@@ -367,17 +374,30 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
             on_stage(stage, "failed", {"error": result.error})
         if raise_errors:
             raise
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
     if keep_tracks:
         result.tracks = tracks
     return result
 
 
 def annotate_segment(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig,
-                     storage_options: dict | None = None, keep_tracks: bool = False) -> SegmentResult:
+                     storage_options: dict | None = None, keep_tracks: bool = False,
+                     threads: int | None = None) -> SegmentResult:
     """Ingest, complete depth, track and write one segment in this process
-    (:func:`run_segment_stages`); failures come back as a result."""
+    (:func:`run_segment_stages`, in ``threads`` threads; default :func:`available_cores`);
+    failures come back as a result."""
     return run_segment_stages(source, split, segment, out_url, config, storage_options=storage_options,
-                              keep_tracks=keep_tracks)
+                              keep_tracks=keep_tracks, threads=available_cores() if threads is None else threads)
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:      # not on Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[ObjectTracks],
@@ -551,8 +571,12 @@ def _run_in_processes(jobs: list[tuple], workers: int, tmp_root: str,
 
 def annotate(source: str, split: str, segments: list[str], out_url: str, config: AnnotateConfig,
              workers: int = 1, storage_options: dict | None = None,
-             on_result: Callable[[SegmentResult], None] | None = None) -> list[SegmentResult]:
+             on_result: Callable[[SegmentResult], None] | None = None,
+             threads: int | None = None) -> list[SegmentResult]:
     """Annotate ``segments`` (in ``workers`` processes), then write the tables and ``run.json``.
+
+    Each segment runs its depth maps and object jobs in ``threads`` threads (default: the
+    available cores divided among the workers, at least 1).
 
     A failed segment is reported through its result and ``on_result`` and does not stop the
     others. Results come back in the order of ``segments``. With ``workers >= 2`` every segment
@@ -570,7 +594,11 @@ def annotate(source: str, split: str, segments: list[str], out_url: str, config:
     check_name("split", split, "the split to annotate")
     for segment in segments:
         check_name("segment", segment, f"the segments to annotate of split {split!r}")
-    jobs = [(source, split, s, out_url, config, storage_options) for s in dict.fromkeys(segments)]
+    if threads is None:
+        threads = max(1, available_cores() // max(1, workers))
+    if threads < 1:
+        raise ValueError(f"threads: expected at least 1, found {threads}")
+    jobs = [(source, split, s, out_url, config, storage_options, False, threads) for s in dict.fromkeys(segments)]
     by_segment: dict[str, SegmentResult] = {}
     tmp_root = tempfile.mkdtemp(prefix="drivetrack-annotate-")
     try:

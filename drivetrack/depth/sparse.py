@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.model import CameraModel
+from drivetrack.depth.kernel import NUMBA_AVAILABLE, project_nearest
 from drivetrack.geometry import transform_points
 
 __all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
@@ -11,7 +13,8 @@ __all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone"
 
 
 def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
-                             subset: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                             subset: np.ndarray | None = None, *, vehicle_from_points: np.ndarray | None = None,
+                             kernel: str = "numba") -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Project LiDAR points into a camera and keep the minimum z-depth per pixel.
 
     Args:
@@ -20,6 +23,11 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
             points behind it, with untrusted distortion, or outside the image are dropped.
         subset: optional bool [M]: also return the map of these points alone (e.g. one lidar's
             returns, for :func:`bound_blind_zone`), from the same projection.
+        vehicle_from_points: optional float64 [4, 4]: the points are in another frame (e.g. the
+            vehicle frame of the LiDAR's timestamp); this moves them into the vehicle frame first.
+        kernel: ``numba`` (default: one fused pass, :func:`drivetrack.depth.kernel.project_nearest`)
+            or ``numpy`` (the reference: [M, 3] temporaries and ``np.minimum.at``); the maps are
+            bit-identical.
     Returns:
         float32 [camera.height, camera.width], metres of z-depth (camera-frame x, distance along
         the optical axis from the camera centre), ``0`` where no point projects. A point at pixel
@@ -39,11 +47,28 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
         subset = np.asarray(subset, dtype=bool)
         if subset.shape != points_vehicle.shape[:1]:
             raise ValueError(f"subset: expected bool [{points_vehicle.shape[0]}], found shape {subset.shape}")
+    if kernel not in ("numba", "numpy"):
+        raise ValueError(f"sparse_depth_from_points: kernel must be 'numba' or 'numpy', found {kernel!r}")
+    if vehicle_from_points is not None:
+        vehicle_from_points = np.asarray(vehicle_from_points, dtype=np.float64)
+        if vehicle_from_points.shape != (4, 4):
+            raise ValueError(f"vehicle_from_points: expected float [4, 4], found shape {vehicle_from_points.shape}")
+    if len(points_vehicle) and kernel == "numba" and NUMBA_AVAILABLE:
+        depth = np.zeros(height * width, dtype=np.float32)
+        depth_subset = np.zeros(height * width if subset is not None else 0, dtype=np.float32)
+        project_nearest(np.ascontiguousarray(points_vehicle, dtype=np.float64),
+                        vehicle_from_points if vehicle_from_points is not None else np.zeros((0, 0)),
+                        np.ascontiguousarray(camera.camera_from_vehicle), camera_parameters(camera),
+                        subset if subset is not None else np.zeros(0, dtype=bool), depth, depth_subset)
+        depth = depth.reshape(height, width)
+        return depth if subset is None else (depth, depth_subset.reshape(height, width))
     flat = np.full(height * width, np.inf, dtype=np.float64)
     # the subset's map in float32 directly: the minimum of float32-rounded depths equals the
     # float32-rounded minimum, so its values match the full map's where the same return wins
     flat_subset = np.full(height * width, np.inf, dtype=np.float32) if subset is not None else None
     if len(points_vehicle):
+        if vehicle_from_points is not None:
+            points_vehicle = transform_points(vehicle_from_points, points_vehicle)
         points_camera = transform_points(camera.camera_from_vehicle, points_vehicle)
         pixels, valid = camera.pixels_from_camera(points_camera)
         keep = valid & camera.inside_image(pixels)

@@ -14,11 +14,11 @@ functions, so that ``drivetrack.tracks`` may import this module without a cycle.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
 import numpy as np
 
-from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.geometry import invert_rigid
 from drivetrack.scene import Scene
 from drivetrack.waymo.schema import CameraName
 
@@ -95,14 +95,15 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
         if not keep.all():
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
         image_world_from_vehicle = frames.world_from_vehicle[t]
+        image_vehicle_from_vehicle = None
         if np.all(np.isfinite(image_world_from_vehicle)):
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
-            points = transform_points(image_vehicle_from_vehicle, points)
         if config.blind_zone_laser is None:
-            out[i] = sparse_depth_from_points(points, model)
+            out[i] = sparse_depth_from_points(points, model, vehicle_from_points=image_vehicle_from_vehicle)
         else:
             out[i], reference = sparse_depth_from_points(
-                points, model, subset=(lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1))
+                points, model, subset=(lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1),
+                vehicle_from_points=image_vehicle_from_vehicle)
         if config.see_through_window_deg is not None:
             out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
                                        config.see_through_min_quadrants)] = 0.0
@@ -149,13 +150,20 @@ class DepthBatch:
     method: str = ""
 
 
-def sparse_depth_batches(scene: Scene, config: "AnnotateConfig", plan: SegmentPlan | None = None) -> list[DepthBatch]:
-    """Sparse LiDAR depth maps of every frame an accepted clip needs, in batches per camera."""
+def sparse_depth_batches(scene: Scene, config: "AnnotateConfig", plan: SegmentPlan | None = None,
+                         map_fn: Callable[[Callable, list], Iterable] | None = None) -> list[DepthBatch]:
+    """Sparse LiDAR depth maps of every frame an accepted clip needs, in batches per camera.
+
+    ``map_fn(function, jobs)`` runs the batches (default: the built-in ``map``; a thread pool's
+    ``map`` runs cameras at once: the projection kernel releases the GIL), results in job order.
+    """
     from drivetrack.tracks.plan import plan_segment
 
     plan = plan if plan is not None else plan_segment(scene, config.track)
-    return [DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
-            for job in depth_jobs(scene, config.track, plan)]
+
+    def batch(job: DepthJob) -> DepthBatch:
+        return DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
+    return list((map_fn or map)(batch, depth_jobs(scene, config.track, plan)))
 
 
 def complete_depth_batch(batch: DepthBatch, config: "AnnotateConfig", device: str | None = None) -> DepthBatch:

@@ -23,9 +23,9 @@ __all__ = ["OUTPUT_MODULES", "RELEASE_MODULES", "sha256_json", "code_fingerprint
            "segment_key", "release_fingerprint"]
 
 OUTPUT_MODULES = (
-    "drivetrack", "drivetrack.annotate", "drivetrack.boxes", "drivetrack.camera", "drivetrack.camera.model",
+    "drivetrack", "drivetrack.annotate", "drivetrack.boxes", "drivetrack.camera", "drivetrack.camera.kernel", "drivetrack.camera.model",
     "drivetrack.camera.rolling_shutter", "drivetrack.depth", "drivetrack.depth.completers",
-    "drivetrack.depth.config", "drivetrack.depth.lookup", "drivetrack.depth.registry",
+    "drivetrack.depth.config", "drivetrack.depth.kernel", "drivetrack.depth.lookup", "drivetrack.depth.registry",
     "drivetrack.depth.sparse", "drivetrack.depth.stage", "drivetrack.depth.torch_nearest", "drivetrack.faults",
     "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs",
     "drivetrack.refine", "drivetrack.refine.config", "drivetrack.refine.kernel", "drivetrack.refine.motion",

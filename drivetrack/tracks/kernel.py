@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.camera.model import MAX_TRUSTED_DISTORTION, MIN_TRUSTED_DISTORTION
+from drivetrack.camera.kernel import camera_parameters
+from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 
 __all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
            "fill_points3d_frames", "summarise_tracks"]
@@ -35,28 +36,6 @@ from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
 #: Status codes of :func:`screen_points`.
 KEPT, DROPPED_INVISIBLE, DROPPED_SPEED = 0, 1, 2
-
-
-def camera_parameters(model) -> np.ndarray:
-    """float64 [11]: (f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2, width, height) of a CameraModel."""
-    return np.array([model.f_u, model.f_v, model.c_u, model.c_v, model.k1, model.k2, model.k3,
-                     model.p1, model.p2, model.width, model.height], dtype=np.float64)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2):
-    """(pixel x, pixel y, valid) of camera-frame point (x, y, z), as CameraModel.pixels_from_camera."""
-    if not x > 1e-6:
-        return np.nan, np.nan, False
-    u = -y / x
-    v = -z / x
-    r2 = u * u + v * v
-    d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    if not (d >= MIN_TRUSTED_DISTORTION and d <= MAX_TRUSTED_DISTORTION):
-        return np.nan, np.nan, False
-    u_d = u * d + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u)
-    v_d = v * d + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v
-    return f_u * u_d + c_u, f_v * v_d + c_v, True
 
 
 @njit(cache=True, nogil=True, inline="always")
