@@ -67,7 +67,8 @@ def test_tables_and_run_json(annotated_output, synth_segments):
 
 
 def test_staged_api_matches_one_call(synth_source, synth_segments, annotated_output):
-    """Stages run one by one (as the flow does) give the same tracks as annotate()."""
+    """Stages run one by one (as the flow does), in this thread, give the same tracks as annotate()
+    with its depth batches and object jobs in two threads (conftest)."""
     config = AnnotateConfig()
     segment = synth_segments[0]
     scene = load_scene_for(synth_source, "training", segment, config)

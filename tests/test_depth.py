@@ -12,6 +12,7 @@ from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import rigid_from_rotation_translation
 
 CPU_COMPLETERS = ["nearest", "ipbasic"]
+KERNELS = ["numba", "numpy"]
 
 
 def make_camera(width=40, height=30, k1=0.0, f=20.0) -> CameraModel:
@@ -28,13 +29,14 @@ def point_at_pixel(camera, x, y, depth):
 
 # ---------------------------------------------------------------- sparse_depth_from_points
 
-def test_sparse_min_depth_wins_and_pixel_convention():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_sparse_min_depth_wins_and_pixel_convention(kernel):
     camera = make_camera()
     points = np.array([point_at_pixel(camera, 5.5, 7.5, 10.0),
                        point_at_pixel(camera, 5.9, 7.1, 4.0),    # same pixel, nearer: wins
                        point_at_pixel(camera, 5.2, 7.8, 12.0),
                        point_at_pixel(camera, 30.01, 2.99, 3.0)])  # pixel (30, 2)
-    sparse = sparse_depth_from_points(points, camera)
+    sparse = sparse_depth_from_points(points, camera, kernel=kernel)
     assert sparse.dtype == np.float32 and sparse.shape == (30, 40)
     assert sparse[7, 5] == pytest.approx(4.0)
     assert sparse[2, 30] == pytest.approx(3.0)
@@ -50,27 +52,56 @@ def test_sparse_z_depth_is_camera_x_not_range():
     assert sparse[np.nonzero(sparse)] == pytest.approx([10.0])
 
 
-def test_sparse_ignores_points_behind_outside_and_nan():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_sparse_ignores_points_behind_outside_and_nan(kernel):
     camera = make_camera()
     points = np.array([[-5.0, 0.0, 0.0],                       # behind the camera
                        [5.0, 100.0, 0.0],                      # far outside the image
                        [np.nan, 0.0, 0.0], [5.0, np.nan, 0.0],
                        point_at_pixel(camera, 39.999, 29.999, 2.0),  # last pixel, inside
                        point_at_pixel(camera, 40.0, 10.0, 2.0)])     # x = width: outside
-    sparse = sparse_depth_from_points(points, camera)
+    sparse = sparse_depth_from_points(points, camera, kernel=kernel)
     assert np.count_nonzero(sparse) == 1 and sparse[29, 39] == pytest.approx(2.0)
 
 
-def test_sparse_uses_distortion():
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_sparse_uses_distortion(kernel):
     plain, barrel = make_camera(), make_camera(k1=0.05)
     point = np.array([point_at_pixel(plain, 35.5, 25.5, 5.0)])  # u = -0.775, v = -0.525
-    assert sparse_depth_from_points(point, plain)[25, 35] == pytest.approx(5.0)
+    assert sparse_depth_from_points(point, plain, kernel=kernel)[25, 35] == pytest.approx(5.0)
     pixels, valid = barrel.pixels_from_vehicle(point)
     expected_col, expected_row = np.floor(pixels[0]).astype(int)
     assert valid[0] and (expected_col, expected_row) != (35, 25)
-    sparse = sparse_depth_from_points(point, barrel)
+    sparse = sparse_depth_from_points(point, barrel, kernel=kernel)
     assert sparse[expected_row, expected_col] == pytest.approx(5.0)
     assert np.count_nonzero(sparse) == 1
+
+
+def test_sparse_kernel_is_bit_identical_to_the_numpy_reference():
+    """The fused kernel against the numpy reference: distortion, a rotated and shifted camera, a
+    move into another vehicle frame first, the subset map, many returns sharing pixels."""
+    rng = np.random.default_rng(3)
+    angle = 0.3
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    camera = CameraModel(f_u=90.0, f_v=91.0, c_u=61.3, c_v=40.7, k1=-0.08, k2=0.02, p1=0.001, p2=-0.002, k3=0.001,
+                         width=120, height=80,
+                         vehicle_from_camera=rigid_from_rotation_translation(rotation, np.array([1.5, -0.1, 2.0])))
+    points = np.concatenate([rng.uniform([-20, -30, -3], [60, 30, 6], size=(20000, 3)),
+                             np.repeat(rng.uniform([5, -3, 0], [30, 3, 2], size=(50, 3)), 40, axis=0)
+                             + rng.normal(0.0, 1e-3, size=(2000, 3))])
+    subset = rng.random(len(points)) < 0.4
+    moved = rigid_from_rotation_translation(rotation.T, np.array([0.4, 0.05, -0.02]))
+    for first in (None, moved):
+        full_k, sub_k = sparse_depth_from_points(points, camera, subset, vehicle_from_points=first, kernel="numba")
+        full_n, sub_n = sparse_depth_from_points(points, camera, subset, vehicle_from_points=first, kernel="numpy")
+        assert np.count_nonzero(full_n) > 500 and np.count_nonzero(sub_n) > 200
+        assert full_k.dtype == sub_k.dtype == np.float32
+        assert np.array_equal(full_k, full_n) and np.array_equal(sub_k, sub_n)
+        assert np.array_equal(sparse_depth_from_points(points, camera, vehicle_from_points=first), full_n)
+    with pytest.raises(ValueError, match="kernel must be 'numba' or 'numpy', found 'gpu'"):
+        sparse_depth_from_points(points, camera, kernel="gpu")
+    with pytest.raises(ValueError, match=r"vehicle_from_points: expected float \[4, 4\], found shape \(3, 3\)"):
+        sparse_depth_from_points(points, camera, vehicle_from_points=np.eye(3))
 
 
 def test_sparse_empty_and_bad_input():

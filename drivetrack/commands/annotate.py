@@ -26,6 +26,9 @@ def add_parser(sub) -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="segments annotated in parallel, each in its own process (default 1: in "
                         "this process, no retry)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="threads per segment for its depth maps and object jobs (default: the "
+                        "available cores divided among the workers, at least 1; output is the same)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="YAML/JSON annotation config ({track: {...}, refine_poses: bool, refine_options: {...}})")
     p.add_argument("--refine-poses", dest="refine_poses", action="store_true", default=None,
@@ -100,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                 progress.console.print(f"[red]failed[/red] {r.segment} ({r.stage}): {r.error}")
             progress.advance(task)
 
-        annotate(args.input, args.split, segments, args.out, config, workers=args.workers, on_result=on_result)
+        annotate(args.input, args.split, segments, args.out, config, workers=args.workers,
+                 on_result=on_result, threads=args.threads)
     console.print(f"{len(segments) - len(failed)}/{len(segments)} segments annotated into {args.out} "
                   f"(tables in {args.out.rstrip('/')}/stats/, provenance in run.json)")
     return 1 if failed else 0
