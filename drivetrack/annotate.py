@@ -35,7 +35,7 @@ import traceback
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import fsspec
 import numpy as np
@@ -49,7 +49,8 @@ from drivetrack.provenance import code_version_text, source_checksums
 from drivetrack.scene import Scene
 # The depth stage's pipeline unit, re-exported: `from drivetrack.annotate import DepthBatch,
 # sparse_depth_batches, complete_depth_batch` is the documented pipeline API (docs/architecture.md).
-from drivetrack.depth.stage import DepthBatch, _depth_by_camera, complete_depth_batch, sparse_depth_batches
+from drivetrack.depth.stage import (DepthBatch, _depth_by_camera, complete_depth_batch, depth_jobs,
+                                    sparse_depth_batch, sparse_depth_batches)
 from drivetrack.storage import write_json
 from drivetrack.tidy import remove_partial_files, remove_segment_clips
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, object_stats, plan_segment,
@@ -342,17 +343,18 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": len(plan.jobs), "unit": "object jobs"})
 
         begin(Stage.DEPTH)
-        batches = sparse_depth_batches(scene, config, plan, map_fn=in_threads)
-        if depth_fn is None:
-            dense, info = list(in_threads(lambda b: complete_depth_batch(b, config), batches)), {}
+        if depth_fn is None:     # each batch completed as soon as it is projected: one sparse batch per thread
+            dense, info = list(in_threads(lambda job: complete_depth_batch(sparse_depth_batch(scene, config, job), config),
+                                          depth_jobs(scene, config.track, plan))), {}
         else:
+            batches = sparse_depth_batches(scene, config, plan, map_fn=in_threads)
             dense, info = depth_fn(batches)
-        end({"count": len(batches), "unit": "depth batches", **info})
-        del batches
+            del batches
+        end({"count": len(dense), "unit": "depth batches", **info})
 
         begin(Stage.TRACKS)
-        tracks = track_segment(scene, dense, config, plan, map_fn=map_fn or (in_threads if pool else None))
-        del dense
+        # handed over as a generator: the batches are let go as each camera's maps are joined
+        tracks = track_segment(scene, _handed_over(dense), config, plan, map_fn=map_fn or (in_threads if pool else None))
         end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
         begin(Stage.WRITE)
@@ -380,6 +382,13 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
     if keep_tracks:
         result.tracks = tracks
     return result
+
+
+def _handed_over(items: list) -> Iterator:
+    """Yield and forget the items of ``items`` (the list is emptied), so each can be freed once used."""
+    items.reverse()
+    while items:
+        yield items.pop()
 
 
 def annotate_segment(source: str, split: str, segment: str, out_url: str, config: AnnotateConfig,

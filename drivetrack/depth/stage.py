@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from drivetrack.tracks.plan import SegmentPlan
 
 __all__ = ["DepthJob", "DepthBatch", "needed_frames", "depth_jobs", "sparse_depth", "complete_depth",
-           "sparse_depth_batches", "complete_depth_batch"]
+           "sparse_depth_batch", "sparse_depth_batches", "complete_depth_batch"]
 
 
 @dataclass(frozen=True)
@@ -160,10 +160,13 @@ def sparse_depth_batches(scene: Scene, config: "AnnotateConfig", plan: SegmentPl
     from drivetrack.tracks.plan import plan_segment
 
     plan = plan if plan is not None else plan_segment(scene, config.track)
+    return list((map_fn or map)(lambda job: sparse_depth_batch(scene, config, job),
+                                depth_jobs(scene, config.track, plan)))
 
-    def batch(job: DepthJob) -> DepthBatch:
-        return DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
-    return list((map_fn or map)(batch, depth_jobs(scene, config.track, plan)))
+
+def sparse_depth_batch(scene: Scene, config: "AnnotateConfig", job: DepthJob) -> DepthBatch:
+    """The sparse :class:`DepthBatch` of one :class:`DepthJob` (:func:`sparse_depth`)."""
+    return DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
 
 
 def complete_depth_batch(batch: DepthBatch, config: "AnnotateConfig", device: str | None = None) -> DepthBatch:
@@ -183,6 +186,10 @@ def complete_depth_batch(batch: DepthBatch, config: "AnnotateConfig", device: st
 
 
 def _depth_by_camera(batches: Iterable[DepthBatch]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Camera value -> (int64 [F] sorted frames, float32 [F, H, W] maps) of completed batches.
+
+    Each camera's batches are copied into one array, then let go, so that (when the caller keeps
+    no reference, e.g. passes a generator) at most one camera's maps exist twice at a time."""
     grouped: dict[int, list[DepthBatch]] = {}
     for batch in batches:
         if not batch.dense:
@@ -190,9 +197,18 @@ def _depth_by_camera(batches: Iterable[DepthBatch]) -> dict[int, tuple[np.ndarra
                              f"depth batch of frames {batch.frames[:5].tolist()}... is not completed")
         grouped.setdefault(batch.camera, []).append(batch)
     out = {}
-    for camera, parts in grouped.items():
+    for camera in list(grouped):
+        parts = grouped.pop(camera)
         frames = np.concatenate([p.frames for p in parts])
-        maps = np.concatenate([p.maps for p in parts])
         order = np.argsort(frames, kind="stable")
-        out[camera] = (frames[order], maps[order])
+        if len(parts) == 1 and np.array_equal(order, np.arange(frames.size)):
+            out[camera] = (frames, parts[0].maps)
+            continue
+        maps = np.empty((frames.size,) + parts[0].maps.shape[1:], dtype=parts[0].maps.dtype)
+        start = 0
+        for part in parts:
+            maps[start:start + part.frames.size] = part.maps
+            start += part.frames.size
+        del parts, part
+        out[camera] = (frames[order], maps if np.array_equal(order, np.arange(frames.size)) else maps[order])
     return out
