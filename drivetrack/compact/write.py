@@ -127,12 +127,12 @@ def write_segment_tables(out_root_url: str, split: str, clips: list[tuple[str, O
         url = f"{root}/{frames_table_path(split, segment, group[0].camera_name)}"
         table = pa.Table.from_pydict(frames_rows(group), schema=FRAMES_SCHEMA)
         frames_urls[camera] = _write_table(url, FRAMES_SCHEMA, [table])
+        faults.kill_point(segment)   # test-only: a worker killed mid-write (a table already in OUT)
 
     def rows():
-        for i, (stem, tracks) in enumerate(clips):
+        for stem, tracks in clips:
             yield clip_row(tracks, stem, with_points3d)
-            if i == 0:
-                faults.kill_point(segment)   # test-only: a worker killed mid-write
+            faults.kill_point(segment)
 
     clips_url = _write_table(f"{root}/{clips_table_path(split, segment)}", CLIPS_SCHEMA, rows())
     return {(tracks.camera, tracks.object_id): [clips_url, frames_urls[tracks.camera]] for _, tracks in clips}
