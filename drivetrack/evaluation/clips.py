@@ -125,6 +125,11 @@ class AnnotationFile:
     def where(self) -> str:
         return f"{self.relpath} clip {self.clip}" if self.clip else self.url
 
+    @property
+    def where_relative(self) -> str:
+        """Relative path (and clip id, for a clips table) for messages."""
+        return f"{self.relpath} clip {self.clip}" if self.clip else self.relpath
+
 
 def fs_of(url: str, storage_options: dict | None = None):
     import fsspec

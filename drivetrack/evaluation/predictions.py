@@ -135,7 +135,7 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
         if name not in predictions:
             continue
         gt_tracks, gt_visibles = _read_truth(file, storage_options)
-        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, file.relpath,
+        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, file.where_relative,
                                                       storage_options)
         pred_tracks = pred_tracks.astype(np.float64)
         if resize_to is not None:
@@ -146,7 +146,7 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
         clip_errors, nonfinite = errors_at_visible(pred_tracks, gt_tracks, gt_visibles)
         errors.append(clip_errors.astype(np.float32))
         base = {"split": file.split, "segment": file.segment, "camera": file.camera, "object_id": file.object_id,
-                "file": file.relpath, "num_frames": int(gt_visibles.shape[1]), "num_tracks": int(gt_visibles.shape[0]),
+                "file": file.relpath, "clip": file.name[:-len(".npz")], "num_frames": int(gt_visibles.shape[1]), "num_tracks": int(gt_visibles.shape[0]),
                 "num_gt_visible_points": int(gt_visibles.sum()), "num_pred_visible_points": int(pred_visibles.sum()),
                 **pixel_error_stats(clip_errors), "num_nonfinite_at_visible": nonfinite}
         for mode in query_modes:
