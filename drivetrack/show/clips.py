@@ -15,7 +15,7 @@ import numpy as np
 from drivetrack.evaluation.clips import Clip, url_of
 from drivetrack.outputs import is_clip_name, parse_clip_name
 
-__all__ = ["SPLITS", "find_clips", "clip_num_tracks", "select_clip", "load_clip", "parse_frames"]
+__all__ = ["SPLITS", "find_clips", "clip_num_tracks", "clip_stem_of", "select_clip", "load_clip", "parse_frames"]
 
 SPLITS = ("training", "validation", "testing")
 #: Folders whose ``waymo_*.npz`` are not DriveTrack clips (TAPVid-3D copies, release internals).
@@ -77,6 +77,14 @@ def _split_ref(ref: str) -> tuple[str, str]:
     return url, clip
 
 
+def clip_stem_of(ref: str) -> str:
+    """``waymo_{segment}_{CAMERA}_{object_id}`` of a clip reference (:func:`find_clips`) or npz URL."""
+    if TABLE_CLIP_SEP in str(ref) and not str(ref).endswith(".npz"):
+        return _split_ref(ref)[1]
+    name = posixpath.basename(str(ref))
+    return name[:-4] if name.endswith(".npz") else name
+
+
 def clip_num_tracks(url: str) -> int:
     """N of a clip, read from the ``tracks`` array header only (no data is decompressed), or from
     the ``num_tracks`` column of its clips table."""
@@ -95,6 +103,8 @@ def clip_num_tracks(url: str) -> int:
 def select_clip(source: str, object_id: str | None = None, camera: str | None = None) -> str:
     """The clip to show: ``source`` itself if it is a file, else the clip under the folder
     ``source`` matching ``object_id`` / ``camera`` with the most tracks (ties: first by name)."""
+    if TABLE_CLIP_SEP in str(source) and not str(source).endswith(".npz"):
+        return str(source)   # a clip of a clips table, as find_clips names it
     fs, path = fs_of(source)
     if fs.isfile(path):
         return str(source)
@@ -103,11 +113,11 @@ def select_clip(source: str, object_id: str | None = None, camera: str | None = 
         raise FileNotFoundError(f"{source}: no clip (clips/*/*.parquet tables or waymo_*.npz files) under this folder")
     keep = []
     for url in clips:
-        _, cam, obj = parse_clip_name(_split_ref(url)[1] if TABLE_CLIP_SEP in url else url)
+        _, cam, obj = parse_clip_name(clip_stem_of(url))
         if (object_id is None or obj == object_id) and (camera is None or cam == camera.upper()):
             keep.append(url)
     if not keep:
-        names = [_split_ref(u)[1] if TABLE_CLIP_SEP in u else u for u in clips]
+        names = [clip_stem_of(u) for u in clips]
         have = sorted({f"{parse_clip_name(u)[2]} ({parse_clip_name(u)[1]})" for u in names})
         raise LookupError(f"{source}: no clip for object {object_id!r} camera {camera!r}; "
                           f"objects here: {', '.join(have[:20])}{' ...' if len(have) > 20 else ''}")
