@@ -53,7 +53,7 @@ from drivetrack.storage import write_json
 from drivetrack.tidy import remove_partial_files, remove_segment_clips
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, object_stats, plan_segment,
                                prepare_segment, rejection_stats, run_object_job, segment_stats,
-                               write_object_outputs, write_table)
+                               write_table)
 from drivetrack.waymo.schema import LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
