@@ -246,8 +246,7 @@ class _ObjectJobRunner:
         return run_object_job(self.ctx, job)
 
 
-def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
-                          points3d: bool = True) -> dict[tuple[int, str], list[str]]:
+def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks]) -> dict[tuple[int, str], list[str]]:
     """Write every accepted clip as release layout v2 tables (:func:`drivetrack.compact.write.write_segment_tables`:
     the segment's clips table and one frames table per camera); (camera, object_id) -> written URLs
     (its clips table first).
@@ -264,7 +263,7 @@ def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
         if tracks.rejection is None and tracks.num_tracks > 0:
             accepted.append((clip_stem(tracks), tracks))
     try:
-        return write_segment_tables(out_url, split, accepted, with_points3d=points3d)
+        return write_segment_tables(out_url, split, accepted)
     except BaseException:
         if accepted:
             segment = accepted[0][1].segment
@@ -358,7 +357,7 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
         begin(Stage.WRITE)
-        written = write_segment_outputs(out_url, split, tracks, config.track.points3d)
+        written = write_segment_outputs(out_url, split, tracks)
         result.files = sorted({u for urls in written.values() for u in urls})
         result.objects, result.rejections, result.segment_row = segment_tables(out_url, scene, plan, tracks, written)
         if write_segment_stats:

@@ -46,7 +46,7 @@ def test_select_clip_takes_the_largest_and_filters_by_object(annotated_output, c
     counts = {c: show.clip_num_tracks(c) for c in clips}
     assert show.select_clip(annotated_output) == max(clips, key=lambda c: (counts[c], -clips.index(c)))
     some = clips[-1]
-    _, camera, object_id = show.parse_clip_name(some)
+    _, camera, object_id = show.parse_clip_name(show.clips.clip_stem_of(some))
     assert show.select_clip(annotated_output, object_id, camera) == some
     with pytest.raises(LookupError, match="no clip for object 'nope'"):
         show.select_clip(annotated_output, "nope")

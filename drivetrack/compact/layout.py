@@ -23,8 +23,11 @@ clip of the camera uses, sorted by ``frame``; each frame once, however many clip
     visibles                 bool [N, T]
     query_frames             int32 [N], clip frame of the LiDAR return that produced the track
     lidar_sources            int32 [N, 4], (laser_name, return 1|2, range-image row, col)
-    points3d                 float32 [N, T, 3], metres, vehicle frame of each frame (null when
-                             not stored; the TAPVid-3D export needs it)
+    points_box               float64 [N, 3], metres: each track's point in its box's frame
+    vehicle_from_box         float64 [T, 4, 4]: the box pose in each frame's vehicle frame; with
+                             ``points_box`` it gives ``points3d`` float32 [N, T, 3] (metres,
+                             vehicle frame of each frame) = float32(R_t p + t_t), exactly the
+                             values the npz writers store (:func:`drivetrack.compact.read.points3d_from_box`)
     query_pixels             float32 [N, 2], the TAPVid-3D query pixel of each track
     width, height            int32, image size in pixels
     intrinsics               float64 [9], f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 (Waymo's
@@ -58,7 +61,8 @@ CLIPS_SCHEMA = pa.schema([
     ("frames", pa.list_(pa.int32())), ("timestamps_micros", pa.list_(pa.int64())),
     ("tracks", pa.list_(pa.float32())), ("visibles", pa.list_(pa.bool_())),
     ("query_frames", pa.list_(pa.int32())), ("lidar_sources", pa.list_(pa.int32())),
-    ("points3d", pa.list_(pa.float32())), ("query_pixels", pa.list_(pa.float32())),
+    ("points_box", pa.list_(pa.float64())), ("vehicle_from_box", pa.list_(pa.float64())),
+    ("query_pixels", pa.list_(pa.float32())),
     ("width", pa.int32()), ("height", pa.int32()), ("intrinsics", pa.list_(pa.float64())),
     ("camera_from_vehicle", pa.list_(pa.float64())), ("world_from_vehicle", pa.list_(pa.float64())),
 ])
@@ -120,7 +124,8 @@ COLUMN_DESCRIPTIONS = {
     "visibles": "bool [N, T] flattened: the point is visible (not occluded, inside the image).",
     "query_frames": "int32 [N]: clip frame of the LiDAR return that produced each track.",
     "lidar_sources": "int32 [N, 4] flattened: (laser_name, return 1|2, range-image row, col) of each track's return.",
-    "points3d": "float32 [N, T, 3] flattened: metres, vehicle frame of each frame.",
+    "points_box": "float64 [N, 3] flattened: each track's point in its box's frame, metres.",
+    "vehicle_from_box": "float64 [T, 4, 4] flattened: box pose in each frame's vehicle frame; points3d = R p + t.",
     "query_pixels": "float32 [N, 2] flattened: TAPVid-3D query pixel of each track.",
     "width": "Image width, pixels.",
     "height": "Image height, pixels.",

@@ -24,7 +24,7 @@ import pyarrow.parquet as pq
 from drivetrack.compact.layout import CLIPS_SCHEMA, FRAMES_SCHEMA, INTRINSICS
 from drivetrack.outputs import CLIPS, TABLE_FOLDERS, frames_table_path, parse_clip_name, parse_table_path
 
-__all__ = ["CompactFormatError", "Intrinsics", "StoredClip", "StoredSource", "ClipData", "LazyVideo",
+__all__ = ["CompactFormatError", "Intrinsics", "StoredClip", "StoredSource", "ClipData", "LazyVideo", "points3d_from_box",
            "clips_tables", "open_table", "clip_ids", "iter_clips", "read_clip", "load_clip", "FrameStore",
            "check_frame_references"]
 
@@ -121,7 +121,8 @@ class StoredClip:
     Attributes mirror :class:`drivetrack.tracks.core.ObjectTracks` where the writers read them:
     ``frames`` int64 [T], ``timestamps_micros`` int64 [T], ``visibles`` bool [N, T],
     ``query_frames`` int32 [N], ``lidar_sources`` int32 [N, 4], ``query_pixels`` float32 [N, 2],
-    ``tracks`` float32 [N, T, 2], ``points3d`` float32 [N, T, 3] (None when not stored),
+    ``tracks`` float32 [N, T, 2], ``points_box`` float64 [N, 3], ``vehicle_from_box`` float64
+    [T, 4, 4], ``points3d`` float32 [N, T, 3] (computed from those two on first access),
     ``camera_model`` (:class:`Intrinsics`), ``camera_from_vehicle`` / ``world_from_vehicle``
     float64 [T, 4, 4], ``jpeg`` the T source JPEGs (read from the frames table on first access).
     """
@@ -138,13 +139,22 @@ class StoredClip:
     visibles: np.ndarray
     query_frames: np.ndarray
     lidar_sources: np.ndarray
-    points3d: np.ndarray | None
+    points_box: np.ndarray
+    vehicle_from_box: np.ndarray
     query_pixels: np.ndarray
     camera_model: Intrinsics
     camera_from_vehicle: np.ndarray
     world_from_vehicle: np.ndarray
     frame_store: FrameStore | None = field(default=None, repr=False)
     _jpeg: list | None = field(default=None, repr=False)
+    _points3d: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def points3d(self) -> np.ndarray:
+        """float32 [N, T, 3], metres, vehicle frame of each frame (:func:`points3d_from_box`)."""
+        if self._points3d is None:
+            self._points3d = points3d_from_box(self.points_box, self.vehicle_from_box)
+        return self._points3d
 
     @property
     def num_tracks(self) -> int:
@@ -160,8 +170,6 @@ class StoredClip:
 
     @property
     def source(self) -> StoredSource:
-        if self.points3d is None:
-            return _NoPoints3d(self)
         return StoredSource(self)
 
     @property
@@ -173,15 +181,12 @@ class StoredClip:
         return self._jpeg
 
 
-class _NoPoints3d(StoredSource):
-    def frame_chunks(self, frames: int | None = None):
-        raise CompactFormatError(f"{self.clip.file}: {self.clip.where} has no points3d (the table was written "
-                                 f"without them); the TAPVid-3D export needs them")
+def points3d_from_box(points_box: np.ndarray, vehicle_from_box: np.ndarray) -> np.ndarray:
+    """float32 [N, T, 3]: box-frame points float64 [N, 3] through the box poses float64 [T, 4, 4],
+    computed as the track stage computes ``points3d`` (float64, then rounded to float32)."""
+    from drivetrack.tracks.core import _carry
 
-    def point_chunks(self, points: int | None = None, what: tuple[str, ...] = ("tracks", "points3d")):
-        if "points3d" in what:
-            self.frame_chunks()
-        return super().point_chunks(points, what)
+    return np.ascontiguousarray(np.swapaxes(_carry(vehicle_from_box, points_box), 0, 1).astype(np.float32))
 
 
 def open_table(fs, path: str, rel: str, schema: pa.Schema) -> pq.ParquetFile:
@@ -246,8 +251,6 @@ def _stored_clip(row: pa.Table, rel: str, frame_store: FrameStore | None) -> Sto
         return _array(None if value.is_null().to_numpy(zero_copy_only=False)[0] else value, dtype, shape,
                       rel, clip, name)
 
-    points3d = None if get["points3d"].is_null().to_numpy(zero_copy_only=False)[0] else \
-        arr("points3d", np.float32, (n, t, 3))
     intrinsics = arr("intrinsics", np.float64, (len(INTRINSICS),))
     model = Intrinsics(*(float(v) for v in intrinsics), width=int(scalar["width"]), height=int(scalar["height"]))
     return StoredClip(
@@ -256,7 +259,8 @@ def _stored_clip(row: pa.Table, rel: str, frame_store: FrameStore | None) -> Sto
         frames=arr("frames", np.int64, (t,)), timestamps_micros=arr("timestamps_micros", np.int64, (t,)),
         tracks=arr("tracks", np.float32, (n, t, 2)), visibles=arr("visibles", bool, (n, t)),
         query_frames=arr("query_frames", np.int32, (n,)), lidar_sources=arr("lidar_sources", np.int32, (n, 4)),
-        points3d=points3d, query_pixels=arr("query_pixels", np.float32, (n, 2)), camera_model=model,
+        points_box=arr("points_box", np.float64, (n, 3)),
+        vehicle_from_box=arr("vehicle_from_box", np.float64, (t, 4, 4)), query_pixels=arr("query_pixels", np.float32, (n, 2)), camera_model=model,
         camera_from_vehicle=arr("camera_from_vehicle", np.float64, (t, 4, 4)),
         world_from_vehicle=arr("world_from_vehicle", np.float64, (t, 4, 4)), frame_store=frame_store)
 

@@ -1,9 +1,10 @@
 """Write a segment's accepted clips as release layout v2 tables (:mod:`drivetrack.compact.layout`).
 
 One frames table per camera (the JPEG bytes of every frame a clip of that camera uses, once) and
-one clips table per segment (one row group per clip). ``tracks`` and ``points3d`` are computed a
-chunk of points at a time by the clip's :class:`drivetrack.tracks.core.TrackSource`, the same
-values the npz writers stream. Files are written whole and moved into place
+one clips table per segment (one row group per clip). ``tracks`` are computed a chunk of points
+at a time by the clip's :class:`drivetrack.tracks.core.TrackSource`, the same values the npz
+writers stream; ``points3d`` is stored as its box-frame points and box poses (3 numbers per track
+instead of 3 per track and frame) and recomputed exactly on reading. Files are written whole and moved into place
 (:func:`drivetrack.storage.atomic_local_path`); frames tables before the clips table that refers
 to them.
 """
@@ -53,18 +54,26 @@ def frames_rows(clips: list[ObjectTracks]) -> dict:
             "image": [{"bytes": frames[f][1], "path": None} for f in order]}
 
 
-def _tracks_and_points(tracks: ObjectTracks, with_points3d: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """float32 [N, T, 2] tracks and [N, T, 3] points3d (or None), a chunk of points at a time."""
-    what = ("tracks", "points3d") if with_points3d else ("tracks",)
-    parts = list(tracks.source.point_chunks(what=what))
+def _tracks(tracks: ObjectTracks) -> np.ndarray:
+    """float32 [N, T, 2] tracks, computed a chunk of points at a time."""
+    parts = [p[0] for p in tracks.source.point_chunks(what=("tracks",))]
     t = tracks.num_frames
-    xy = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, t, 2), np.float32)
-    xyz = (np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, t, 3), np.float32)) \
-        if with_points3d else None
+    xy = np.concatenate(parts) if parts else np.zeros((0, t, 2), np.float32)
     if xy.shape != (tracks.num_tracks, t, 2):
         raise ValueError(f"{_where(tracks)}: the track source gave tracks of shape {xy.shape}, "
                          f"expected {(tracks.num_tracks, t, 2)}")
-    return xy, xyz
+    return xy
+
+
+def _box_points(tracks: ObjectTracks) -> tuple[np.ndarray, np.ndarray]:
+    """(points_box float64 [N, 3], vehicle_from_box float64 [T, 4, 4]) of the clip's source: the
+    kept points in output order, from which ``points3d`` is recomputed bit for bit."""
+    source = tracks.source
+    points = source.points_box
+    if points.shape != (tracks.num_tracks, 3):
+        raise ValueError(f"{_where(tracks)}: the track source holds {points.shape[0]} points for "
+                         f"{tracks.num_tracks} tracks")
+    return points, source.vehicle_from_box
 
 
 def _flat(values: np.ndarray, dtype, value_type: pa.DataType) -> pa.Array:
@@ -73,9 +82,10 @@ def _flat(values: np.ndarray, dtype, value_type: pa.DataType) -> pa.Array:
     return pa.ListArray.from_arrays(pa.array([0, flat.size], pa.int32()), pa.array(flat, value_type))
 
 
-def clip_row(tracks: ObjectTracks, stem: str, with_points3d: bool = True) -> pa.Table:
+def clip_row(tracks: ObjectTracks, stem: str) -> pa.Table:
     """The one-row clips table of one accepted clip (:data:`CLIPS_SCHEMA`)."""
-    xy, xyz = _tracks_and_points(tracks, with_points3d)
+    xy = _tracks(tracks)
+    points_box, vehicle_from_box = _box_points(tracks)
     model = tracks.camera_model
     scalars = {"clip": stem, "split": tracks.split, "segment": tracks.segment, "camera": tracks.camera_name,
                "object_id": tracks.object_id, "object_type": tracks.object_type_name,
@@ -88,8 +98,8 @@ def clip_row(tracks: ObjectTracks, stem: str, with_points3d: bool = True) -> pa.
         "visibles": _flat(tracks.visibles, bool, pa.bool_()),
         "query_frames": _flat(tracks.query_frames, np.int32, pa.int32()),
         "lidar_sources": _flat(tracks.lidar_sources, np.int32, pa.int32()),
-        "points3d": (_flat(xyz, np.float32, pa.float32()) if xyz is not None
-                     else pa.array([None], pa.list_(pa.float32()))),
+        "points_box": _flat(points_box, np.float64, pa.float64()),
+        "vehicle_from_box": _flat(vehicle_from_box, np.float64, pa.float64()),
         "query_pixels": _flat(tracks.query_pixels, np.float32, pa.float32()),
         "intrinsics": _flat(np.array([getattr(model, k) for k in INTRINSICS], np.float64), np.float64, pa.float64()),
         "camera_from_vehicle": _flat(tracks.camera_from_vehicle, np.float64, pa.float64()),
@@ -108,8 +118,8 @@ def _write_table(url: str, schema: pa.Schema, parts) -> str:
     return url
 
 
-def write_segment_tables(out_root_url: str, split: str, clips: list[tuple[str, ObjectTracks]],
-                         with_points3d: bool = True) -> dict[tuple[int, str], list[str]]:
+def write_segment_tables(out_root_url: str, split: str,
+                         clips: list[tuple[str, ObjectTracks]]) -> dict[tuple[int, str], list[str]]:
     """Write the frames tables and the clips table of one segment's accepted clips.
 
     ``clips``: ``(stem, tracks)`` of each accepted clip, in output order. Returns (camera value,
@@ -131,7 +141,7 @@ def write_segment_tables(out_root_url: str, split: str, clips: list[tuple[str, O
 
     def rows():
         for stem, tracks in clips:
-            yield clip_row(tracks, stem, with_points3d)
+            yield clip_row(tracks, stem)
             faults.kill_point(segment)
 
     clips_url = _write_table(f"{root}/{clips_table_path(split, segment)}", CLIPS_SCHEMA, rows())

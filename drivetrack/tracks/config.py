@@ -77,9 +77,6 @@ class TrackConfig:
         kernel: inner loop of the global-shutter projection, ``numba`` (fused kernel,
             :mod:`drivetrack.tracks.kernel`) or ``numpy`` (the reference; rolling-shutter cameras
             always use it).
-        points3d: store each track's 3D point per frame (``points3d``) in the clips table
-            (release layout v2, :mod:`drivetrack.compact`); the TAPVid-3D export and the
-            ``points3d`` member of the DriveTrack npz export need it.
     """
     object_types: tuple[str, ...] = ("VEHICLE",)
     cameras: tuple[str, ...] = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
@@ -111,7 +108,6 @@ class TrackConfig:
     seed: int = 0
     chunk_points: int = 8192
     kernel: str = "numba"
-    points3d: bool = True
 
     def __post_init__(self):
         for name, enum_type in (("object_types", BoxType), ("cameras", CameraName),
