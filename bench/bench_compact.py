@@ -10,8 +10,10 @@ process), then measures:
   annotations of every clip that uses them);
 - the same for the npz files ``drivetrack export`` writes (DriveTrack + TAPVid-3D), the layout
   before v2;
-- the write stage's share of the segment's annotate time (``SegmentResult.timings_s``), and the
-  export's time.
+- the share of annotate's wall time spent writing the files (``write_segment_outputs`` on the
+  segment's tracked clips, timed alone), the stage times (``SegmentResult.timings_s``; its
+  ``write`` stage also computes the statistics rows, e.g. the speed consistency under the
+  labelled poses), and the export's time.
 
 Target (issue 18): <= 30 bytes per annotation, frames included; writing < 10 % of annotate.
 """
@@ -36,7 +38,7 @@ def main() -> int:
 
     import pyarrow.parquet as pq
 
-    from drivetrack.annotate import AnnotateConfig, annotate
+    from drivetrack.annotate import AnnotateConfig, annotate, annotate_segment, write_segment_outputs
     from drivetrack.compact.export import FORMATS, export_clips
     from drivetrack.synth import SynthConfig, generate_segment, segment_name
 
@@ -60,6 +62,11 @@ def main() -> int:
         npz_dt, npz_tv = _bytes(exp, "tracks/*/*.npz"), _bytes(exp, "tapvid3d/*/*.npz")
         timings = result.timings_s
         total = sum(timings.values())
+        kept = annotate_segment(str(src), "training", segment, str(Path(tmp) / "out3"), AnnotateConfig(),
+                                keep_tracks=True)
+        t = time.perf_counter()
+        write_segment_outputs(str(Path(tmp) / "out4"), "training", kept.tracks)
+        write_s = time.perf_counter() - t
 
     print(f"preset {args.preset}, {args.frames} frames, seed {args.seed}: {clips.num_rows} clips, "
           f"{annotations:,} annotations (track x frame)")
@@ -77,6 +84,8 @@ def main() -> int:
     for stage, seconds in timings.items():
         print(f"| {stage} | {seconds:.2f} | {100 * seconds / total:.1f} % |")
     print(f"| annotate wall (one segment, warm) | {wall:.2f} | |")
+    print(f"| of which writing the tables (write_segment_outputs alone) | {write_s:.2f} | "
+          f"{100 * write_s / wall:.1f} % of the wall |")
     print(f"| export, both formats (not part of annotate) | {export_s:.2f} | |")
     return 0
 
