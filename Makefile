@@ -14,7 +14,7 @@ export DASK_LOGGING__DISTRIBUTED := warning
 help:
 	@echo "make test                      run the test suite (creates .venv)"
 	@echo "make release VERSION=x.y.z     build and publish a release on embedded defaults"
-	@echo "        [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training]"
+	@echo "        [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training] [NPZ=1: also publish npz clips]"
 	@echo "make serve                     serve the scheduled regeneration deployment"
 	@echo "make bench                     run the benchmarks (results in docs/benchmarks.md)"
 
@@ -55,12 +55,12 @@ bench: $(STAMP)
 
 release:
 	@if [ -z "$(VERSION)" ]; then \
-	  echo "usage: make release VERSION=x.y.z [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training]" >&2; \
+	  echo "usage: make release VERSION=x.y.z [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training] [NPZ=1]" >&2; \
 	  echo "  with only VERSION: synthesises a small source into ./data/synthetic, publishes to ./store" >&2; \
 	  exit 2; fi
 	@$(MAKE) --no-print-directory venv
 	$(PY) -m flows.release --version "$(VERSION)" --store "$(or $(STORE),./store)" --splits "$(or $(SPLITS),training)" \
-	  $(if $(SOURCE),--source "$(SOURCE)") $(if $(SEGMENTS),--segments "$(SEGMENTS)")
+	  $(if $(SOURCE),--source "$(SOURCE)") $(if $(SEGMENTS),--segments "$(SEGMENTS)") $(if $(NPZ),--npz)
 
 serve: $(STAMP)
 	$(PY) -m flows.serve --store "$(or $(STORE),./store)" $(if $(SOURCE),--source "$(SOURCE)") $(if $(CRON),--cron "$(CRON)")

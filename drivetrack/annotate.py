@@ -55,7 +55,7 @@ from drivetrack.storage import write_json
 from drivetrack.tidy import remove_partial_files, remove_segment_clips
 from drivetrack.tracks import (ObjectTracks, SegmentPlan, TrackConfig, object_stats, plan_segment,
                                prepare_segment, rejection_stats, run_object_job, segment_stats,
-                               write_object_outputs, write_table)
+                               write_table)
 from drivetrack.waymo.schema import LaserName
 
 __all__ = ["AnnotateConfig", "DepthBatch", "SegmentResult", "load_scene_for", "sparse_depth_batches",
@@ -248,26 +248,34 @@ class _ObjectJobRunner:
         return run_object_job(self.ctx, job)
 
 
-def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks],
-                          writers: tuple[str, ...] = ("drivetrack", "tapvid3d")) -> dict[tuple[int, str], list[str]]:
-    """Write every accepted clip with each writer; (camera, object_id) -> written URLs.
+def write_segment_outputs(out_url: str, split: str, results: list[ObjectTracks]) -> dict[tuple[int, str], list[str]]:
+    """Write every accepted clip as release layout v2 tables (:func:`drivetrack.compact.write.write_segment_tables`:
+    the segment's clips table and one frames table per camera); (camera, object_id) -> written URLs
+    (its clips table first).
 
     If a write fails, the files already written for this segment are removed before the error
     propagates, so a failed segment leaves no partial output behind.
     """
-    written: dict[tuple[int, str], list[str]] = {}
+    from drivetrack.compact.write import write_segment_tables
+    from drivetrack.outputs import clips_table_path, frames_table_path
+    from drivetrack.tracks.writers import clip_stem
+
+    accepted = []
+    for tracks in results:
+        if tracks.rejection is None and tracks.num_tracks > 0:
+            accepted.append((clip_stem(tracks), tracks))
     try:
-        for tracks in results:
-            if tracks.rejection is None and tracks.num_tracks > 0:
-                written[(tracks.camera, tracks.object_id)] = write_object_outputs(out_url, split, tracks, writers)
-    except Exception:
-        for urls in written.values():
-            for url in urls:
-                fs, path = fsspec.core.url_to_fs(url)
+        return write_segment_tables(out_url, split, accepted)
+    except BaseException:
+        if accepted:
+            segment = accepted[0][1].segment
+            rels = {clips_table_path(split, segment)} | {
+                frames_table_path(split, segment, t.camera_name) for _, t in accepted}
+            for rel in rels:
+                fs, path = fsspec.core.url_to_fs(f"{out_url.rstrip('/')}/{rel}")
                 if fs.exists(path):
                     fs.rm(path)
         raise
-    return written
 
 
 #: ``on_stage(stage, state, info)`` of :func:`run_segment_stages`: ``stage`` one of :data:`STAGES`,
@@ -358,8 +366,8 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         end({"count": sum(1 for t in tracks if t.rejection is None and t.num_tracks > 0), "unit": "object clips"})
 
         begin(Stage.WRITE)
-        written = write_segment_outputs(out_url, split, tracks, config.track.writers)
-        result.files = [u for urls in written.values() for u in urls]
+        written = write_segment_outputs(out_url, split, tracks)
+        result.files = sorted({u for urls in written.values() for u in urls})
         result.objects, result.rejections, result.segment_row = segment_tables(out_url, scene, plan, tracks, written)
         if write_segment_stats:
             write_tables(out_url, [result])

@@ -2,7 +2,12 @@
 
 One place that knows the file names, locations, table columns and categorical values of an
 annotation output folder or a release; writers, gates, manifests and readers import them from here.
-Clip files:
+Release layout v2 (the tables :mod:`drivetrack.compact` writes and reads):
+
+    clips/{split}/{segment}.parquet                 one row (and one row group) per clip
+    frames/{split}/{segment}_{CAMERA}.parquet       one row per frame: the source JPEG, stored once
+
+Exported clip files (``drivetrack export``; published only with the release option ``publish_npz``):
 
     tracks/{split}/waymo_{segment}_{CAMERA}_{object_id}.npz     DriveTrack-compatible clips
     tapvid3d/{split}/waymo_{segment}_{CAMERA}_{object_id}.npz   the same clips, TAPVid-3D layout
@@ -29,7 +34,8 @@ __all__ = ["LAYOUTS", "DRIVETRACK", "TAPVID3D", "CLIP_PREFIX", "CLIP_CAMERAS", "
            "clip_glob", "clip_stem", "parse_clip_path", "parse_clip_name", "is_clip_name", "splits_of", "clips_of",
            "SegmentStatus", "Stage", "RejectionReason", "REJECTION_REASONS", "SPEED_PERCENTILES",
            "SPEED_ERR_COLUMNS", "LABEL_SPEED_ERR_COLUMNS", "OBJECT_COLUMNS", "SEGMENT_COLUMNS", "REJECTION_COLUMNS",
-           "TABLES"]
+           "TABLES", "CLIPS", "FRAMES", "TABLE_FOLDERS", "clips_table_path", "frames_table_path",
+           "parse_table_path", "table_glob", "is_data_file", "data_splits_of"]
 
 DRIVETRACK = "drivetrack"
 TAPVID3D = "tapvid3d"
@@ -44,6 +50,14 @@ _CAMERA_GROUP = "|".join(CLIP_CAMERAS)
 #: the shortest prefix followed by a camera name; ``object_id`` is everything after it.
 CLIP_NAME = re.compile(rf"^{CLIP_PREFIX}(?P<segment>.+?)_(?P<camera>{_CAMERA_GROUP})_(?P<object_id>.+)$")
 _CAMERA_OBJECT = re.compile(rf"^(?P<camera>{_CAMERA_GROUP})_(?P<object_id>.+)$")
+
+
+#: The v2 tables: kind -> top-level folder (``clips/{split}/{segment}.parquet``,
+#: ``frames/{split}/{segment}_{CAMERA}.parquet``).
+CLIPS = "clips"
+FRAMES = "frames"
+TABLE_FOLDERS = {CLIPS: "clips", FRAMES: "frames"}
+_FRAMES_NAME = re.compile(rf"^(?P<segment>.+)_(?P<camera>{_CAMERA_GROUP})$")
 
 
 class SegmentStatus(StrEnum):
@@ -192,3 +206,56 @@ def is_clip_name(name: str, strict_object_id: bool = False) -> bool:
     stem = posixpath.basename(str(name))
     match = CLIP_NAME.match(stem[:-4]) if stem.endswith(".npz") else None
     return bool(match) and (not strict_object_id or is_valid_name("object_id", match["object_id"]))
+
+
+def clips_table_path(split: str, segment: str) -> str:
+    """Relative path of the clips table of ``segment``: ``clips/{split}/{segment}.parquet``."""
+    check_name("split", split, f"clips table of segment {segment!r}")
+    check_name("segment", segment, "clips table")
+    return f"{TABLE_FOLDERS[CLIPS]}/{split}/{segment}.parquet"
+
+
+def frames_table_path(split: str, segment: str, camera: str) -> str:
+    """Relative path of the frames table of ``segment``'s ``camera`` (Waymo enum name):
+    ``frames/{split}/{segment}_{CAMERA}.parquet``."""
+    where = f"frames table of segment {segment!r}"
+    check_name("split", split, where)
+    check_name("segment", segment, where)
+    check_name("camera", camera, where)
+    return f"{TABLE_FOLDERS[FRAMES]}/{split}/{segment}_{camera}.parquet"
+
+
+def table_glob(kind: str, split: str) -> str:
+    """Glob of the ``kind`` (:data:`CLIPS` or :data:`FRAMES`) tables of ``split`` (Hugging Face ``data_files``)."""
+    return f"{TABLE_FOLDERS[kind]}/{split}/*.parquet"
+
+
+def parse_table_path(path: str) -> tuple[str, str, str, str | None] | None:
+    """``(kind, split, segment, camera)`` of a relative v2 table path (``camera`` None for a clips
+    table), or None when ``path`` is not one."""
+    parts = path.split("/")
+    if len(parts) != 3 or not parts[1] or not parts[2].endswith(".parquet") or len(parts[2]) <= 8:
+        return None
+    name = parts[2][:-len(".parquet")]
+    if parts[0] == TABLE_FOLDERS[CLIPS]:
+        return (CLIPS, parts[1], name, None) if is_valid_name("segment", name) else None
+    if parts[0] == TABLE_FOLDERS[FRAMES]:
+        match = _FRAMES_NAME.match(name)
+        return (FRAMES, parts[1], match["segment"], match["camera"]) if match else None
+    return None
+
+
+def is_data_file(path: str) -> bool:
+    """True for a clip data file of an output folder or release: a v2 table
+    (:func:`parse_table_path`) or an exported npz clip (:func:`parse_clip_path`)."""
+    return bool(parse_table_path(path) or parse_clip_path(path))
+
+
+def data_splits_of(paths) -> list[str]:
+    """Sorted splits that have clips tables (``clips/{split}/*.parquet``) or npz clips among ``paths``."""
+    out = set(splits_of(paths))
+    for path in paths:
+        parsed = parse_table_path(path)
+        if parsed and parsed[0] == CLIPS:
+            out.add(parsed[1])
+    return sorted(out)

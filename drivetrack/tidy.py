@@ -10,7 +10,7 @@ from collections.abc import Iterable
 
 import fsspec
 
-from drivetrack.outputs import CLIP_PREFIX, LAYOUTS
+from drivetrack.outputs import CLIP_PREFIX, LAYOUTS, TABLE_FOLDERS, parse_table_path
 from drivetrack.storage import PARTIAL_PREFIX
 from drivetrack.waymo.schema import CameraName
 
@@ -34,7 +34,7 @@ def remove_partial_files(out_url: str, storage_options: dict | None = None) -> l
     fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
     base = base.rstrip("/")
     folders = [base, f"{base}/stats"]
-    for folder in LAYOUTS.values():
+    for folder in (*TABLE_FOLDERS.values(), *LAYOUTS.values()):
         folders += [p for p in _ls(fs, f"{base}/{folder}") if fs.isdir(p)]
     removed = []
     for folder in folders:
@@ -49,8 +49,10 @@ def remove_segment_clips(out_url: str, split: str, segments: Iterable[str], keep
                          storage_options: dict | None = None) -> list[str]:
     """Remove the clip files of ``segments`` of ``split`` (every layout); returns their URLs.
 
-    A clip file of segment S is ``waymo_{S}_{CAMERA}_{object_id}.npz`` with CAMERA a Waymo camera
-    name; paths relative to ``out_url`` in ``keep`` (files of segments that succeeded) stay.
+    The clip files of segment S are its v2 tables ``clips/{split}/S.parquet`` and
+    ``frames/{split}/S_{CAMERA}.parquet`` and any npz ``waymo_{S}_{CAMERA}_{object_id}.npz`` with
+    CAMERA a Waymo camera name; paths relative to ``out_url`` in ``keep`` (files of segments that
+    succeeded) stay.
     """
     fs, base = fsspec.core.url_to_fs(out_url, **(storage_options or {}))
     base = base.rstrip("/")
@@ -60,6 +62,14 @@ def remove_segment_clips(out_url: str, split: str, segments: Iterable[str], keep
     removed = []
     if not prefixes:
         return removed
+    wanted = set(segments)
+    for folder in TABLE_FOLDERS.values():
+        for path in _ls(fs, f"{base}/{folder}/{split}"):
+            rel = f"{folder}/{split}/{path.rsplit('/', 1)[-1]}"
+            parsed = parse_table_path(rel)
+            if parsed and parsed[2] in wanted and rel not in keep:
+                fs.rm(path)
+                removed.append(fs.unstrip_protocol(path))
     for folder in LAYOUTS.values():
         for path in _ls(fs, f"{base}/{folder}/{split}"):
             leaf = path.rsplit("/", 1)[-1]

@@ -132,8 +132,10 @@ def gates_task(out: str, gates_config) -> dict:
 @task(name="publish", retries=2, retry_delay_seconds=[2, 10],
       retry_condition_fn=lambda t, r, s: _publish_retryable(s.result(raise_on_failure=False)))
 def publish_task(out: str, store: str, version: str, dataset: str, gate_report: dict,
-                 accept_failed_gates: str | None, config: dict, storage_options: dict | None) -> dict:
-    """Publish; a retry after an interrupted attempt resumes its staged files."""
+                 accept_failed_gates: str | None, config: dict, storage_options: dict | None,
+                 publish_npz: bool = False) -> dict:
+    """Publish; a retry after an interrupted attempt resumes its staged files. ``publish_npz``: also
+    export and publish the npz clips (release option, off by default)."""
     from prefect.context import TaskRunContext
 
     from drivetrack.release import publish_release
@@ -143,7 +145,7 @@ def publish_task(out: str, store: str, version: str, dataset: str, gate_report: 
     storage_options = resolve_options(storage_options, "store_options")
     res = publish_release(out, store, version, dataset=dataset, storage_options=storage_options,
                           gate_report=gate_report, accept_failed_gates=accept_failed_gates, config=config,
-                          resume=resume)
+                          resume=resume, publish_npz=publish_npz)
     return {k: v for k, v in vars(res).items() if isinstance(v, (str, int, float, bool, type(None)))}
 
 
@@ -325,7 +327,8 @@ def _result(status: ReleaseStatus, out: str, failed: list[dict], fingerprint: st
 @flow(name="release-build", log_prints=True)
 def build(version: str, source: str, store: str, splits: list[str], segments: list[str] | None,
           config: dict, dataset: str, work: str, gates_config, accept_failed_gates: str | None,
-          skip_unchanged: bool, storage_options: dict | None, store_options: dict | None) -> dict:
+          skip_unchanged: bool, storage_options: dict | None, store_options: dict | None,
+          publish_npz: bool = False) -> dict:
     """The staged recipe; runs with the Dask task runner the ``release`` flow gives it."""
     from prefect.runtime import flow_run
 
@@ -399,8 +402,9 @@ def build(version: str, source: str, store: str, splits: list[str], segments: li
     try:
         res = publish_task(out, store, version, dataset, report, accept_failed_gates,
                            {"release_fingerprint": fingerprint, "source": source, "splits": splits,
-                            "segments_failed": [f"{x['split']}/{x['segment']}" for x in failed]},
-                           store_options)
+                            "segments_failed": [f"{x['split']}/{x['segment']}" for x in failed],
+                            "publish_npz": publish_npz},
+                           store_options, publish_npz)
     except Exception as e:
         status.published, status.message = False, f"not published: {type(e).__name__}"
         status.update_release("publish", "failed", error=jobs.failure_summary(e))
@@ -429,12 +433,14 @@ def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"
             dataset: str = DEFAULT_DATASET, work: str = DEFAULT_WORK, gates_config: dict | str | None = None,
             accept_failed_gates: str | None = None, skip_unchanged: bool = True,
             dask_address: str | None = None, n_workers: int | None = None, threads_per_worker: int | None = None,
-            dask_processes: bool | None = None, storage_options: dict | None = None, store_options: dict | None = None) -> dict:
+            dask_processes: bool | None = None, storage_options: dict | None = None, store_options: dict | None = None,
+            publish_npz: bool = False) -> dict:
     """Build and publish one release. ``version="auto"``: the next patch version, and nothing at
     all when inputs, configuration and code are unchanged since the latest release (scheduled
     regeneration). The Dask cluster: ``dask_address`` (an existing scheduler) or a local one of
     ``n_workers`` x ``threads_per_worker`` (environment ``DRIVETRACK_DASK_*`` otherwise);
-    ``dask_processes=False`` keeps the local workers in this process (tests).
+    ``dask_processes=False`` keeps the local workers in this process (tests). ``publish_npz``: the
+    release also holds the clips as DriveTrack and TAPVid-3D npz files (``drivetrack export``).
     ``storage_options`` (source) and ``store_options`` (store) hold no secrets, only references
     resolved on the workers (:mod:`flows.credentials`); a secret-looking value is refused."""
     from prefect_dask import DaskTaskRunner
@@ -456,7 +462,8 @@ def release(version: str = "auto", source: str = str(REPO / "data" / "synthetic"
         return build.with_options(task_runner=runner)(
             version=version, source=source, store=store, splits=splits, segments=segments, config=config or {},
             dataset=dataset, work=work, gates_config=gates_config, accept_failed_gates=accept_failed_gates,
-            skip_unchanged=skip_unchanged, storage_options=storage_options, store_options=store_options)
+            skip_unchanged=skip_unchanged, storage_options=storage_options, store_options=store_options,
+            publish_npz=publish_npz)
 
 
 # ---- command line (make release) ----------------------------------------------------------------
@@ -491,6 +498,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=None)
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--accept-failed-gates", default=None, metavar="REASON")
+    p.add_argument("--npz", action="store_true",
+                   help="also publish the clips as DriveTrack and TAPVid-3D npz files (drivetrack export)")
     args = p.parse_args(argv)
     source = args.source or synthesize_default_source(REPO / "data" / "synthetic")
     config = None
@@ -504,7 +513,7 @@ def main(argv: list[str] | None = None) -> int:
                          splits=args.splits.replace(",", " ").split(), segments=segments, config=config,
                          dataset=args.dataset, work=args.work, accept_failed_gates=args.accept_failed_gates,
                          dask_address=args.dask_address, n_workers=args.workers, threads_per_worker=args.threads,
-                         skip_unchanged=args.version == "auto")
+                         skip_unchanged=args.version == "auto", publish_npz=args.npz)
     c = result.get("counts", {})
     print(f"\nsegments: {c.get('done', 0)} done, {c.get('failed', 0)} failed")
     for f in result.get("failed", []):

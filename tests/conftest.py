@@ -62,3 +62,14 @@ def annotated_output(synth_source, synth_segments, tmp_path_factory) -> str:
     failed = [r for r in results if r.status != "done"]
     assert not failed, [(r.segment, r.error) for r in failed]
     return str(out)
+
+
+@pytest.fixture(scope="session")
+def exported_output(annotated_output, tmp_path_factory) -> str:
+    """``annotated_output``'s clips exported as npz (``drivetrack export``, both formats): the
+    DriveTrack files under ``tracks/{split}/``, the TAPVid-3D files under ``tapvid3d/{split}/``."""
+    from drivetrack.compact.export import FORMATS, export_clips
+
+    out = tmp_path_factory.mktemp("exported")
+    export_clips(annotated_output, list(FORMATS), str(out))
+    return str(out)

@@ -23,8 +23,23 @@ def _drivetrack_files(out: str) -> list[str]:
     return sorted(f for f in glob.glob(f"{out}/**/waymo_*.npz", recursive=True) if "tapvid3d" not in f)
 
 
-def test_outputs_load_with_plain_numpy(annotated_output):
-    files = _drivetrack_files(annotated_output)
+def _clip_ids(out: str) -> list[str]:
+    """Clip ids of every row of the output's clips tables (release layout v2)."""
+    import pyarrow.parquet as pq
+
+    return sorted(c for path in glob.glob(f"{out}/clips/*/*.parquet")
+                  for c in pq.read_table(path, columns=["clip"]).column("clip").to_pylist())
+
+
+def test_output_is_the_v2_layout(annotated_output):
+    """annotate writes clips and frames tables, no npz."""
+    assert _clip_ids(annotated_output)
+    assert glob.glob(f"{annotated_output}/frames/training/*_FRONT.parquet")
+    assert not _drivetrack_files(annotated_output)
+
+
+def test_exported_outputs_load_with_plain_numpy(exported_output):
+    files = _drivetrack_files(exported_output)
     assert files, "the synthetic source must yield at least one annotated clip"
     for path in files:
         with np.load(path, allow_pickle=False) as z:
@@ -49,7 +64,7 @@ def test_tables_and_run_json(annotated_output, synth_segments):
     segments = pd.read_parquet(f"{annotated_output}/stats/segments.parquet")
     assert sorted(segments["segment"]) == sorted(synth_segments)
     assert set(segments["status"]) == {"done"}
-    assert len(objects) == len(_drivetrack_files(annotated_output))
+    assert len(objects) == len(_clip_ids(annotated_output))
     for column in ("speed_err_p25", "speed_err_p50", "speed_err_p95", "num_tracks", "visible_fraction"):
         assert column in objects.columns
     # every file named in the table exists, relative to the output folder
@@ -66,7 +81,7 @@ def test_tables_and_run_json(annotated_output, synth_segments):
         assert all(len(c["sha256"]) == 64 for c in checks.values())
 
 
-def test_staged_api_matches_one_call(synth_source, synth_segments, annotated_output):
+def test_staged_api_matches_one_call(synth_source, synth_segments, annotated_output, exported_output):
     """Stages run one by one (as the flow does), in this thread, give the same tracks as annotate()
     with its depth batches and object jobs in two threads (conftest)."""
     config = AnnotateConfig()
@@ -82,7 +97,7 @@ def test_staged_api_matches_one_call(synth_source, synth_segments, annotated_out
     with pytest.raises(ValueError, match="not completed"):
         track_segment(scene, batches, config, plan)
     results = [t for t in track_segment(scene, dense, config, plan) if t.rejection is None]
-    files = [f for f in _drivetrack_files(annotated_output) if segment in os.path.basename(f)]
+    files = [f for f in _drivetrack_files(exported_output) if segment in os.path.basename(f)]
     assert len(results) == len(files)
     for t in results:
         match = [f for f in files if f.endswith(f"_{t.camera_name}_{t.object_id}.npz")]
@@ -107,8 +122,9 @@ def test_failing_segment_is_isolated_and_named(synth_source, synth_segments, tmp
     segments = pd.read_parquet(out / "stats" / "segments.parquet").set_index("segment")
     assert segments.loc[synth_segments[1], "status"] == "failed"
     assert "lidar_box" in segments.loc[synth_segments[1], "error"]
-    assert not [f for f in _drivetrack_files(str(out)) if synth_segments[1] in f]
-    assert [f for f in _drivetrack_files(str(out)) if synth_segments[0] in f]
+    assert not [f for f in _clip_ids(str(out)) if synth_segments[1] in f]
+    assert not glob.glob(f"{out}/*/training/{synth_segments[1]}*.parquet")
+    assert [f for f in _clip_ids(str(out)) if synth_segments[0] in f]
 
 
 def test_cli_exit_codes(synth_source, synth_segments, tmp_path, capsys):

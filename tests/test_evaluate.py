@@ -133,8 +133,9 @@ def test_in_memory_tracks_score_like_their_files(synth_source, synth_segments, a
     np.testing.assert_allclose(a[columns[4:]].to_numpy(float), b[columns[4:]].to_numpy(float), rtol=1e-6)
 
 
-def test_corrupted_annotation_scores_lower(annotated_output, synth_source, truth_eval, tmp_path):
-    out = _copy_annotations(annotated_output, tmp_path / "out")
+def test_corrupted_annotation_scores_lower(exported_output, synth_source, truth_eval, tmp_path):
+    """Exported npz clips (the evaluation reads them like the tables) with one clip corrupted."""
+    out = _copy_annotations(exported_output, tmp_path / "out")
     files = find_annotation_files(str(out))
     target = max(files, key=lambda f: (Path(f.url).stat().st_size, f.relpath))
     arrays = _npz(target.url)
@@ -161,8 +162,8 @@ def test_corrupted_annotation_scores_lower(annotated_output, synth_source, truth
     assert corrupted.summary["modes"]["first"]["average_jaccard"] < truth_eval.summary["modes"]["first"]["average_jaccard"]
 
 
-def test_mismatched_segments_give_clear_errors(annotated_output, synth_source, synth_segments, tmp_path):
-    file = find_annotation_files(annotated_output)[0]
+def test_mismatched_segments_give_clear_errors(exported_output, synth_source, synth_segments, tmp_path):
+    file = find_annotation_files(exported_output)[0]
     clip = read_clip(file)
     other = TruthIndex.load(synth_source, "training", [s for s in synth_segments if s != file.segment][0])
     with pytest.raises(ValueError, match=f"ground truth of segment '{other.truth.segment}'"):
@@ -185,17 +186,17 @@ def test_mismatched_segments_give_clear_errors(annotated_output, synth_source, s
     bad = Clip(**{**clip.__dict__, "lidar_sources": clip.lidar_sources[:-1]})
     with pytest.raises(ValueError, match=r"lidar_sources has shape"):
         score_clip(bad, index)
-    with pytest.raises(FileNotFoundError, match="no annotation files"):
+    with pytest.raises(FileNotFoundError, match="no clips"):
         evaluate_annotations(str(tmp_path / "stray"), synth_source, split="validation")
 
 
 def _write_predictions(src: str, dst: Path, transform=lambda arrays: arrays, key: str = "visibles") -> Path:
     for file in find_annotation_files(src):
-        arrays = _npz(file.url)
-        pred = transform({"tracks": arrays["tracks"].copy(), "visibles": arrays["visibles"].copy()})
+        clip = read_clip(file)
+        pred = transform({"tracks": clip.tracks.copy(), "visibles": clip.visibles.copy()})
         out = {"tracks": pred["tracks"]}
         out[key] = pred["visibles"] if key == "visibles" else ~pred["visibles"]
-        target = dst / "nested" / Path(file.relpath).name
+        target = dst / "nested" / file.name
         target.parent.mkdir(parents=True, exist_ok=True)
         np.savez(target, **out)
     return dst

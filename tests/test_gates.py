@@ -16,14 +16,14 @@ import pytest
 from drivetrack.cli import main as cli_main
 from drivetrack.gates import card_summary, run_gates
 from test_gates_fixtures import (EMPTY_SEGMENT, NAN_SPEED, NOISY, NONFINITE, OUTSIDE, REFINE_WORSE, apply_defect,
-                                 good_tables, make_output, write_output)
+                                 clips_table_bytes, good_tables, make_output, write_output)
 
 SPEED_MEDIANS = {f"release.speed_err_median.{p}" for p in ("p25", "p50", "p75", "p95", "p99")}
 
 
 def _inconsistent(root):
     """Segment-level defects: a failed segment, a filter rejecting 36 of the 39 clips it examined,
-    a rejections table that disagrees with the counts, and a track file missing from disk."""
+    a rejections table that disagrees with the counts, and a clip missing from its clips table."""
     objects, segments, rejections = good_tables()
     segments.loc[segments["segment"] == "seg_b1", "status"] = "failed"
     b0 = segments["segment"] == "seg_b0"
@@ -36,7 +36,9 @@ def _inconsistent(root):
     a0 = segments["segment"] == "seg_a0"
     segments.loc[a0, "rejected_camera"] += 1  # one more than rejections.parquet lists
     write_output(root, objects, segments, rejections)
-    (root / objects.loc[4, "file"]).unlink()
+    row = objects.loc[4]
+    table = objects[objects["file"] == row["file"]]
+    (root / row["file"]).write_bytes(clips_table_bytes(table, drop=(row["segment"], row["camera"], row["object_id"])))
     return root
 
 
@@ -77,8 +79,8 @@ def test_good_release_passes_and_writes_its_report(reports):
     assert {p.name for p in (val / "gx_results").iterdir()} == {
         "drivetrack_object_objects.json", "drivetrack_segment_segments.json",
         "drivetrack_release_objects.json", "drivetrack_release_splits.json"}
-    # the Waymo 'validation' split's clips (tracks/validation/) are untouched by the gate run
-    assert len(list((root / "tracks" / "validation").glob("waymo_*.npz"))) == 6
+    # the Waymo 'validation' split's clips (clips/validation/) are untouched by the gate run
+    assert len(list((root / "clips" / "validation").glob("*.parquet"))) == 2
     assert "passed" in card_summary(report)
 
 
@@ -163,7 +165,7 @@ def test_inconsistent_statistics_fail_segment_and_file_gates(reports):
     assert segs("segment.rejections_table_agrees") == {"seg_a0"}
     assert _objects(_failure(report, "object.file_exists")) == {("seg_a1", "FRONT", "obj_1")}
     assert _failure(report, "release.split_files_agree").failing == [
-        {"num_object_clips": 6, "num_files_on_disk": 5, "split": "training"}]
+        {"num_object_clips": 6, "num_clips_on_disk": 5, "split": "training"}]
 
 
 def test_cli_exit_codes_and_config_override(tmp_path, capsys):
@@ -187,8 +189,8 @@ def test_gates_over_an_fsspec_url():
     for name, df in (("objects", objects), ("segments", segments), ("rejections", rejections)):
         with fs.open(f"{root}/stats/{name}.parquet", "wb") as fh:
             df.to_parquet(fh, index=False)
-    for f in objects["file"]:
-        fs.pipe(f"{root}/{f}", b"")
+    for f, rows in objects.groupby("file"):
+        fs.pipe(f"{root}/{f}", clips_table_bytes(rows))
     report = run_gates(root, data_docs=False)
     assert _failed(report) == {"object.no_nonfinite_visible", "object.visible_inside_image"}
     saved = json.loads(fs.cat(f"{root}/validation/gates.json"))

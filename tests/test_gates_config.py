@@ -13,7 +13,7 @@ from drivetrack.gates import GateConfigError, GateInputError, card_summary, load
 from drivetrack.gates.report import GateReport, GateResult, plain, report_html
 from drivetrack.gates.suites import build_specs
 from drivetrack.gates.tables import read_gate_tables
-from test_gates_fixtures import PAPER, good_tables, make_output, write_output
+from test_gates_fixtures import PAPER, clips_table_bytes, good_tables, make_output, write_output
 
 
 def test_defaults_have_values_and_reasons():
@@ -99,7 +99,9 @@ def test_derived_columns(tmp_path):
                      "rejected_no_visible_points"]] = [40, 10, 5, 20]
     segments["rejected_zz_custom"] = 0  # a reason the track stage does not know: judged last
     write_output(tmp_path, objects, segments, rejections)
-    (tmp_path / objects.loc[3, "file"]).unlink()
+    row = objects.loc[3]  # its clip is not in its clips table
+    table = objects[objects["segment"] == row["segment"]]
+    (tmp_path / row["file"]).write_bytes(clips_table_bytes(table, drop=(row["segment"], row["camera"], row["object_id"])))
     t = read_gate_tables(str(tmp_path), load_gate_config())
     assert t.objects["speed_err_num_nonfinite"].tolist()[:3] == [1, 1, 0]
     assert t.objects["file_exists"].tolist()[:6] == [True, True, True, False, True, True]
@@ -119,7 +121,7 @@ def test_derived_columns(tmp_path):
                    for r in ("camera", "too_few_frames", "no_visible_points"))
     assert t.segments["rejections_mismatch"].iloc[0] == expected > 0
     assert (t.segments["rejections_mismatch"].iloc[1:] == 0).all()
-    assert t.splits.set_index("split")["num_files_on_disk"].to_dict() == {"training": 5, "validation": 6}
+    assert t.splits.set_index("split")["num_clips_on_disk"].to_dict() == {"training": 5, "validation": 6}
     assert t.splits["num_tracks"].sum() == objects["num_tracks"].sum()
 
 

@@ -2,8 +2,8 @@
 
 ``make_output(root, defect=None)`` writes a small, plausible release (2 splits, 4 segments, 3
 objects per segment, FRONT camera) whose speed errors sit at the paper's scale, then applies one
-defect. The npz files are empty placeholders: the gates read only the statistics tables and check
-that each named file exists.
+defect. The clips tables (release layout v2) hold only the clip ids (other columns null): the
+gates read the statistics tables and check that each object's clip is a row of its clips table.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def good_tables(seed: int = 0) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame
                 err = PAPER * scale
                 rows.append(dict(
                     split=split, segment=segment, camera="FRONT", object_id=f"obj_{o}",
-                    object_type="VEHICLE", file=f"tracks/{split}/waymo_{segment}_FRONT_obj_{o}.npz",
+                    object_type="VEHICLE", file=f"clips/{split}/{segment}.parquet",
                     num_tracks=int(rng.integers(200, 2000)), num_frames=int(rng.integers(24, 199)),
                     visible_fraction=float(rng.uniform(0.3, 0.95)),
                     min_camera_distance_m=float(rng.uniform(4, 19)),
@@ -104,11 +104,28 @@ def write_output(root: Path, objects, segments, rejections, files: bool = True) 
     segments.to_parquet(stats / "segments.parquet", index=False)
     rejections.to_parquet(stats / "rejections.parquet", index=False)
     if files:
-        for f in objects["file"]:
-            path = root / f.removeprefix("file://")  # relative, absolute or file:// URL
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(b"")
+        # ``file`` relative, absolute or a file:// URL: one table per path
+        where = objects["file"].map(lambda f: str(root / f.removeprefix("file://")))
+        for path, rows in objects.groupby(where):
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            Path(path).write_bytes(clips_table_bytes(rows))
     return root
+
+
+def clips_table_bytes(objects: pd.DataFrame, drop: tuple[str, str, str] | None = None) -> bytes:
+    """A clips table (v2 schema) holding a row per object of ``objects`` (but ``drop``), ids only."""
+    import io
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from drivetrack.compact.layout import CLIPS_SCHEMA
+
+    rows = [{"clip": f"waymo_{s}_{c}_{o}", "segment": s, "camera": c, "object_id": o}
+            for s, c, o in zip(objects["segment"], objects["camera"], objects["object_id"]) if (s, c, o) != drop]
+    buffer = io.BytesIO()
+    pq.write_table(pa.Table.from_pylist(rows, schema=CLIPS_SCHEMA), buffer)
+    return buffer.getvalue()
 
 
 def make_output(root: Path, defect: str | None = None, seed: int = 0) -> Path:

@@ -298,7 +298,7 @@ def _fast_config():
 
     return AnnotateConfig(refine_poses=False, track=TrackConfig(
         cameras=("FRONT",), lasers=("TOP",), depth_lasers=("TOP",), returns=(1,),
-        max_tracks_per_object=16, writers=("drivetrack", "tapvid3d")))
+        max_tracks_per_object=16))
 
 
 def _files(out: Path) -> list[str]:
@@ -306,9 +306,11 @@ def _files(out: Path) -> list[str]:
 
 
 def _plant_leftovers(out: Path, segment: str) -> list[Path]:
-    """What an earlier killed run leaves: temporary files and a clip of ``segment``."""
+    """What an earlier killed run leaves: temporary files and clips of ``segment``."""
     planted = [out / "tracks" / SPLIT / ".partial-abc123.npz",
                out / "tapvid3d" / "validation" / ".partial-def456.npz",
+               out / "clips" / SPLIT / ".partial-abc.parquet",
+               out / "frames" / SPLIT / f"{segment}_FRONT_LEFT.parquet",
                out / "stats" / ".partial-0.parquet",
                out / "tracks" / SPLIT / f"waymo_{segment}_FRONT_from-an-earlier-run.npz"]
     for path in planted:
@@ -325,7 +327,7 @@ def test_worker_killed_twice_fails_only_its_segment(synth_source, synth_segments
     out = tmp_path / "out"
     planted = _plant_leftovers(out, victim)
     monkeypatch.setenv("DRIVETRACK_TEST_KILL_SEGMENT", victim)
-    monkeypatch.setenv("DRIVETRACK_TEST_KILL_AT", "2")   # after its first clip is in OUT
+    monkeypatch.setenv("DRIVETRACK_TEST_KILL_AT", "2")   # after its frames table is in OUT
     seen = []
     results = annotate(synth_source, SPLIT, [victim, other], str(out), _fast_config(), workers=2,
                        on_result=seen.append)
@@ -341,8 +343,10 @@ def test_worker_killed_twice_fails_only_its_segment(synth_source, synth_segments
     assert not [f for f in files if Path(f).name.startswith(".partial-")], files
     assert not [f for f in files if victim in f], files
     assert not any(p.exists() for p in planted)
-    for url in by[other].files:   # the other segment's clips are all there and whole
-        np.load(url[len("file://"):] if url.startswith("file://") else url, allow_pickle=False).close()
+    import pyarrow.parquet as pq
+
+    for url in by[other].files:   # the other segment's tables are all there and whole
+        pq.read_table(url[len("file://"):] if url.startswith("file://") else url)
     run = json.loads((out / "run.json").read_text())
     status = {s["segment"]: (s["status"], s["stage"], s["num_files"]) for s in run["segments"]}
     assert status[victim] == ("failed", "worker", 0)
@@ -374,7 +378,7 @@ def test_worker_killed_once_is_retried_in_a_fresh_process(synth_source, synth_se
     files = _files(out)
     assert not [f for f in files if Path(f).name.startswith(".partial-")], files
     written = sorted(str(Path(u.split("://", 1)[-1]).relative_to(out)) for r in results for u in r.files)
-    assert [f for f in files if f.endswith(".npz")] == written
+    assert [f for f in files if f.startswith(("clips/", "frames/"))] == written
     run = json.loads((out / "run.json").read_text())
     assert {s["segment"]: s["attempts"] for s in run["segments"]} == {victim: 2, other: 1}
 

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from drivetrack.evaluation import find_annotation_files, score_predictions
+from drivetrack.evaluation.clips import read_clip
 
 
 def _arrays(url: str) -> dict[str, np.ndarray]:
@@ -29,8 +30,9 @@ def _perfect_predictions(src: str, dst: Path) -> dict[str, Path]:
     """One exact prediction per clip of ``src`` under ``dst``: {file name: path}."""
     out = {}
     for file in find_annotation_files(src):
-        arrays = _arrays(file.url)
-        target = dst / Path(file.relpath).name
+        clip = read_clip(file)
+        arrays = {"tracks": clip.tracks, "visibles": clip.visibles}
+        target = dst / file.name
         target.parent.mkdir(parents=True, exist_ok=True)
         np.savez(target, tracks=arrays["tracks"], visibles=arrays["visibles"])
         out[target.name] = target
@@ -100,7 +102,7 @@ def test_nan_tracks_are_errors_in_the_headline_not_zero_pixels(annotated_output,
     assert summary["num_nonfinite_at_visible"] == expected
     assert summary["num_clips_nonfinite"] == 1
     assert summary["pixel_error_mean"] == math.inf         # never averaged away
-    row = result.clips[(result.clips["file"].str.endswith(victim.name)) & (result.clips["query_mode"] == "first")]
+    row = result.clips[(result.clips["clip"] == victim.stem) & (result.clips["query_mode"] == "first")]
     assert int(row["num_nonfinite_at_visible"].iloc[0]) == expected
     assert row["pixel_error_median"].iloc[0] == math.inf   # more than half its points are NaN/inf
     for mode in ("first", "strided"):
@@ -242,7 +244,7 @@ def test_wrong_shapes_name_file_member_expected_and_found(annotated_output, tmp_
     np.savez(victim, tracks=arrays["tracks"], occluded=~arrays["visibles"][:, :-1])
     with pytest.raises(ValueError, match=rf"{re.escape(victim.name)}: occluded has shape \({n}, {t - 1}\), "
                                          rf"expected \(N, T\) = \({n}, {t}\) \(N tracks, T frames of the "
-                                         rf"ground-truth clip .*{re.escape(victim.name)}\)"):
+                                         rf"ground-truth clip .*{re.escape(victim.stem)}\)"):
         score_predictions(annotated_output, str(tmp_path / "pred"))
     np.savez(victim, tracks=arrays["tracks"][..., 0], visibles=arrays["visibles"])
     with pytest.raises(ValueError, match=rf"{re.escape(victim.name)}: tracks has shape \({n}, {t}\), expected "

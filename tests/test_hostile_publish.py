@@ -60,8 +60,40 @@ def _refused(out: Path, store: Path, report: dict, error=InvalidSourceError, **k
     return str(info.value)
 
 
-def _clips(out: Path, folder: str = "tracks") -> list[Path]:
-    return sorted((out / folder).glob("*/waymo_*.npz"))
+def _clips(out: Path, folder: str = "clips") -> list[Path]:
+    """The clips tables of ``out`` (``folder="frames"``: its frames tables)."""
+    return sorted((out / folder).glob("*/*.parquet"))
+
+
+@pytest.fixture(scope="module")
+def exported(gated, tmp_path_factory) -> Path:
+    """The gated output's clips exported as npz (what ``publish_npz`` publishes)."""
+    from drivetrack.compact.export import FORMATS, export_clips
+
+    dst = tmp_path_factory.mktemp("hostile_publish_npz")
+    export_clips(str(gated[0]), list(FORMATS), str(dst))
+    return dst
+
+
+def _npz_clips(root: Path, folder: str = "tracks") -> list[Path]:
+    return sorted((root / folder).glob("*/waymo_*.npz"))
+
+
+def _npz_copy(exported: Path, tmp_path: Path, folder: str = "tracks", index: int = 0) -> Path:
+    src = _npz_clips(exported, folder)[index]
+    dst = tmp_path / folder / src.parent.name / src.name
+    dst.parent.mkdir(parents=True)
+    shutil.copy(src, dst)
+    return dst
+
+
+def _npz_refused(path: Path, layout: str = "drivetrack") -> str:
+    """The refusal publish (with ``publish_npz``) makes of an npz clip: its header check."""
+    from drivetrack.release.contents import check_clip_npz
+
+    with pytest.raises(InvalidSourceError) as info, open(path, "rb") as f:
+        check_clip_npz(f, str(path), layout)
+    return str(info.value)
 
 
 def _rewrite_npz(path: Path, change) -> None:
@@ -106,12 +138,12 @@ def test_unknown_file_and_fifo_are_refused(out, report, tmp_path):
     assert "run.fifo: a fifo" in msg
 
 
-def test_npz_with_an_object_member_is_refused(out, report, tmp_path):
-    clip = _clips(out)[0]
+def test_npz_with_an_object_member_is_refused(exported, tmp_path):
+    clip = _npz_copy(exported, tmp_path)
     payload = np.empty(1, dtype=object)
     payload[0] = {"pickled": "payload"}
     _rewrite_npz(clip, lambda a: {**a, "lidar_sources": payload})
-    msg = _refused(out, tmp_path / "store", report)
+    msg = _npz_refused(clip)
     assert clip.name in msg and "'lidar_sources'" in msg and "|O" in msg
 
 
@@ -121,25 +153,25 @@ def test_npz_with_an_object_member_is_refused(out, report, tmp_path):
     (lambda a: {**a, "extra": np.zeros(3)}, ["['extra']", "not part of"]),
     (lambda a: {k: v for k, v in a.items() if k != "points3d"}, ["missing", "points3d"]),
 ], ids=["wrong-dtype", "wrong-shape", "extra-member", "missing-member"])
-def test_npz_member_not_as_declared_is_refused(out, report, tmp_path, change, words):
-    clip = _clips(out)[-1]
+def test_npz_member_not_as_declared_is_refused(exported, tmp_path, change, words):
+    clip = _npz_copy(exported, tmp_path, index=-1)
     _rewrite_npz(clip, change)
-    msg = _refused(out, tmp_path / "store", report)
+    msg = _npz_refused(clip)
     assert clip.name in msg
     for w in words:
         assert w in msg, msg
 
 
-def test_tapvid3d_member_not_as_declared_is_refused(out, report, tmp_path):
-    clip = _clips(out, "tapvid3d")[0]
+def test_tapvid3d_member_not_as_declared_is_refused(exported, tmp_path):
+    clip = _npz_copy(exported, tmp_path, "tapvid3d")
     _rewrite_npz(clip, lambda a: {**a, "tracks_XYZ": np.swapaxes(a["tracks_XYZ"], 0, 1)})
-    msg = _refused(out, tmp_path / "store", report)
+    msg = _npz_refused(clip, "tapvid3d")
     assert clip.name in msg and "'tracks_XYZ'" in msg
 
 
-def test_truncated_npz_is_refused(gated, out, report, tmp_path):
+def test_truncated_npz_is_refused(exported, tmp_path):
     # a member whose stored data is shorter than its header declares (the zip itself is intact)
-    clip = _clips(out)[0]
+    clip = _npz_copy(exported, tmp_path)
     with np.load(clip) as z:
         arrays = {k: z[k] for k in z.files}
     buf = io.BytesIO()
@@ -152,14 +184,40 @@ def test_truncated_npz_is_refused(gated, out, report, tmp_path):
                 b = io.BytesIO()
                 np.lib.format.write_array(b, v)
                 zf.writestr(f"{k}.npy", b.getvalue())
-    msg = _refused(out, tmp_path / "store", report)
+    msg = _npz_refused(clip)
     assert clip.name in msg and "'tracks'" in msg and "bytes" in msg
     # and a file cut short (no central directory)
-    shutil.copy(gated[0] / clip.relative_to(out), clip)
-    other = _clips(out)[1]
-    other.write_bytes(other.read_bytes()[: other.stat().st_size // 2])
-    msg = _refused(out, tmp_path / "store2", report)
-    assert other.name in msg and "not a readable .npz" in msg
+    whole = _npz_clips(exported)[1].read_bytes()
+    clip.write_bytes(whole[: len(whole) // 2])
+    msg = _npz_refused(clip)
+    assert clip.name in msg and "not a readable .npz" in msg
+
+
+def test_truncated_clips_table_is_refused(out, report, tmp_path):
+    table = _clips(out)[0]
+    table.write_bytes(table.read_bytes()[: table.stat().st_size // 2])
+    msg = _refused(out, tmp_path / "store", report)
+    assert f"clips/{table.parent.name}/{table.name}: not a readable Parquet table" in msg
+
+
+def test_npz_in_the_source_are_left_out_unless_publish_npz(out, report, exported, tmp_path):
+    """Without ``publish_npz`` stray npz files of the source are not published; with it, npz are
+    exported from the tables (stale or tampered ones replaced) and published."""
+    stale = out / "tracks" / "training" / _npz_clips(exported)[0].name
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"not what the tables hold")
+    store = tmp_path / "store"
+    publish_release(out, store, "1.0.0", gate_report=report, workers=2)
+    files = {f["path"] for f in read_manifest(store, "1.0.0")["files"]}
+    assert not [f for f in files if f.endswith(".npz")]
+    publish_release(out, store, "1.0.1", gate_report=report, workers=2, publish_npz=True)
+    manifest = read_manifest(store, "1.0.1")
+    npz = sorted(f["path"] for f in manifest["files"] if f["path"].endswith(".npz"))
+    assert npz == sorted(p.relative_to(exported).as_posix() for p in exported.rglob("*.npz"))
+    assert (store / DS / "1.0.1" / stale.relative_to(out)).read_bytes() == (exported / stale.relative_to(out)).read_bytes()
+    split = manifest["counts"]["splits"]["training"]
+    assert split["clips"] == split["npz_clips"] == split["tapvid3d_clips"] == len(npz) // 2
+    assert verify_release(store, "1.0.1").ok
 
 
 def test_statistics_table_without_its_schema_is_refused(out, report, tmp_path):
@@ -186,28 +244,24 @@ def test_report_with_a_contradicting_verdict_is_refused(out, report, tmp_path):
 
 
 def test_report_of_a_different_folder_is_refused(out, report, tmp_path):
-    # other content: one clip fewer (a size-and-path difference, caught before anything is written)
+    # other content: one segment's tables fewer (a path difference, caught before anything is written)
     gone = _clips(out)[0]
-    gone.unlink()
+    frames = [p for p in _clips(out, "frames") if p.name.startswith(gone.stem)]
+    for p in [gone, *frames]:
+        p.unlink()
     msg = _refused(out, tmp_path / "store", report, GateBindingError)
-    assert f"tracks/{gone.parent.name}/{gone.name}" in msg
+    assert f"clips/{gone.parent.name}/{gone.name}" in msg and f"frames/{frames[0].parent.name}/{frames[0].name}" in msg
 
 
 def test_clip_changed_after_the_gates_same_size_is_refused(out, report, tmp_path):
     # same size, other bytes: caught on the staged bytes, and the staging is cleaned up
-    clip = _clips(out)[0]
-    with zipfile.ZipFile(clip) as zf:
-        info = max(zf.infolist(), key=lambda i: i.compress_size)
-    assert info.compress_size > 1 << 16
-    with open(clip, "rb") as f:
-        f.seek(info.header_offset + 26)
-        n, m = np.frombuffer(f.read(4), "<u2")
-    pos = info.header_offset + 30 + int(n) + int(m) + info.compress_size - 64
+    # (a byte of a JPEG in a frames table: the table still reads, only its sha256 tells)
+    clip = _clips(out, "frames")[0]
     data = bytearray(clip.read_bytes())
-    data[pos] ^= 0xFF
+    data[len(data) // 2] ^= 0xFF
     clip.write_bytes(bytes(data))
     msg = _refused(out, tmp_path / "store", report, GateBindingError)
-    assert f"tracks/{clip.parent.name}/{clip.name}: sha256" in msg
+    assert f"frames/{clip.parent.name}/{clip.name}: sha256" in msg
 
 
 def test_edited_statistics_table_is_refused(out, report, tmp_path):
@@ -253,9 +307,9 @@ def test_bound_report_publishes_and_is_recorded(out, report, tmp_path):
 
 def test_partial_files_are_refused(out, report, tmp_path):
     clip = _clips(out)[0]
-    shutil.copy(clip, clip.parent / ".partial-k3j2h1.npz")
+    shutil.copy(clip, clip.parent / ".partial-k3j2h1.parquet")
     msg = _refused(out, tmp_path / "store", report)
-    assert ".partial-k3j2h1.npz" in msg
+    assert ".partial-k3j2h1.parquet" in msg
 
 
 def test_clips_of_a_failed_segment_are_refused(out, report, tmp_path):
@@ -265,7 +319,7 @@ def test_clips_of_a_failed_segment_are_refused(out, report, tmp_path):
     df.loc[0, "status"] = "failed"
     df.to_parquet(path)
     msg = _refused(out, tmp_path / "store", report)
-    theirs = [p for p in _clips(out) + _clips(out, "tapvid3d") if p.name.startswith(f"waymo_{failed}_")]
+    theirs = [p for p in _clips(out) + _clips(out, "frames") if p.name.startswith(failed)]
     assert theirs
     for p in theirs[:5]:
         assert p.name in msg

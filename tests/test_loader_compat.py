@@ -1,5 +1,8 @@
 """Our files, read the way the field's loaders read them (docs/formats.md, "Loader compatibility").
 
+The files are those ``drivetrack export`` writes from the release tables (the ``exported_output``
+fixture: DriveTrack and TAPVid-3D npz), as a user of those loaders gets them.
+
 Each reader below is written from the public loader it names (our code, their reading steps):
 
 - ``aharley/alltracker`` ``datasets/drivetrackdataset.py``: glob ``*.npz`` in one folder,
@@ -31,17 +34,17 @@ from drivetrack.evaluation import metrics
 
 
 @pytest.fixture(scope="module")
-def split_dir(annotated_output) -> str:
+def split_dir(exported_output) -> str:
     """The folder of DriveTrack clips of one split (what a loader's ``data_root`` points at)."""
-    folders = sorted({os.path.dirname(p) for p in glob.glob(f"{annotated_output}/**/waymo_*.npz", recursive=True)
+    folders = sorted({os.path.dirname(p) for p in glob.glob(f"{exported_output}/**/waymo_*.npz", recursive=True)
                       if "tapvid3d" not in p.split(os.sep)})
     assert len(folders) == 1, folders
     return folders[0]
 
 
 @pytest.fixture(scope="module")
-def tapvid3d_files(annotated_output) -> list[str]:
-    files = sorted(p for p in glob.glob(f"{annotated_output}/**/waymo_*.npz", recursive=True)
+def tapvid3d_files(exported_output) -> list[str]:
+    files = sorted(p for p in glob.glob(f"{exported_output}/**/waymo_*.npz", recursive=True)
                    if "tapvid3d" in p.split(os.sep))
     assert files
     return files

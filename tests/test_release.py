@@ -49,6 +49,47 @@ def _clip_arrays(rng, n: int, t: int) -> dict[str, dict[str, np.ndarray]]:
                      "timestamps_micros": np.arange(t, dtype=np.int64) * 100_000}}
 
 
+def _jpeg(rgb: np.ndarray) -> bytes:
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]))
+    assert ok
+    return data.tobytes()
+
+
+def write_v2_clip(root: Path, split: str, segment: str, object_id: str, n: int, rng, t: int = T_FRAMES) -> str:
+    """One clip as release layout v2 (docs/formats.md): ``clips/{split}/{segment}.parquet`` with its
+    row and ``frames/{split}/{segment}_FRONT.parquet`` with its frames. Returns the clips table path."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from drivetrack.compact.layout import CLIPS_SCHEMA, FRAMES_SCHEMA, parquet_options
+
+    arrays = _clip_arrays(rng, n, t)["tracks"]
+    stem = f"waymo_{segment}_FRONT_{object_id}"
+    row = {"clip": stem, "split": split, "segment": segment, "camera": "FRONT", "object_id": object_id,
+           "object_type": "VEHICLE", "num_tracks": n, "num_frames": t, "frames": list(range(t)),
+           "timestamps_micros": arrays["timestamps_micros"].tolist(), "tracks": arrays["tracks"].ravel().tolist(),
+           "visibles": arrays["visibles"].ravel().tolist(), "query_frames": arrays["query_frames"].tolist(),
+           "lidar_sources": arrays["lidar_sources"].ravel().tolist(),
+           "points_box": rng.random(3 * n).tolist(), "vehicle_from_box": np.tile(np.eye(4), (t, 1, 1)).ravel().tolist(),
+           "query_pixels": [0.5] * (2 * n),
+           "width": 8, "height": 6, "intrinsics": [100.0, 100.0, 4.0, 3.0, 0, 0, 0, 0, 0],
+           "camera_from_vehicle": np.tile(np.eye(4), (t, 1, 1)).ravel().tolist(),
+           "world_from_vehicle": np.tile(np.eye(4), (t, 1, 1)).ravel().tolist()}
+    clips = root / "clips" / split / f"{segment}.parquet"
+    frames = root / "frames" / split / f"{segment}_FRONT.parquet"
+    clips.parent.mkdir(parents=True, exist_ok=True)
+    frames.parent.mkdir(parents=True, exist_ok=True)
+    pq.write_table(pa.Table.from_pylist([row], schema=CLIPS_SCHEMA), clips, **parquet_options(CLIPS_SCHEMA))
+    pq.write_table(pa.Table.from_pydict({
+        "segment": [segment] * t, "camera": ["FRONT"] * t, "frame": list(range(t)),
+        "timestamp_micros": row["timestamps_micros"],
+        "image": [{"bytes": _jpeg(arrays["video"][i]), "path": None} for i in range(t)]},
+        schema=FRAMES_SCHEMA), frames, **parquet_options(FRAMES_SCHEMA))
+    return f"clips/{split}/{segment}.parquet"
+
+
 _GATED: dict[tuple, dict[str, bytes]] = {}
 
 
@@ -56,20 +97,16 @@ def make_output(root: Path, *, seed: int = 0, n_clips: int = 2, splits=("trainin
     """A small annotation output folder in the documented layout (docs/architecture.md) that passes
     the default gates, with its gate report in ``validation/`` (the gates run once per distinct
     content; the clips are written with deterministic bytes, so copies share the report)."""
-    from drivetrack.storage import write_npz
-
     rng = np.random.default_rng(seed)
     rows, seg_rows, rej_rows = [], [], []
     for split in splits:
         for i in range(n_clips):
             segment = f"seg{i}" if split == splits[0] else f"{split[0]}seg{i}"  # segment ids are unique
-            name = f"waymo_{segment}_FRONT_{split[:3]}{i}.npz"
             n = 60 + i
-            for layout, arrays in _clip_arrays(rng, n, T_FRAMES).items():
-                write_npz(str(root / layout / split / name), arrays)
+            table = write_v2_clip(root, split, segment, f"{split[:3]}{i}", n, rng)
             err = PAPER * (1 + 0.1 * i + 0.01 * seed)
             rows.append({"split": split, "segment": segment, "camera": "FRONT", "object_id": f"{split[:3]}{i}",
-                         "object_type": "VEHICLE", "file": f"tracks/{split}/{name}", "num_tracks": n,
+                         "object_type": "VEHICLE", "file": table, "num_tracks": n,
                          "num_frames": T_FRAMES, "visible_fraction": 0.5 + 0.1 * i, "min_camera_distance_m": 10.0,
                          **{f"speed_err_{p}": float(v) for p, v in zip(("p25", "p50", "p75", "p95", "p99"), err)},
                          "num_nonfinite_visible": 0, "num_visible_outside_image": 0})
@@ -148,16 +185,16 @@ def test_manifest_records_inputs_and_hash(output, tmp_path):
     m = read_manifest(tmp_path / "store", "1.0.0")
     assert m["manifest_sha256"] == manifest_hash(m)
     files = {f["path"]: f for f in m["files"]}
-    src = output / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"
+    src = output / "clips" / "training" / "seg0.parquet"
     import hashlib
-    assert files["tracks/training/waymo_seg0_FRONT_tra0.npz"] == {
-        "path": "tracks/training/waymo_seg0_FRONT_tra0.npz", "size": src.stat().st_size,
+    assert files["clips/training/seg0.parquet"] == {
+        "path": "clips/training/seg0.parquet", "size": src.stat().st_size,
         "sha256": hashlib.sha256(src.read_bytes()).hexdigest()}
     assert {"README.md", "croissant.json", "SHA256SUMS", "run.json", "stats/objects.parquet"} <= set(files)
     assert m["segments"][0]["sources"]["camera_image"] == "a" * 64
     assert m["config"] == {"annotation": {"depth": {"completer": "nearest"}}, "publish": {"note": "first"}}
     assert m["run"]["seed"] == 0 and m["code_version"]["drivetrack"]
-    assert m["counts"]["splits"]["training"] == {"clips": 2, "tapvid3d_clips": 2,
+    assert m["counts"]["splits"]["training"] == {"clips": 2, "npz_clips": 0, "tapvid3d_clips": 0,
                                                  "bytes": m["counts"]["splits"]["training"]["bytes"]}
     assert m["statistics"]["objects"]["num_tracks_total"] == 2 * (60 + 61)
     assert m["statistics"]["segments"]["rejected_too_far_total"] == 2
@@ -179,9 +216,13 @@ def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     assert front["license"] and front["pretty_name"] and front["size_categories"] == ["n<1K"]
     assert front["task_categories"]
     configs = {c["config_name"]: c for c in front["configs"]}
-    assert configs["drivetrack"]["data_files"] == [{"split": "training", "path": "tracks/training/waymo_*.npz"},
-                                                   {"split": "validation", "path": "tracks/validation/waymo_*.npz"}]
-    assert configs["tapvid3d"]["data_files"][0] == {"split": "training", "path": "tapvid3d/training/waymo_*.npz"}
+    assert configs["clips"]["data_files"] == [{"split": "training", "path": "clips/training/*.parquet"},
+                                              {"split": "validation", "path": "clips/validation/*.parquet"}]
+    assert configs["clips"]["default"] is True
+    assert configs["frames"]["data_files"][0] == {"split": "training", "path": "frames/training/*.parquet"}
+    infos = {i["config_name"]: i["features"] for i in front["dataset_info"]}
+    assert {"name": "image", "dtype": "image"} in infos["frames"]
+    assert {"name": "tracks", "list": "float32"} in infos["clips"]
     assert "| object.visible_inside_image | pass |" in text and "Citation" in text and "sha256sum -c SHA256SUMS" in text
 
     doc = json.loads((vdir / "croissant.json").read_text())
@@ -191,8 +232,12 @@ def test_cards_hf_front_matter_and_croissant_validates(output, tmp_path):
     assert objects and all(d["sha256"] == sums[d["contentUrl"]] for d in objects)
     ds = mlc.Dataset(jsonld=str(vdir / "croissant.json"))
     assert not ds.metadata.issues.errors, ds.metadata.issues.report()
-    fields = {f.name: f for rs in ds.metadata.record_sets if rs.name == "drivetrack" for f in rs.fields}
-    assert fields["tracks"].is_array and fields["tracks"].array_shape == "-1,24,2"
+    fields = {f.name: f for rs in ds.metadata.record_sets if rs.name == "clips" for f in rs.fields}
+    assert fields["tracks"].is_array and fields["num_tracks"].data_types
+    clips = sorted((r["clips/clip"].decode(), len(r["clips/tracks"])) for r in ds.records("clips"))
+    assert clips[0] == ("waymo_seg0_FRONT_tra0", 60 * 24 * 2)
+    frames = list(ds.records("frames"))
+    assert len(frames) == 4 * 24
     # The stats record set really loads through mlcroissant from the release folder.
     records = list(ds.records("stats-objects"))
     assert len(records) == 4 and sorted(r["stats-objects/num_tracks"] for r in records) == [60, 60, 61, 61]
@@ -257,10 +302,10 @@ def test_bad_sources_raise_clear_errors(tmp_path):
     (badrun / "run.json").write_text("{not json")
     with pytest.raises(InvalidSourceError, match=r"badrun/run.json: run.json is not valid JSON"):
         publish_release(badrun, tmp_path / "store", "1.0.0")
-    badnpz = make_output(tmp_path / "badnpz")
-    (badnpz / "tracks" / "validation" / "waymo_vseg0_FRONT_val0.npz").write_bytes(b"not a zip")
-    with pytest.raises(InvalidSourceError, match=r"tracks/validation/waymo_vseg0_FRONT_val0.npz: not a readable .npz"):
-        publish_release(badnpz, tmp_path / "store", "1.0.0", gate_report=gates_of(badnpz))
+    badtable = make_output(tmp_path / "badtable")
+    (badtable / "clips" / "validation" / "vseg0.parquet").write_bytes(b"not parquet")
+    with pytest.raises(InvalidSourceError, match=r"clips/validation/vseg0.parquet: not a readable Parquet table"):
+        publish_release(badtable, tmp_path / "store", "1.0.0", gate_report=gates_of(badtable))
     assert not (tmp_path / "store").exists()
 
 
@@ -281,22 +326,22 @@ def test_verify_reports_missing_extra_and_corrupt(output, tmp_path):
     store = tmp_path / "store"
     publish_release(output, store, "1.0.0", gate_report=gates_of(output))
     vdir = store / DS / "1.0.0"
-    victim = vdir / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"
+    victim = vdir / "clips" / "training" / "seg0.parquet"
     os.chmod(victim, 0o644)
     data = bytearray(victim.read_bytes())
     data[100] ^= 0xFF  # same size, different content
     victim.write_bytes(bytes(data))
-    short = vdir / "tracks" / "validation" / "waymo_vseg1_FRONT_val1.npz"
+    short = vdir / "frames" / "validation" / "vseg1_FRONT.parquet"
     os.chmod(short, 0o644)
     short.write_bytes(short.read_bytes()[:-1])
     (vdir / "stats" / "segments.parquet").unlink()
-    (vdir / "tracks" / "training" / "intruder.npz").write_bytes(b"x")
+    (vdir / "clips" / "training" / "intruder.parquet").write_bytes(b"x")
     report = verify_release(store, "1.0.0")
     assert not report.ok
     assert report.missing == ["stats/segments.parquet"]
-    assert report.extra == ["tracks/training/intruder.npz"]
+    assert report.extra == ["clips/training/intruder.parquet"]
     assert [(c["path"], c["problem"]) for c in report.corrupt] == [
-        ("tracks/training/waymo_seg0_FRONT_tra0.npz", "sha256"), ("tracks/validation/waymo_vseg1_FRONT_val1.npz", "size")]
+        ("clips/training/seg0.parquet", "sha256"), ("frames/validation/vseg1_FRONT.parquet", "size")]
     assert sha256sum_check(vdir).returncode != 0
     assert cli(["verify", str(store), "--version", "1.0.0"]) == 1
 
@@ -417,13 +462,13 @@ def test_write_error_interrupts_cleanly_then_gc_and_republish(output, tmp_path):
     blocker.parent.mkdir(parents=True)
 
     def block(event, info):
-        if event == "uploaded" and not (blocker / "tracks").exists():
-            (blocker / "tracks").write_text("in the way")
+        if event == "uploaded" and not (blocker / "frames").exists():
+            (blocker / "frames").write_text("in the way")
 
     with pytest.raises(PublishInterruptedError) as err:
         publish_release(output, store, "1.0.0", workers=1, progress=block, gate_report=gates_of(output))
     msg = str(err.value)
-    assert "uploading" in msg and "tracks/" in msg and "No version is visible" in msg
+    assert "uploading" in msg and "frames/" in msg and "No version is visible" in msg
     assert "drivetrack gc" in msg
     assert list_versions(store) == []
     with pytest.raises(VersionNotFoundError, match="interrupted"):
@@ -492,21 +537,21 @@ def test_diff_versions(tmp_path):
     a = make_output(tmp_path / "a", seed=0, n_clips=2)
     publish_release(a, store, "1.0.0", gate_report=gates_of(a))
     from drivetrack.gates import run_gates
-    from drivetrack.storage import write_npz
-
-    write_npz(str(a / "tracks" / "training" / "waymo_seg0_FRONT_tra0.npz"),
-              _clip_arrays(np.random.default_rng(9), 60, T_FRAMES)["tracks"])
-    (a / "tracks" / "validation" / "waymo_vseg1_FRONT_val1.npz").unlink()
-    write_npz(str(a / "tracks" / "validation" / "waymo_vseg0_FRONT_val9.npz"),
-              _clip_arrays(np.random.default_rng(9), 20, T_FRAMES)["tracks"])
+    write_v2_clip(a, "training", "seg0", "tra0", 60, np.random.default_rng(9))
+    (a / "clips" / "validation" / "vseg1.parquet").unlink()
+    (a / "frames" / "validation" / "vseg1_FRONT.parquet").unlink()
+    write_v2_clip(a, "validation", "vseg9", "val9", 20, np.random.default_rng(9))
+    segments = pd.read_parquet(a / "stats" / "segments.parquet")
+    extra = segments.iloc[[-1]].assign(segment="vseg9")
+    pd.concat([segments, extra], ignore_index=True).to_parquet(a / "stats" / "segments.parquet")
     # gates run on a copy (same content, so the report binds to a) to keep a's validation/ as it was
     shutil.copytree(a, tmp_path / "a2")
     report = run_gates(str(tmp_path / "a2"), data_docs=False).to_dict()
     publish_release(a, store, "1.1.0", gate_report=report, accept_failed_gates="test: clips edited by hand")
     d = diff_versions(store, "1.0.0", "1.1.0")
-    assert d.added == ["tracks/validation/waymo_vseg0_FRONT_val9.npz"]
-    assert d.removed == ["tracks/validation/waymo_vseg1_FRONT_val1.npz"]
-    assert d.changed == ["tracks/training/waymo_seg0_FRONT_tra0.npz"]
+    assert d.added == ["clips/validation/vseg9.parquet", "frames/validation/vseg9_FRONT.parquet"]
+    assert d.removed == ["clips/validation/vseg1.parquet", "frames/validation/vseg1_FRONT.parquet"]
+    assert d.changed == ["clips/training/seg0.parquet", "frames/training/seg0_FRONT.parquet", "stats/segments.parquet"]
     assert "counts.files" not in d.deltas  # one removed, one added: unchanged values are not listed
     bytes_old = read_manifest(store, "1.0.0")["counts"]["bytes"]
     bytes_new = read_manifest(store, "1.1.0")["counts"]["bytes"]

@@ -29,8 +29,9 @@ def test_find_clips_skips_tapvid3d_copies_and_matches_the_stats(annotated_output
     assert clips and all("tapvid3d" not in c.split("/")[:-1] for c in clips)
     objects = pd.read_parquet(f"{annotated_output}/stats/objects.parquet")
     assert len(clips) == len(objects)
-    names = {c.rsplit("/", 1)[1] for c in clips}
-    assert names == {f.rsplit("/", 1)[1] for f in objects["file"]}
+    stems = {show.clips.clip_stem_of(c) for c in clips}
+    assert stems == {f"waymo_{s}_{c}_{o}" for s, c, o in zip(objects["segment"], objects["camera"], objects["object_id"])}
+    assert {c.split("#")[0].split(f"{annotated_output}/", 1)[1] for c in clips} == set(objects["file"])
 
 
 def test_parse_clip_name_handles_underscores_and_two_word_cameras():
@@ -45,7 +46,7 @@ def test_select_clip_takes_the_largest_and_filters_by_object(annotated_output, c
     counts = {c: show.clip_num_tracks(c) for c in clips}
     assert show.select_clip(annotated_output) == max(clips, key=lambda c: (counts[c], -clips.index(c)))
     some = clips[-1]
-    _, camera, object_id = show.parse_clip_name(some)
+    _, camera, object_id = show.parse_clip_name(show.clips.clip_stem_of(some))
     assert show.select_clip(annotated_output, object_id, camera) == some
     with pytest.raises(LookupError, match="no clip for object 'nope'"):
         show.select_clip(annotated_output, "nope")

@@ -15,7 +15,7 @@ def add_parser(sub) -> None:
                        description="Stage, check and commit DIR as {STORE}/{dataset}/{version}/ "
                                    "(manifest.json written last; latest/versions updated by compare-and-swap).",
                        epilog=EXIT_CODES_HELP)
-    p.add_argument("dir", help="annotation output folder (run.json, tracks/{split}/*.npz, stats/*.parquet, ...); "
+    p.add_argument("dir", help="annotation output folder (run.json, clips/{split}/*.parquet, frames/{split}/*.parquet, stats/*.parquet, ...); "
                                "links, hidden files and files outside the output contract are refused")
     p.add_argument("--store", default="./store", help="store URL: folder, s3://bucket/prefix or gs://bucket/prefix")
     p.add_argument("--version", required=True, dest="release_version", help="semantic version, e.g. 1.0.0")
@@ -28,6 +28,9 @@ def add_parser(sub) -> None:
     p.add_argument("--accept-failed-gates", default=None, metavar="REASON",
                    help="publish even if gates failed; REASON is recorded in the manifest and the card")
     p.add_argument("--resume", action="store_true", help="resume an interrupted publish of this version")
+    p.add_argument("--npz", action="store_true",
+                   help="also publish the clips as DriveTrack and TAPVid-3D npz files, exported from the tables "
+                        "into DIR first (drivetrack export); without it npz files in DIR are left out")
     p.add_argument("--workers", type=int, default=8, help="concurrent uploads/hashes")
     add_store_options(p)
     p.set_defaults(func=run)
@@ -86,7 +89,7 @@ def _run(args) -> int:
             storage_options=storage_options(args), gate_report=_gate_report(args),
             gates_config=args.gates_config,
             accept_failed_gates=args.accept_failed_gates, config=config, resume=args.resume,
-            workers=args.workers, progress=progress)
+            workers=args.workers, progress=progress, publish_npz=args.npz)
     if args.json:
         print_json(result.__dict__)
     else:

@@ -10,8 +10,8 @@ def add_parser(sub) -> None:
         description="Draw K sampled tracks of one clip over its frames: visible points as filled dots, "
                     "occluded points as crosses, trails of the last frames, one colour per track. "
                     "FILE_OR_RELEASE is a DriveTrack clip (.npz) or a folder (annotation output or "
-                    "release version) searched for waymo_*.npz; without --object the clip with the most "
-                    "tracks is shown. With --source SRC (the Waymo v2 source root), --depth-panel adds "
+                    "release version) whose clips tables (clips/*/*.parquet) are searched (folders without "
+                    "them: waymo_*.npz files); without --object the clip with the most tracks is shown. With --source SRC (the Waymo v2 source root), --depth-panel adds "
                     "the recomputed depth map beside each frame and --errors (synthetic sources) colours "
                     "each point by its pixel error against the exact ground truth and rings wrong "
                     "occlusion flags.")

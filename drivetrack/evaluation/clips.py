@@ -2,8 +2,10 @@
 
 - :class:`Clip`: one annotated clip (N tracks, T frames) in memory, the one type
   :mod:`drivetrack.evaluation` scores and :mod:`drivetrack.show` draws.
-- :func:`find_annotation_files`: every DriveTrack-layout clip file of a folder, its name parsed
-  with :func:`drivetrack.outputs.parse_clip_name`.
+- :func:`find_annotation_files`: every clip of a folder: the rows of its v2 clips tables
+  (``clips/{split}/*.parquet``, :mod:`drivetrack.compact`) or, when it has none, every
+  DriveTrack-layout npz clip file (e.g. ``drivetrack export`` output), names parsed with
+  :func:`drivetrack.outputs.parse_clip_name`.
 - :func:`read_clip` / :func:`load_npz`: arrays checked from their npy headers before any data is
   read (dtype kind, shape, declared size), flags checked to be 0/1.
 
@@ -11,6 +13,7 @@ Pixels (x, y), pixel i covers [i, i+1), as everywhere in drivetrack.
 """
 from __future__ import annotations
 
+import posixpath
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -103,13 +106,29 @@ def clip_from_tracks(tracks, file: str = "") -> Clip:
 
 @dataclass(frozen=True)
 class AnnotationFile:
-    """A DriveTrack-layout clip file found under an annotation or release folder."""
+    """A clip found under an annotation or release folder: a DriveTrack-layout npz file, or (when
+    ``clip`` is set) the row ``clip`` of the v2 clips table at ``url`` / ``relpath``."""
     url: str
     relpath: str
     split: str
     segment: str
     camera: str
     object_id: str
+    clip: str = ""
+
+    @property
+    def name(self) -> str:
+        """The clip's npz file name ``waymo_{segment}_{CAMERA}_{object_id}.npz`` (what predictions match)."""
+        return f"{self.clip}.npz" if self.clip else self.relpath.rsplit("/", 1)[-1]
+
+    @property
+    def where(self) -> str:
+        return f"{self.relpath} clip {self.clip}" if self.clip else self.url
+
+    @property
+    def where_relative(self) -> str:
+        """Relative path (and clip id, for a clips table) for messages."""
+        return f"{self.relpath} clip {self.clip}" if self.clip else self.relpath
 
 
 def fs_of(url: str, storage_options: dict | None = None):
@@ -136,14 +155,18 @@ def _known_segments(fs, root: str) -> list[str]:
 
 def find_annotation_files(root: str, split: str | None = None,
                           storage_options: dict | None = None) -> list[AnnotationFile]:
-    """Every ``waymo_*.npz`` clip under ``root`` (any depth), except TAPVid-3D copies.
+    """Every clip under ``root``: the rows of its clips tables (``clips/{split}/*.parquet``), or,
+    when it has none, every ``waymo_*.npz`` clip (any depth) except TAPVid-3D copies.
 
-    The split is the name of the folder holding the file (``OUT/tracks/{split}/`` or
-    ``OUT/{split}/``); ``split`` keeps only that split. Sorted by relative path.
+    The split of an npz file is the name of the folder holding it (``OUT/tracks/{split}/`` or
+    ``OUT/{split}/``); ``split`` keeps only that split. Sorted by relative path (and table row).
     """
     fs, base = fs_of(root, storage_options)
     if not fs.isdir(base):
         raise FileNotFoundError(f"annotation folder {root} does not exist")
+    tables = _table_clips(fs, base, split)
+    if tables is not None:
+        return tables
     segments = _known_segments(fs, base)
     out = []
     for path in sorted(fs.glob(f"{base}/**/waymo_*.npz")):
@@ -157,6 +180,39 @@ def find_annotation_files(root: str, split: str | None = None,
         segment, camera, object_id = parse_clip_name(parts[-1], segments)
         out.append(AnnotationFile(url_of(fs, path), rel, file_split, segment, camera, object_id))
     return out
+
+
+def _table_clips(fs, base: str, split: str | None) -> list[AnnotationFile] | None:
+    """The clips of the v2 clips tables under ``base`` (None when there are no clips tables)."""
+    from drivetrack.compact.read import clip_ids
+    from drivetrack.outputs import CLIPS, TABLE_FOLDERS, parse_table_path
+
+    rels = sorted(p[len(base):].lstrip("/") for p in fs.glob(f"{base}/{TABLE_FOLDERS[CLIPS]}/*/*.parquet"))
+    rels = [r for r in rels if (parsed := parse_table_path(r)) and parsed[0] == CLIPS]
+    if not rels:
+        return None
+    out = []
+    for rel in rels:
+        _, table_split, segment, _ = parse_table_path(rel)
+        if split is not None and table_split != split:
+            continue
+        path = f"{base}/{rel}"
+        for clip in clip_ids(fs, path, rel):
+            _, camera, object_id = parse_clip_name(clip, [segment])
+            out.append(AnnotationFile(url_of(fs, path), rel, table_split, segment, camera, object_id, clip))
+    return out
+
+
+def read_stored(file: AnnotationFile, storage_options: dict | None = None):
+    """The :class:`drivetrack.compact.read.StoredClip` of a clips-table clip."""
+    from drivetrack.compact.read import FrameStore, iter_clips_in
+
+    fs, path = fs_of(file.url, storage_options)
+    root = path[:-len(file.relpath)].rstrip("/") if path.endswith(file.relpath) else posixpath.dirname(path)
+    found = list(iter_clips_in(fs, path, file.relpath, {file.clip}, FrameStore(url_of(fs, root), storage_options)))
+    if not found:
+        raise ValueError(f"{file.relpath}: no clip {file.clip} in the table")
+    return found[0]
 
 
 #: dtype kinds accepted per role of an array (numpy ``dtype.kind``): pixel coordinates, 0/1
@@ -225,7 +281,15 @@ def flags(array: np.ndarray, url: str, name: str) -> np.ndarray:
 
 
 def read_clip(file: AnnotationFile, storage_options: dict | None = None) -> Clip:
-    """The arrays of one DriveTrack-layout clip file (``video`` is not read)."""
+    """The arrays of one clip (``video`` is not read)."""
+    if file.clip:
+        stored = read_stored(file, storage_options)
+        clip = Clip(segment=file.segment, camera=file.camera, object_id=file.object_id, split=file.split,
+                    file=file.relpath, timestamps_micros=stored.timestamps_micros, tracks=stored.tracks,
+                    visibles=stored.visibles, query_frames=stored.query_frames.astype(np.int64),
+                    lidar_sources=stored.lidar_sources.astype(np.int64))
+        clip.check()
+        return clip
     arrays = load_npz(file.url, _CLIP_SPEC, storage_options=storage_options)
     clip = Clip(segment=file.segment, camera=file.camera, object_id=file.object_id, split=file.split,
                 file=file.relpath, timestamps_micros=arrays["timestamps_micros"].astype(np.int64),

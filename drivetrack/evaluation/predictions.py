@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from drivetrack.evaluation.clips import (FLAGS, PIXELS, AnnotationFile, find_annotation_files, flags, fs_of,
-                                         load_npz, url_of)
+                                         load_npz, read_stored, url_of)
 from drivetrack.evaluation.metrics import QUERY_MODES, rescale_points
 from drivetrack.evaluation.scoring import (DEFAULT_MAX_QUERIES, Evaluation, aggregate_objects, errors_at_visible,
                                            summarise, pixel_error_stats, tapvid_scores)
@@ -44,13 +44,17 @@ _PREDICTION_SPEC = {"tracks": (PIXELS, ("N", "T", 2)), "visibles": (FLAGS, ("N",
 
 def _read_truth(file: AnnotationFile, storage_options: dict | None) -> tuple[np.ndarray, np.ndarray]:
     """(tracks float64 [N, T, 2], visibles bool [N, T]) of a release clip used as ground truth."""
-    arrays = load_npz(file.url, _TRUTH_SPEC, storage_options=storage_options)
-    tracks = arrays["tracks"].astype(np.float64)
-    visibles = flags(arrays["visibles"], file.url, "visibles")
+    if file.clip:
+        stored = read_stored(file, storage_options)
+        tracks, visibles = stored.tracks.astype(np.float64), stored.visibles
+    else:
+        arrays = load_npz(file.url, _TRUTH_SPEC, storage_options=storage_options)
+        tracks = arrays["tracks"].astype(np.float64)
+        visibles = flags(arrays["visibles"], file.url, "visibles")
     bad = visibles & ~np.isfinite(tracks).all(axis=-1)
     if bad.any():
         n, t = (int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(f"{file.url}: ground-truth tracks are not finite at {int(bad.sum()):,} visible points "
+        raise ValueError(f"{file.where}: ground-truth tracks are not finite at {int(bad.sum()):,} visible points "
                          f"(first: track {n}, frame {t}: {tracks[n, t].tolist()}); the clip cannot be a reference")
     return tracks, visibles
 
@@ -76,10 +80,15 @@ def _read_prediction(url: str, shape: tuple[int, int], truth_file: str,
     return arrays["tracks"], visibles
 
 
-def _video_size(url: str, storage_options: dict | None) -> tuple[int, int]:
-    """(width, height) of a clip file's ``video`` [T, H, W, 3], from the npy header only."""
+def _video_size(file: AnnotationFile, storage_options: dict | None) -> tuple[int, int]:
+    """(width, height) of a clip's images: the clips table's ``width``/``height``, or an npz clip
+    file's ``video`` [T, H, W, 3] from the npy header only."""
     from drivetrack.storage import NpzReader
 
+    if file.clip:
+        model = read_stored(file, storage_options).camera_model
+        return int(model.width), int(model.height)
+    url = file.url
     with NpzReader(url, url, storage_options) as npz:
         if "video" not in npz:
             raise ValueError(f"{url}: has no 'video' array to take the image size from; pass image_size")
@@ -96,7 +105,8 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
     """Score a tracker's predictions against a release (or annotation folder) as ground truth.
 
     Args:
-        release_or_out_url: folder holding ``waymo_*.npz`` clips (any depth; TAPVid-3D copies skipped).
+        release_or_out_url: release or annotation folder: its clips tables (``clips/*/*.parquet``),
+            or, without them, its ``waymo_*.npz`` clips (any depth; TAPVid-3D copies skipped).
         predictions_url: folder of npz files with the *same file names* (any depth), each with
             ``tracks`` float [N, T, 2] pixels (x, y) at the clip's resolution and ``visibles``
             (or ``occluded``) bool (or 0/1) [N, T], track n answering the query of ground-truth
@@ -111,10 +121,10 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
     """
     files = find_annotation_files(release_or_out_url, split, storage_options)
     if not files:
-        raise FileNotFoundError(f"no clip files waymo_*.npz under {release_or_out_url}"
+        raise FileNotFoundError(f"no clips (clips/*/*.parquet tables or waymo_*.npz files) under {release_or_out_url}"
                                 + (f" for split {split!r}" if split else ""))
     predictions = _prediction_index(predictions_url, storage_options)
-    names = [posixpath.basename(f.relpath) for f in files]
+    names = [f.name for f in files]
     missing = [n for n in names if n not in predictions]
     if missing and not allow_missing:
         raise FileNotFoundError(f"predictions folder {predictions_url} has no file for {len(missing)} of "
@@ -125,18 +135,18 @@ def score_predictions(release_or_out_url: str, predictions_url: str, split: str 
         if name not in predictions:
             continue
         gt_tracks, gt_visibles = _read_truth(file, storage_options)
-        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, file.relpath,
+        pred_tracks, pred_visibles = _read_prediction(predictions[name], gt_visibles.shape, file.where_relative,
                                                       storage_options)
         pred_tracks = pred_tracks.astype(np.float64)
         if resize_to is not None:
-            size = _video_size(file.url, storage_options)
+            size = _video_size(file, storage_options)
             gt_tracks = rescale_points(gt_tracks, size, resize_to)
             with np.errstate(over="ignore", invalid="ignore"):
                 pred_tracks = rescale_points(pred_tracks, size, resize_to)
         clip_errors, nonfinite = errors_at_visible(pred_tracks, gt_tracks, gt_visibles)
         errors.append(clip_errors.astype(np.float32))
         base = {"split": file.split, "segment": file.segment, "camera": file.camera, "object_id": file.object_id,
-                "file": file.relpath, "num_frames": int(gt_visibles.shape[1]), "num_tracks": int(gt_visibles.shape[0]),
+                "file": file.relpath, "clip": file.name[:-len(".npz")], "num_frames": int(gt_visibles.shape[1]), "num_tracks": int(gt_visibles.shape[0]),
                 "num_gt_visible_points": int(gt_visibles.sum()), "num_pred_visible_points": int(pred_visibles.sum()),
                 **pixel_error_stats(clip_errors), "num_nonfinite_at_visible": nonfinite}
         for mode in query_modes:

@@ -338,7 +338,7 @@ def evaluate_annotations(out_url: str, truth_root: str, split: str | None = None
     """Score every clip file of an annotation folder against the synthetic truth of its segment."""
     files = find_annotation_files(out_url, split, storage_options)
     if not files:
-        raise FileNotFoundError(f"no annotation files waymo_*.npz under {out_url}"
+        raise FileNotFoundError(f"no clips (clips/*/*.parquet tables or waymo_*.npz files) under {out_url}"
                                 + (f" for split {split!r}" if split else ""))
     files.sort(key=lambda f: (f.split, f.segment, f.relpath))
     result = evaluate_clips((read_clip(f, storage_options) for f in files), truth_root, query_modes, stride,

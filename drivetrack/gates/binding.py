@@ -5,14 +5,15 @@ its report a *binding*:
 
     {"format": "drivetrack-gates-binding/1",
      "tables": {"stats/objects.parquet": "<sha256>", ...},   every statistics table the gates read
-     "clips": [["tracks/training/waymo_....npz", size, "<sha256>"], ...],   every clip file, sorted
+     "clips": [["clips/training/<segment>.parquet", size, "<sha256>"], ...],   every clip data file, sorted
      "clips_sha256": "<sha256 of the sorted clip list>",
      "config_sha256": "<the gate configuration's fingerprint>",
      "sha256": "<sha256 of the canonical JSON of the four fields above>"}
 
 ``drivetrack.release.publish_release`` recomputes the same binding over exactly what it stages and
-refuses a report whose binding differs (:func:`binding_problems` names the files). Clip files are
-the files :func:`drivetrack.outputs.parse_clip_path` recognises (both layouts). Plain Python: no
+refuses a report whose binding differs (:func:`binding_problems` names the files). Clip data files
+are the v2 clips and frames tables (:func:`drivetrack.outputs.parse_table_path`); exported npz
+clips are derived from them and not bound. Plain Python: no
 Great Expectations import.
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ import json
 import posixpath
 from concurrent.futures import ThreadPoolExecutor
 
-from drivetrack.outputs import parse_clip_path
+from drivetrack.outputs import parse_table_path
 
 BINDING_FORMAT = "drivetrack-gates-binding/1"
 HASH_CHUNK = 8 << 20
@@ -66,7 +67,7 @@ def folder_clips(fs, root: str, workers: int = 8) -> list[tuple[str, int, str]]:
     """``(relative path, size, sha256)`` of every clip file under ``root`` (a path of ``fs``), sorted."""
     root = root.rstrip("/")
     rels = sorted(rel for rel in (p[len(root):].lstrip("/") for p in fs.find(root))
-                  if parse_clip_path(rel))
+                  if parse_table_path(rel))
     if not rels:
         return []
     with ThreadPoolExecutor(max_workers=max(1, min(workers, len(rels)))) as pool:

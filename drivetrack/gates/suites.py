@@ -191,7 +191,7 @@ def release_specs(cfg: dict, tables: GateTables) -> list[GateSpec]:
     if v("check_split_files"):
         specs.append(GateSpec("release.split_files_agree", "release", "splits",
                               "ExpectColumnPairValuesToBeEqual",
-                              {"column_A": "num_object_clips", "column_B": "num_files_on_disk"},
+                              {"column_A": "num_object_clips", "column_B": "num_clips_on_disk"},
                               r("check_split_files"), SPLIT_KEYS))
     return specs
 

@@ -18,7 +18,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from drivetrack.gates.config import PERCENTILES
-from drivetrack.outputs import DRIVETRACK, parse_clip_path
+from drivetrack.outputs import CLIPS, clip_stem, parse_table_path
 
 SPEED_ERR_COLUMNS = tuple(f"speed_err_{p}" for p in PERCENTILES)
 #: The same percentiles for the same tracks under the labelled poses (``drivetrack.tracks.consistency``);
@@ -107,6 +107,29 @@ def _relative(file_value: str, fs, root: str) -> str:
     return value[2:] if value.startswith("./") else value
 
 
+def _stem_or_none(segment: str, camera: str, object_id: str) -> str | None:
+    try:
+        return clip_stem(segment, camera, object_id)
+    except ValueError:  # an invalid name in the table: no clip can match it
+        return None
+
+
+def _clips_on_disk(fs, root: str, all_files: set[str]) -> dict[str, set[str]]:
+    """Clips table (relative path) -> the clip ids it holds; a table that cannot be read raises
+    GateInputError naming it."""
+    from drivetrack.compact.read import CompactFormatError, clip_ids
+
+    out = {}
+    for rel in sorted(all_files):
+        parsed = parse_table_path(rel)
+        if parsed and parsed[0] == CLIPS:
+            try:
+                out[rel] = set(clip_ids(fs, f"{root}/{rel}", rel))
+            except CompactFormatError as error:
+                raise GateInputError(str(error)) from error
+    return out
+
+
 def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     """Read ``OUT/stats/*.parquet`` and add the derived columns the gates validate.
 
@@ -114,7 +137,8 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
       objects: ``speed_err_num_nonfinite`` (NaN or infinite speed-error percentiles, 0..5),
         ``refine_speed_err_p50_increase_mps`` (speed_err_p50 - label_speed_err_p50, when the
         table has the labels' percentiles; 0 where the labels' figure is NaN),
-        ``file_exists`` (bool: the row's ``file`` is in the output folder).
+        ``file_exists`` (bool: the row's ``file``, its segment's clips table, is in the output
+        folder and holds a row for the clip).
       segments: ``reached_<reason>`` (clips that reached the filter: considered minus the clips
         rejected by the filters applied before it, in the track stage's order) and
         ``rejected_share_<reason>`` (rejected_<reason> / reached_<reason>, the filter's rejection
@@ -122,7 +146,7 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
         ``num_object_rows`` (rows of objects.parquet for the segment), ``rejections_mismatch``
         (sum over reasons of |rejected_<reason> - rows of rejections.parquet|).
       splits (built here): ``split``, ``num_segments``, ``num_object_clips``, ``num_tracks``,
-        ``num_files_on_disk`` (``tracks/{split}/waymo_*.npz`` files).
+        ``num_clips_on_disk`` (rows of the ``clips/{split}/*.parquet`` tables).
     """
     fs, root = fsspec.core.url_to_fs(out_dir)
     root = root.rstrip("/") or "/"
@@ -148,8 +172,10 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
         # NaN labels' figure (no label in some clip frame): no comparison, counted as not worse
         objects[REFINE_SPEED_ERR_INCREASE] = (speed["speed_err_p50"] - label_p50).fillna(0.0)
     all_files = {p[len(root):].lstrip("/") for p in fs.find(root)} if root != "/" else set()
+    clips_on_disk = _clips_on_disk(fs, root, all_files)
     rel = objects["file"].map(lambda f: _relative(f, fs, root))
-    objects["file_exists"] = rel.isin(all_files)
+    stems = [_stem_or_none(s, c, o) for s, c, o in zip(objects["segment"], objects["camera"], objects["object_id"])]
+    objects["file_exists"] = [stem is not None and stem in clips_on_disk.get(r, ()) for r, stem in zip(rel, stems)]
 
     # -- segments --------------------------------------------------------------------------------
     reasons = filter_order([c[len(REJECTED_PREFIX):] for c in segments.columns
@@ -185,9 +211,8 @@ def read_gate_tables(out_dir: str, cfg: dict) -> GateTables:
     splits["num_object_clips"] = splits["split"].map(by_split.size()).fillna(0).astype(int)
     tracks = pd.to_numeric(objects["num_tracks"], errors="coerce").groupby(objects["split"]).sum()
     splits["num_tracks"] = splits["split"].map(tracks).fillna(0).astype(int)
-    on_disk = pd.Series([parsed[1] for parsed in map(parse_clip_path, all_files)
-                         if parsed and parsed[0] == DRIVETRACK], dtype=object)
-    splits["num_files_on_disk"] = (splits["split"].map(on_disk.value_counts())
+    on_disk = pd.Series([parse_table_path(r)[1] for r, ids in clips_on_disk.items() for _ in ids], dtype=object)
+    splits["num_clips_on_disk"] = (splits["split"].map(on_disk.value_counts())
                                    .fillna(0).astype(int))
     paths = {"objects": objects_path, "segments": segments_path}
     if rejections is not None:

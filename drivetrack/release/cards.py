@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 import yaml
 
-from drivetrack.outputs import DRIVETRACK, LAYOUTS, TAPVID3D, clip_glob, clip_path, clips_of
 from drivetrack.release.manifest import FileEntry
 
 CROISSANT_CONFORMS_TO = "http://mlcommons.org/croissant/1.1"
@@ -189,21 +188,63 @@ ARRAY_DOCS = {
 }
 
 
+def _table_record_set(kind: str, schema, pattern: str) -> tuple[dict, dict]:
+    """The FileSet and RecordSet of the v2 ``kind`` tables (``clips`` / ``frames``): one field per
+    column, read from the Parquet files by mlcroissant (``records()``)."""
+    import pyarrow as pa
+
+    from drivetrack.compact.layout import COLUMN_DESCRIPTIONS
+
+    set_id = f"{kind}-files"
+    file_set = {"@type": "cr:FileSet", "@id": set_id, "name": set_id, "encodingFormat": "application/x-parquet",
+                "includes": pattern,
+                "description": f"The {kind} tables of release layout v2 (docs/formats.md)."}
+    fields = []
+    for f in schema:
+        t = f.type.value_type if pa.types.is_list(f.type) else f.type
+        field = {"@type": "cr:Field", "@id": f"{kind}/{f.name}", "name": f.name,
+                 "description": COLUMN_DESCRIPTIONS.get(f.name, f.name),
+                 "source": {"fileSet": {"@id": set_id}, "extract": {"column": f.name}}}
+        if pa.types.is_struct(t):  # the image: its JPEG bytes
+            field["dataType"] = "sc:ImageObject"
+            field["source"]["transform"] = {"jsonPath": "bytes"}
+        else:
+            field["dataType"] = _arrow_croissant_type(str(t))
+        if pa.types.is_list(f.type):
+            field["isArray"] = True
+            field["arrayShape"] = "-1"
+        fields.append(field)
+    record_set = {"@type": "cr:RecordSet", "@id": kind, "name": kind,
+                  "description": f"One record per row of the {kind} tables.", "field": fields}
+    return file_set, record_set
+
+
 def build_croissant(*, dataset: str, version: str, created: str, card: dict, data_files: list[FileEntry],
                     npz_configs: dict[str, tuple[str, list[ArraySpec]]],
                     parquet_columns: dict[str, list[tuple[str, str]]], url: str | None = None) -> dict:
     """Croissant 1.1 JSON-LD for a release.
 
-    ``npz_configs``: ``{config name: (glob of its files, merged array specs)}``;
-    ``parquet_columns``: ``{path of a stats parquet: [(column, arrow type string), ...]}``.
-    Content URLs are relative to the version folder (where ``croissant.json`` lives).
+    Record sets ``clips`` and ``frames`` over the v2 tables (when the release has them; every
+    column a field), one per statistics table, and one per npz layout when npz clips are
+    published (``npz_configs``: ``{config name: (glob of its files, merged array specs)}``; those
+    mlcroissant can describe but not read). ``parquet_columns``: ``{path of a stats parquet:
+    [(column, arrow type string), ...]}``. Content URLs are relative to the version folder (where
+    ``croissant.json`` lives).
     """
+    from drivetrack.compact.layout import CLIPS_SCHEMA, FRAMES_SCHEMA
+    from drivetrack.outputs import CLIPS, FRAMES, TABLE_FOLDERS, parse_table_path
     distribution: list[dict] = []
     for e in sorted(data_files, key=lambda e: e.path):
         distribution.append({
             "@type": "cr:FileObject", "@id": _id(e.path), "name": e.path, "contentUrl": e.path,
             "contentSize": f"{e.size} B", "encodingFormat": encoding_format(e.path), "sha256": e.sha256})
     record_sets: list[dict] = []
+    kinds = {parse_table_path(e.path)[0] for e in data_files if parse_table_path(e.path)}
+    for kind, schema in ((CLIPS, CLIPS_SCHEMA), (FRAMES, FRAMES_SCHEMA)):
+        if kind in kinds:
+            file_set, record_set = _table_record_set(kind, schema, f"{TABLE_FOLDERS[kind]}/*/*.parquet")
+            distribution.append(file_set)
+            record_sets.append(record_set)
     for config, (pattern, specs) in sorted(npz_configs.items()):
         set_id = f"{_id(config)}-files"
         distribution.append({
@@ -268,13 +309,17 @@ def size_category(n: int) -> str:
 
 
 def hf_configs(splits: list[str], paths: list[str]) -> list[dict]:
-    """``configs`` of the card: one per clip layout, ``data_files`` per split."""
+    """``configs`` of the card: ``clips`` (the default) and ``frames`` over the v2 tables,
+    ``data_files`` per split, and ``stats``. Exported npz files get no config (``datasets``
+    cannot read npz); the card body says how to load them."""
+    from drivetrack.outputs import CLIPS, FRAMES, parse_table_path, table_glob
+
     configs = []
-    for layout, extra in ((DRIVETRACK, {"default": True}), (TAPVID3D, {})):
-        have = [s for s in splits if clips_of(paths, layout, s)]
+    for kind, extra in ((CLIPS, {"default": True}), (FRAMES, {})):
+        have = sorted({p[1] for p in map(parse_table_path, paths) if p and p[0] == kind and p[1] in splits})
         if have:
-            configs.append({"config_name": layout, **extra,
-                            "data_files": [{"split": s, "path": clip_glob(layout, s)} for s in have]})
+            configs.append({"config_name": kind, **extra,
+                            "data_files": [{"split": s, "path": table_glob(kind, s)} for s in have]})
     if any(p.startswith("stats/") and p.endswith(".parquet") for p in paths):
         configs.append({"config_name": "stats", "data_files": [
             {"split": "train", "path": "stats/objects.parquet"}]} if "stats/objects.parquet" in paths else
@@ -282,6 +327,17 @@ def hf_configs(splits: list[str], paths: list[str]) -> list[dict]:
     if not configs:  # an arbitrary folder: one config over every file
         configs.append({"config_name": "default", "data_files": [{"split": "train", "path": "**"}]})
     return configs
+
+
+def dataset_infos(configs: list[dict]) -> list[dict]:
+    """``dataset_info`` of the card: the features of the ``clips`` and ``frames`` configs (so
+    ``datasets.load_dataset`` reads the JPEG column as an ``Image`` and knows every type, also
+    when streaming)."""
+    from drivetrack.compact.layout import CLIPS_FEATURES, FRAMES_FEATURES
+
+    features = {"clips": CLIPS_FEATURES, "frames": FRAMES_FEATURES}
+    return [{"config_name": c["config_name"], "features": features[c["config_name"]]}
+            for c in configs if c["config_name"] in features]
 
 
 def _fmt(v) -> str:
@@ -330,6 +386,9 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
         "tags": list(card.get("tags", [])),
         "configs": hf_configs(splits, paths),
     }
+    infos = dataset_infos(front["configs"])
+    if infos:
+        front["dataset_info"] = infos
     if card["license"] == "other":
         front["license_name"] = card["license_name"]
         front["license_link"] = card["license_link"]
@@ -347,9 +406,15 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
             lines.append(f"- seed: {run['seed']}")
         if isinstance(run.get("segments"), list):
             lines.append(f"- input segments: {len(run['segments'])} (ids and source checksums in `manifest.json`)")
-    lines += ["", "## Contents", "", "| split | clips | TAPVid-3D clips | MB |", "|---|---|---|---|"]
+    lines += ["", "## Contents", "",
+              "Release layout v2: `clips/{split}/{segment}.parquet` (one row per clip: tracks, visibility, "
+              "query frames, LiDAR sources, 3D points, camera) and `frames/{split}/{segment}_{CAMERA}.parquet` "
+              "(one row per frame: the source JPEG, stored once). Columns: docs/formats.md of the "
+              "drivetrack package.", "",
+              "| split | clips | npz clips (DriveTrack / TAPVid-3D) | MB |", "|---|---|---|---|"]
     for split, c in counts.get("splits", {}).items():
-        lines.append(f"| {split} | {c['clips']} | {c['tapvid3d_clips']} | {c['bytes'] / 1e6:.1f} |")
+        lines.append(f"| {split} | {c['clips']} | {c.get('npz_clips', 0)} / {c['tapvid3d_clips']} | "
+                     f"{c['bytes'] / 1e6:.1f} |")
     if statistics:
         lines += ["", "## Statistics", "", "| table | statistic | value |", "|---|---|---|"]
         for table, entry in statistics.items():
@@ -380,14 +445,22 @@ def build_hf_card(*, dataset: str, version: str, created: str, card: dict, paths
             for r in gates["results"]:
                 mark = {True: "pass", False: "FAIL", None: "?"}[r["success"]]
                 lines.append(f"| {r['name']} | {mark} |")
-    # a placeholder split is not a name (clip_path checks names): spell the example out then
-    example_clip = (clip_path(DRIVETRACK, splits[0], "<clip>") if splits
-                    else f"{LAYOUTS[DRIVETRACK]}/<split>/<clip>.npz")
-    lines += ["", "## How to load", "", "```python",
-              "import numpy as np",
-              f"clip = np.load('{example_clip}')",
-              "video, tracks, visibles = clip['video'], clip['tracks'], clip['visibles']  # [T,H,W,3], [N,T,2] (x, y), [N,T]",
+    split = splits[0] if splits else "training"
+    lines += ["", "## How to load", "", "With `datasets` (normal or `streaming=True`):", "", "```python",
+              "import numpy as np, datasets",
+              "clips = datasets.load_dataset('<this folder or Hub repo>', 'clips', split='" + split + "')",
+              "c = clips[0]",
+              "tracks = np.asarray(c['tracks'], np.float32).reshape(c['num_tracks'], c['num_frames'], 2)  # [N,T,2] (x, y)",
+              "visibles = np.asarray(c['visibles']).reshape(c['num_tracks'], c['num_frames'])        # [N,T]",
+              "frames = datasets.load_dataset('<this folder or Hub repo>', 'frames', split='" + split + "')  # JPEGs",
               "```", "",
+              "With the drivetrack package (video decoded lazily):", "", "```python",
+              "import drivetrack",
+              "clip = drivetrack.load_clip('<this folder>', 'waymo_<segment>_<CAMERA>_<object_id>')",
+              "clip.video[0], clip.tracks, clip.visibles   # [H,W,3] RGB, [N,T,2], [N,T]",
+              "```", "",
+              "As the DriveTrack or TAPVid-3D npz files: `drivetrack export <this folder> --format drivetrack-npz "
+              "--format tapvid3d --out DIR`.", "",
               "Check the download: `sha256sum -c SHA256SUMS` in this folder, or "
               f"`drivetrack verify {store_url} --version {version} --dataset {dataset}`.",
               "The Croissant description (`croissant.json`) loads with `mlcroissant`.",

@@ -5,6 +5,8 @@ An annotation output folder (docs/architecture.md, "Annotation output folder") h
     run.json                                         provenance (annotate, flows)
     status.json, status.html                         build status page (flows)
     stats/{objects,segments,rejections}.parquet      statistics tables
+    clips/{split}/{segment}.parquet                  clips tables (release layout v2, drivetrack.compact)
+    frames/{split}/{segment}_{CAMERA}.parquet        frames tables (release layout v2)
     tracks/{split}/waymo_{stem}.npz                  DriveTrack clips      (CLIP_FORMATS[DRIVETRACK])
     tapvid3d/{split}/waymo_{stem}.npz                TAPVid-3D clips       (CLIP_FORMATS[TAPVID3D])
     previews/{split}/waymo_{stem}.{png,mp4}          previews (drivetrack show / flows)
@@ -16,7 +18,9 @@ symbolic links (to files or folders), hidden names (a path component starting wi
 covers ``.env`` and the writers' ``.partial-*`` temporary files), sockets, fifos and devices.
 Clip files are checked member by member against :data:`CLIP_FORMATS` from their ``.npy`` headers
 alone (nothing of the data is decompressed beyond the header): names, dtypes, shapes and the
-relations between them (one N, one T per clip); object arrays are refused everywhere.
+relations between them (one N, one T per clip); object arrays are refused everywhere. The v2
+tables are checked by :func:`drivetrack.release.publish` (columns, readability, frame references:
+:func:`drivetrack.compact.read.check_frame_references`).
 """
 from __future__ import annotations
 
@@ -30,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivetrack.outputs import DRIVETRACK, LAYOUTS, TAPVID3D, parse_clip_path
+from drivetrack.outputs import (CLIPS, DRIVETRACK, FRAMES, LAYOUTS, TABLE_FOLDERS, TAPVID3D, parse_clip_path,
+                                parse_table_path)
 from drivetrack.names import is_valid_name
 from drivetrack.release.errors import InvalidSourceError
 
@@ -49,13 +54,15 @@ class Member:
 
     name: str
     pattern: re.Pattern
-    kind: str  # "json", "parquet", "npz:<layout>", "file"
+    kind: str  # "json", "parquet", "table:<kind>", "npz:<layout>", "file"
 
 
 MEMBERS: tuple[Member, ...] = (
     Member("provenance", re.compile(r"run\.json"), "json"),
     Member("build status page", re.compile(r"status\.(json|html)"), "file"),
     Member("statistics table", re.compile(rf"stats/({'|'.join(STATS_TABLES)})\.parquet"), "parquet"),
+    Member("clips table", re.compile(rf"{TABLE_FOLDERS[CLIPS]}/{_SPLIT}/{_SEG}\.parquet"), f"table:{CLIPS}"),
+    Member("frames table", re.compile(rf"{TABLE_FOLDERS[FRAMES]}/{_SPLIT}/{_SEG}\.parquet"), f"table:{FRAMES}"),
     Member("DriveTrack clip", re.compile(rf"{LAYOUTS[DRIVETRACK]}/{_SPLIT}/{_STEM}\.npz"), f"npz:{DRIVETRACK}"),
     Member("TAPVid-3D clip", re.compile(rf"{LAYOUTS[TAPVID3D]}/{_SPLIT}/{_STEM}\.npz"), f"npz:{TAPVID3D}"),
     Member("preview", re.compile(rf"previews/{_SPLIT}/{_STEM}\.(png|mp4)"), "file"),
@@ -70,7 +77,9 @@ def member_kind(rel: str) -> str | None:
         return None
     for m in MEMBERS:
         if m.pattern.fullmatch(rel):
-            if m.kind.startswith("npz:") and not is_valid_name("split", rel.split("/")[1]):
+            if m.kind.startswith(("npz:", "table:")) and not is_valid_name("split", rel.split("/")[1]):
+                return None
+            if m.kind.startswith("table:") and not parse_table_path(rel):
                 return None
             return m.kind
     return None
@@ -86,6 +95,7 @@ def refuse(where: str, problems: list[str], what: str, limit: int = 20) -> None:
 
 
 _KNOWN = ("run.json, status.json/html, stats/{objects,segments,rejections}.parquet, "
+          "clips/{split}/{segment}.parquet, frames/{split}/{segment}_{CAMERA}.parquet, "
           "tracks/{split}/waymo_*.npz, tapvid3d/{split}/waymo_*.npz, previews/{split}/waymo_*.png|mp4, "
           "validation/ gate reports")
 
@@ -314,8 +324,9 @@ def check_stats_table(name: str, data: bytes, where: str) -> None:
 
 
 def clips_of_unfinished_segments(clips: list[str], segments_table: bytes | None, where: str) -> list[str]:
-    """Clip files whose segment is not recorded as ``done`` in ``stats/segments.parquet``
-    (failed, or not recorded at all), each with the reason. ``clips``: relative clip paths."""
+    """Clip data files (v2 tables, npz clips) whose segment is not recorded as ``done`` in
+    ``stats/segments.parquet`` (failed, or not recorded at all), each with the reason. ``clips``:
+    relative paths."""
     if not clips:
         return []
     if segments_table is None:
@@ -330,9 +341,14 @@ def clips_of_unfinished_segments(clips: list[str], segments_table: bytes | None,
         rows.sort(key=lambda r: -len(r[0]))  # the longest matching segment name wins
     out = []
     for rel in clips:
-        _layout, split = parse_clip_path(rel)
-        stem = rel.rsplit("/", 1)[1]
-        match = next(((seg, st) for seg, st in by_split.get(split, []) if stem.startswith(f"waymo_{seg}_")), None)
+        table = parse_table_path(rel)
+        if table:
+            split = table[1]
+            match = next(((seg, st) for seg, st in by_split.get(split, []) if seg == table[2]), None)
+        else:
+            _layout, split = parse_clip_path(rel)
+            stem = rel.rsplit("/", 1)[1]
+            match = next(((seg, st) for seg, st in by_split.get(split, []) if stem.startswith(f"waymo_{seg}_")), None)
         if match is None:
             out.append(f"{rel}: its segment is not in {where} (split {split})")
         elif match[1] != "done":

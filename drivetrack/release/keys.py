@@ -23,7 +23,9 @@ __all__ = ["OUTPUT_MODULES", "RELEASE_MODULES", "sha256_json", "code_fingerprint
            "segment_key", "release_fingerprint"]
 
 OUTPUT_MODULES = (
-    "drivetrack", "drivetrack.annotate", "drivetrack.boxes", "drivetrack.camera", "drivetrack.camera.kernel", "drivetrack.camera.model",
+    "drivetrack", "drivetrack.annotate", "drivetrack.boxes", "drivetrack.compact", "drivetrack.compact.layout",
+    "drivetrack.compact.read", "drivetrack.compact.write", "drivetrack.camera", "drivetrack.camera.kernel",
+    "drivetrack.camera.model",
     "drivetrack.camera.rolling_shutter", "drivetrack.depth", "drivetrack.depth.completers",
     "drivetrack.depth.config", "drivetrack.depth.kernel", "drivetrack.depth.lookup", "drivetrack.depth.registry",
     "drivetrack.depth.sparse", "drivetrack.depth.stage", "drivetrack.depth.torch_nearest", "drivetrack.faults",
@@ -46,6 +48,7 @@ here or in :data:`RELEASE_MODULES`."""
 RELEASE_MODULES = (
     "drivetrack.cli", "drivetrack.commands", "drivetrack.commands._progress",
     "drivetrack.commands._release_common", "drivetrack.commands.annotate", "drivetrack.commands.diff",
+    "drivetrack.commands.export", "drivetrack.compact.export",
     "drivetrack.commands.evaluate", "drivetrack.commands.gates", "drivetrack.commands.gc",
     "drivetrack.commands.info", "drivetrack.commands.publish", "drivetrack.commands.show",
     "drivetrack.commands.status", "drivetrack.commands.synth", "drivetrack.commands.verify",

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from functools import total_ordering
 from pathlib import Path
 
-from drivetrack.outputs import DRIVETRACK, TAPVID3D, parse_clip_path, splits_of
+from drivetrack.outputs import DRIVETRACK, TAPVID3D, data_splits_of, parse_clip_path, parse_table_path
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.release.errors import (InvalidDatasetError, InvalidSourceError, InvalidVersionError,
                                        ManifestError)
@@ -274,23 +274,33 @@ def statistics_from_parquet(tables: dict[str, bytes]) -> dict:
     return stats
 
 
-def counts_from_files(entries: list[FileEntry], splits: list[str]) -> dict:
-    """File and byte counts, in total and per split (clips = clip files of each layout)."""
+def counts_from_files(entries: list[FileEntry], splits: list[str], clip_counts: dict[str, int] | None = None) -> dict:
+    """File and byte counts, in total and per split: ``clips`` = rows of the split's clips tables
+    (``clip_counts``; DriveTrack npz files without it), ``npz_clips`` / ``tapvid3d_clips`` =
+    exported npz files of each layout, ``bytes`` = the split's data files (tables and npz)."""
     out: dict = {"files": len(entries), "bytes": int(sum(e.size for e in entries)), "splits": {}}
-    parsed = [(e, parse_clip_path(e.path)) for e in entries]
+    parsed = [(e, parse_clip_path(e.path) or _table_split(e.path)) for e in entries]
     for split in splits:
         mine = [(e, p) for e, p in parsed if p and p[1] == split]
+        npz = sum(1 for _, p in mine if p[0] == DRIVETRACK)
         out["splits"][split] = {
-            "clips": sum(1 for _, p in mine if p[0] == DRIVETRACK),
+            "clips": int(clip_counts.get(split, 0)) if clip_counts is not None else npz,
+            "npz_clips": npz,
             "tapvid3d_clips": sum(1 for _, p in mine if p[0] == TAPVID3D),
             "bytes": int(sum(e.size for e, _ in mine))}
     return out
 
 
+def _table_split(path: str) -> tuple[str, str] | None:
+    parsed = parse_table_path(path)
+    return (parsed[0], parsed[1]) if parsed else None
+
+
 def splits_from_paths(paths: list[str]) -> list[str]:
-    """Splits holding clip files (``tracks/{split}/*.npz`` or ``tapvid3d/{split}/*.npz``).
+    """Splits holding clips (``clips/{split}/*.parquet`` tables, or exported ``tracks/{split}/*.npz`` /
+    ``tapvid3d/{split}/*.npz``).
 
     Splits are recognised by where their clips are (:mod:`drivetrack.outputs`), never by a folder
     name, so the Waymo split ``validation`` and the gate reports in ``validation/`` cannot mix.
     """
-    return splits_of(paths)
+    return data_splits_of(paths)

@@ -46,7 +46,7 @@ from typing import Callable
 import fsspec
 
 from drivetrack.gates.binding import binding_problems, check_binding_shape
-from drivetrack.outputs import DRIVETRACK, TAPVID3D, clip_glob, clips_of, parse_clip_path
+from drivetrack.outputs import CLIPS, DRIVETRACK, TAPVID3D, clip_glob, clips_of, parse_clip_path, parse_table_path
 from drivetrack.release import cards as _cards
 from drivetrack.release import contents as _contents
 from drivetrack.release.errors import (CasConflictError, ConcurrentPublishError, GateBindingError,
@@ -104,6 +104,7 @@ class _Source:
             self.fs, self.root = None, os.path.abspath(src.removeprefix("file://"))
             self.local = True
         self.url = src
+        self.storage_options = storage_options
 
     def list(self) -> dict[str, int]:
         """``{relative path: size}`` of the release members; refuses (:class:`InvalidSourceError`,
@@ -193,7 +194,7 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
                     config: dict | None = None, card: dict | None = None, resume: bool = False,
                     workers: int = DEFAULT_WORKERS, progress: Progress | None = None,
                     source_storage_options: dict | None = None,
-                    gates_config: str | dict | None = None) -> PublishResult:
+                    gates_config: str | dict | None = None, publish_npz: bool = False) -> PublishResult:
     """Publish the folder ``source_dir`` as ``{store_url}/{dataset}/{version}/`` (see module doc).
 
     ``gate_report``: the report of ``drivetrack.gates.run_gates`` on this content
@@ -203,6 +204,11 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     publish although gates failed, with this reason recorded in the manifest and the card.
     ``config`` is recorded in the manifest (``config.publish``); ``card`` (or ``config["card"]``)
     overrides the card defaults (:data:`drivetrack.release.cards.DEFAULT_CARD`).
+
+    The release holds the v2 tables (``clips/``, ``frames/``). ``publish_npz``: also publish the
+    clips as npz files (``tracks/``, ``tapvid3d/``), exported into ``source_dir`` from its tables
+    (:func:`drivetrack.compact.export.export_clips`) first; without it, npz files in the source
+    are left out of the release.
     """
     # 0. checks before anything is written
     check_version(version)
@@ -211,7 +217,13 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
         raise ValueError("accept_failed_gates must be a non-empty reason (it is recorded in the release)")
     card_opts = {**_cards.DEFAULT_CARD, **((config or {}).get("card") or {}), **(card or {})}
     source = _Source(source_dir, source_storage_options)
+    if publish_npz:
+        from drivetrack.compact.export import FORMATS, export_clips
+
+        export_clips(source.url, list(FORMATS), source.url, storage_options=source_storage_options)
     sizes = source.list()
+    if not publish_npz:
+        sizes = {p: n for p, n in sizes.items() if not parse_clip_path(p)}
     if not sizes:
         raise InvalidSourceError(f"source folder {source.where('')} holds no files: nothing to publish")
     # the content: names, npz headers, tables, finished segments (refused before the gates run)
@@ -226,12 +238,14 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     for name, data in stats_files.items():
         _contents.check_stats_table(name.rsplit(".", 1)[0], data, source.where(f"stats/{name}"))
     paths = list(sizes)
-    clips = [p for p in paths if parse_clip_path(p)]
+    clips = [p for p in paths if parse_table_path(p) or parse_clip_path(p)]
     _contents.refuse(source.where(""), _contents.clips_of_unfinished_segments(
         clips, stats_files.get("segments.parquet"), "stats/segments.parquet"),
         "clips of segments not recorded as done in stats/segments.parquet; delete them or annotate "
         "those segments again")
-    # Reads the .npy headers of every clip; a bad clip file fails here, before anything is written.
+    # Reads the clips tables (columns, frame references) and the .npy headers of every npz clip; a
+    # bad clip file fails here, before anything is written.
+    clip_counts = _check_tables(source, paths)
     npz_configs = _check_clips(source, paths, splits_from_paths(paths), workers)
 
     # the gates: the given report, or a run now; either way bound to this content
@@ -252,7 +266,7 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
     # The binding without hashing the clips: the same tables (sha256 of the bytes read above), the
     # same clip paths and sizes. The clips' sha256 are compared on the staged bytes (step 3).
     _check_binding(gate_report, {f"stats/{n}": sha256_bytes(d) for n, d in stats_files.items()},
-                   {p: (sizes[p], None) for p in clips}, source.where(""))
+                   {p: (sizes[p], None) for p in clips if parse_table_path(p)}, source.where(""))
     statistics = statistics_from_parquet(stats_files)
 
     store = open_store(store_url, storage_options)
@@ -310,7 +324,7 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
                                      f"are immutable")
         result = _publish_claimed(
             store=store, source=source, sizes=sizes, dataset=dataset, version=version, created=created,
-            run=run, statistics=statistics, stats_files=stats_files, npz_configs=npz_configs,
+            run=run, statistics=statistics, stats_files=stats_files, npz_configs=npz_configs, clip_counts=clip_counts,
             config=config, card_opts=card_opts, gates_ran_by=gates_ran_by,
             gate_report=gate_report, accept_failed_gates=accept_failed_gates, resume=resume,
             workers=workers, progress=progress, still_ours=still_ours)
@@ -327,6 +341,7 @@ def publish_release(source_dir: str | os.PathLike, store_url: str | os.PathLike,
 
 def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], dataset: str, version: str,
                      created: str, run: dict | None, statistics: dict, stats_files: dict, npz_configs: dict,
+                     clip_counts: dict,
                      config: dict | None, gates_ran_by: str,
                      card_opts: dict, gate_report: dict, accept_failed_gates: str | None,
                      resume: bool, workers: int, progress: Progress | None, still_ours) -> PublishResult:
@@ -394,7 +409,7 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     # the gate report's binding against exactly the staged bytes
     try:
         _check_binding(gate_report, {e.path: e.sha256 for e in entries if e.path.startswith("stats/")},
-                       {e.path: (e.size, e.sha256) for e in entries if parse_clip_path(e.path)},
+                       {e.path: (e.size, e.sha256) for e in entries if parse_table_path(e.path)},
                        source.where(""))
     except GateBindingError:
         store.delete_tree(spre)
@@ -405,7 +420,7 @@ def _publish_claimed(*, store: Store, source: _Source, sizes: dict[str, int], da
     # 4. cards and checksums, staged then promoted with the data
     paths = [e.path for e in entries]
     splits = splits_from_paths(paths)
-    counts = counts_from_files(entries, splits)
+    counts = counts_from_files(entries, splits, clip_counts)
     gates = _cards.summarize_gates(gate_report, accept_failed_gates)
     gates["ran_by"] = gates_ran_by
     gates["binding_sha256"] = gate_report["binding"]["sha256"]
@@ -528,6 +543,30 @@ def _check_binding(gate_report: dict, tables: dict[str, str], clips: dict[str, t
             f"{gate_report['binding']['sha256'][:16]}); nothing was published. Run the gates on this "
             f"folder again (`drivetrack gates OUT`, or publish without --gate-report):\n  "
             + "\n  ".join(problems))
+
+
+def _check_tables(source: _Source, paths: list[str]) -> dict[str, int]:
+    """Check the v2 tables: every clips table readable with the layout's columns, every frame a clip
+    refers to a row of its frames table (errors name the file, the clip and the frame). Returns
+    the number of clips per split."""
+    from drivetrack.compact.read import check_frame_references, clip_ids
+    from drivetrack.release.errors import InvalidSourceError as _Invalid
+
+    rels = sorted(p for p in paths if (parsed := parse_table_path(p)) and parsed[0] == CLIPS)
+    if source.local:
+        fs, root = fsspec.filesystem("file"), source.root.rstrip("/")
+    else:
+        fs, root = source.fs, source.root.rstrip("/")
+    _contents.refuse(source.where(""), check_frame_references(fs, root, rels),
+                     "clips tables that cannot be read or refer to frames their frames tables lack")
+    counts: dict[str, int] = {}
+    for rel in rels:
+        try:
+            counts[parse_table_path(rel)[1]] = counts.get(parse_table_path(rel)[1], 0) + len(
+                clip_ids(fs, f"{root}/{rel}", rel))
+        except ValueError as error:
+            raise _Invalid(f"{source.where(rel)}: {error}") from error
+    return counts
 
 
 def _check_clips(source: _Source, paths: list[str], splits: list[str], workers: int):

@@ -15,7 +15,7 @@ import numpy as np
 from drivetrack.evaluation.clips import Clip, url_of
 from drivetrack.outputs import is_clip_name, parse_clip_name
 
-__all__ = ["SPLITS", "find_clips", "clip_num_tracks", "select_clip", "load_clip", "parse_frames"]
+__all__ = ["SPLITS", "find_clips", "clip_num_tracks", "clip_stem_of", "select_clip", "load_clip", "parse_frames"]
 
 SPLITS = ("training", "validation", "testing")
 #: Folders whose ``waymo_*.npz`` are not DriveTrack clips (TAPVid-3D copies, release internals).
@@ -27,8 +27,14 @@ def fs_of(url: str):
     return fsspec.core.url_to_fs(str(url))
 
 
+#: Separates a clips table's URL from a clip id in the clip references :func:`find_clips` returns.
+TABLE_CLIP_SEP = "#"
+
+
 def find_clips(root: str) -> list[str]:
-    """Sorted URLs of every DriveTrack clip (``**/waymo_*.npz``) under ``root``.
+    """Sorted references of every clip under ``root``: ``{clips table URL}#{clip id}`` for each row of
+    its clips tables (``clips/{split}/*.parquet``), or, when it has none, the URLs of every
+    DriveTrack npz clip (``**/waymo_*.npz``).
 
     Works on an annotation output folder and on a release version folder, whatever the split
     folder layout (``{split}/`` or ``tracks/{split}/``); TAPVid-3D copies (a ``tapvid3d`` folder)
@@ -37,6 +43,11 @@ def find_clips(root: str) -> list[str]:
     fs, path = fs_of(root)
     if not fs.isdir(path):
         raise FileNotFoundError(f"{root}: not a folder (pass a clip .npz file or a folder holding clips)")
+    from drivetrack.evaluation.clips import find_annotation_files
+
+    tables = [f for f in find_annotation_files(root) if f.clip]
+    if tables:
+        return sorted(f"{f.url}{TABLE_CLIP_SEP}{f.clip}" for f in tables)
     found = fs.glob(posixpath.join(path.rstrip("/"), "**", "waymo_*.npz"))
     base = path.rstrip("/")
     out = []
@@ -61,8 +72,30 @@ def _npy_header(fs, path: str, key: str) -> tuple[tuple[int, ...], np.dtype]:
     return tuple(int(s) for s in shape), dtype
 
 
+def _split_ref(ref: str) -> tuple[str, str]:
+    url, _, clip = str(ref).rpartition(TABLE_CLIP_SEP)
+    return url, clip
+
+
+def clip_stem_of(ref: str) -> str:
+    """``waymo_{segment}_{CAMERA}_{object_id}`` of a clip reference (:func:`find_clips`) or npz URL."""
+    if TABLE_CLIP_SEP in str(ref) and not str(ref).endswith(".npz"):
+        return _split_ref(ref)[1]
+    name = posixpath.basename(str(ref))
+    return name[:-4] if name.endswith(".npz") else name
+
+
 def clip_num_tracks(url: str) -> int:
-    """N of a clip, read from the ``tracks`` array header only (no data is decompressed)."""
+    """N of a clip, read from the ``tracks`` array header only (no data is decompressed), or from
+    the ``num_tracks`` column of its clips table."""
+    if TABLE_CLIP_SEP in str(url):
+        import pyarrow.parquet as pq
+
+        table_url, clip = _split_ref(url)
+        fs, path = fs_of(table_url)
+        with fs.open(path, "rb") as f:
+            t = pq.read_table(f, columns=["clip", "num_tracks"])
+        return int(dict(zip(t.column("clip").to_pylist(), t.column("num_tracks").to_pylist()))[clip])
     fs, path = fs_of(url)
     return _npy_header(fs, path, "tracks")[0][0]
 
@@ -70,28 +103,55 @@ def clip_num_tracks(url: str) -> int:
 def select_clip(source: str, object_id: str | None = None, camera: str | None = None) -> str:
     """The clip to show: ``source`` itself if it is a file, else the clip under the folder
     ``source`` matching ``object_id`` / ``camera`` with the most tracks (ties: first by name)."""
+    if TABLE_CLIP_SEP in str(source) and not str(source).endswith(".npz"):
+        return str(source)   # a clip of a clips table, as find_clips names it
     fs, path = fs_of(source)
     if fs.isfile(path):
         return str(source)
     clips = find_clips(source)
     if not clips:
-        raise FileNotFoundError(f"{source}: no DriveTrack clip (waymo_*.npz) under this folder")
+        raise FileNotFoundError(f"{source}: no clip (clips/*/*.parquet tables or waymo_*.npz files) under this folder")
     keep = []
     for url in clips:
-        _, cam, obj = parse_clip_name(url)
+        _, cam, obj = parse_clip_name(clip_stem_of(url))
         if (object_id is None or obj == object_id) and (camera is None or cam == camera.upper()):
             keep.append(url)
     if not keep:
-        have = sorted({f"{parse_clip_name(u)[2]} ({parse_clip_name(u)[1]})" for u in clips})
+        names = [clip_stem_of(u) for u in clips]
+        have = sorted({f"{parse_clip_name(u)[2]} ({parse_clip_name(u)[1]})" for u in names})
         raise LookupError(f"{source}: no clip for object {object_id!r} camera {camera!r}; "
                           f"objects here: {', '.join(have[:20])}{' ...' if len(have) > 20 else ''}")
     counts = [clip_num_tracks(u) for u in keep]
     return keep[int(np.argmax(counts))]
 
 
+def _load_table_clip(ref: str) -> Clip:
+    """A clip of a clips table (``{table URL}#{clip id}``), its video decoded from the frames table."""
+    from drivetrack.evaluation.clips import AnnotationFile, read_stored
+    from drivetrack.outputs import parse_table_path
+
+    table_url, clip = _split_ref(ref)
+    parts = table_url.rstrip("/").split("/")
+    rel = "/".join(parts[-3:])
+    parsed = parse_table_path(rel)
+    if not parsed:
+        raise ValueError(f"{ref}: not a clip of a clips table clips/{{split}}/{{segment}}.parquet")
+    segment, camera, object_id = parse_clip_name(clip, [parsed[2]])
+    stored = read_stored(AnnotationFile(table_url, rel, parsed[1], segment, camera, object_id, clip))
+    from drivetrack.compact.read import LazyVideo
+
+    return Clip(url=str(ref), split=parsed[1], segment=segment, camera=camera, object_id=object_id,
+                video=np.asarray(LazyVideo(stored)), tracks=stored.tracks, visibles=stored.visibles,
+                timestamps_micros=stored.timestamps_micros, query_frames=stored.query_frames,
+                lidar_sources=stored.lidar_sources)
+
+
 
 def load_clip(url: str) -> Clip:
-    """Read a DriveTrack clip; errors name the file and the offending key, shape or dtype."""
+    """Read a DriveTrack clip (an npz file, or ``{clips table URL}#{clip id}`` from :func:`find_clips`);
+    errors name the file and the offending key, shape or dtype."""
+    if TABLE_CLIP_SEP in str(url) and not str(url).endswith(".npz"):
+        return _load_table_clip(url)
     segment, camera, object_id = parse_clip_name(url)
     fs, path = fs_of(url)
     try:

@@ -5,7 +5,7 @@ import posixpath
 
 import numpy as np
 
-from drivetrack.show.clips import clip_num_tracks, find_clips, fs_of, load_clip, parse_clip_name
+from drivetrack.show.clips import clip_num_tracks, clip_stem_of, find_clips, fs_of, load_clip, parse_clip_name
 from drivetrack.show.draw import render_sheet, render_video, sample_tracks
 
 __all__ = ["write_image", "write_video", "fit_width", "write_previews"]
@@ -96,7 +96,7 @@ def write_previews(out_dir: str, per_split: int = 3, points: int = 24, sheet_cou
         ranked = sorted(by_split[split], key=lambda u: (-clip_num_tracks(u), u))
         per_camera: dict[str, list[str]] = {}
         for url in ranked:
-            per_camera.setdefault(parse_clip_name(url)[1], []).append(url)
+            per_camera.setdefault(parse_clip_name(clip_stem_of(url))[1], []).append(url)
         picked: list[str] = []
         queues = sorted(per_camera.values(), key=lambda q: (-clip_num_tracks(q[0]), q[0]))
         while len(picked) < per_split and any(queues):
@@ -105,7 +105,7 @@ def write_previews(out_dir: str, per_split: int = 3, points: int = 24, sheet_cou
                     picked.append(q.pop(0))
         for i, url in enumerate(picked):
             clip = load_clip(url)
-            stem = posixpath.splitext(posixpath.basename(url))[0]
+            stem = clip_stem_of(url)
             index = sample_tracks(clip, points, seed=seed)
             base = f"{root}/previews/{split}/{stem}"
             sheet = render_sheet(clip, index, count=sheet_count, columns=2, trail=trail)

@@ -77,7 +77,6 @@ class TrackConfig:
         kernel: inner loop of the global-shutter projection, ``numba`` (fused kernel,
             :mod:`drivetrack.tracks.kernel`) or ``numpy`` (the reference; rolling-shutter cameras
             always use it).
-        writers: output writers (registry names in :mod:`drivetrack.tracks.writers`).
     """
     object_types: tuple[str, ...] = ("VEHICLE",)
     cameras: tuple[str, ...] = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
@@ -109,7 +108,6 @@ class TrackConfig:
     seed: int = 0
     chunk_points: int = 8192
     kernel: str = "numba"
-    writers: tuple[str, ...] = ("drivetrack", "tapvid3d")
 
     def __post_init__(self):
         for name, enum_type in (("object_types", BoxType), ("cameras", CameraName),
@@ -126,7 +124,6 @@ class TrackConfig:
         depth = DepthConfig.check({name: getattr(self, name) for name in DEPTH_FIELDS}, where="TrackConfig")
         for name, value in depth.items():
             object.__setattr__(self, name, value)
-        object.__setattr__(self, "writers", tuple(self.writers))
         if not set(self.returns) <= {1, 2}:
             raise ValueError(f"TrackConfig.returns must be among (1, 2), got {self.returns}")
         if self.fov_runs not in FOV_RUN_POLICIES:

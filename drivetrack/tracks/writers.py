@@ -1,4 +1,9 @@
-"""Output writers for :class:`ObjectTracks` (formats documented in ``docs/formats.md``).
+"""The npz writers of :class:`ObjectTracks` (formats documented in ``docs/formats.md``).
+
+``drivetrack annotate`` writes release layout v2 (:mod:`drivetrack.compact.write`); these
+writers make the field's npz formats, and ``drivetrack export`` feeds the same functions
+(:func:`drivetrack_arrays`, :func:`tapvid3d_arrays`, :func:`write_npz`) a clip read back from the
+tables (:class:`drivetrack.compact.read.StoredClip`, same attributes), so the files are identical.
 
 A registry (:data:`WRITERS`) maps a writer name to a function
 ``(out_root_url, split, tracks) -> url``; a new format is a new entry. All storage goes through

@@ -1,0 +1,185 @@
+"""Release layout v2 (issue 18): clips and frames tables that load with Hugging Face ``datasets``
+(normal and streaming) and ``mlcroissant``, ``drivetrack.load_clip``, and ``drivetrack export``
+byte for byte equal to the npz the writers produced before the layout changed.
+
+Also the refusals: a clip referring to a frame its frames table lacks, and a truncated table,
+are named (file, clip, frame) by the loader, export and publish.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from drivetrack.cli import main
+
+GOLDEN_NPZ = Path(__file__).parent / "golden" / "npz_sha256.json"
+
+
+@pytest.fixture(scope="module")
+def release(annotated_output, tmp_path_factory) -> str:
+    """A small published release (v2 layout) of the shared annotation output."""
+    out = tmp_path_factory.mktemp("compact_out")
+    shutil.copytree(annotated_output, out, dirs_exist_ok=True)
+    store = tmp_path_factory.mktemp("compact_store")
+    assert main(["publish", str(out), "--store", str(store), "--version", "0.1.0"]) == 0
+    return str(store / "drivetrack-waymo" / "0.1.0")
+
+
+def _npz(path: Path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_export_is_byte_identical_to_the_writers_npz(exported_output):
+    """Every golden clip (sha256 of the npz the writers wrote before layout v2) exports to the same bytes."""
+    golden = json.loads(GOLDEN_NPZ.read_text())
+    assert len(golden) >= 10
+    got = {rel: hashlib.sha256((Path(exported_output) / rel).read_bytes()).hexdigest()
+           for rel in golden if (Path(exported_output) / rel).exists()}
+    assert got == golden
+    exported = sorted(p.relative_to(exported_output).as_posix() for p in Path(exported_output).rglob("*.npz"))
+    assert exported == sorted(golden)
+
+
+def test_release_holds_tables_and_no_npz(release):
+    files = [p.relative_to(release).as_posix() for p in Path(release).rglob("*") if p.is_file()]
+    assert any(f.startswith("clips/training/") and f.endswith(".parquet") for f in files)
+    assert any(f.startswith("frames/training/") and f.endswith(".parquet") for f in files)
+    assert not [f for f in files if f.endswith(".npz")]
+    # one row group per clip, floats BYTE_STREAM_SPLIT + zstd
+    table = pq.ParquetFile(next(Path(release).glob("clips/training/*.parquet")))
+    assert table.metadata.num_row_groups == table.metadata.num_rows
+    names = [table.metadata.row_group(0).column(i).path_in_schema for i in range(table.metadata.num_columns)]
+    column = table.metadata.row_group(0).column(names.index("tracks.list.element"))
+    assert "BYTE_STREAM_SPLIT" in column.encodings and column.compression == "ZSTD"
+
+
+def test_frames_are_stored_once_as_the_source_jpeg(release, synth_source):
+    """Frames tables hold each frame once, the JPEG bytes exactly as in the source camera_image."""
+    tables = sorted(Path(release).glob("frames/training/*.parquet"))
+    assert tables
+    for path in tables:
+        t = pq.read_table(path)
+        frames = t.column("frame").to_pylist()
+        assert frames == sorted(set(frames))
+        for image in t.column("image").to_pylist()[:3]:
+            assert image["bytes"][:2] == b"\xff\xd8" and image["bytes"][-2:] == b"\xff\xd9"
+    # the bytes are the source's: the source camera_image parquet holds each of them
+    from drivetrack.outputs import parse_table_path
+
+    _, _, segment, _ = parse_table_path(f"frames/training/{tables[0].name}")
+    source = pq.read_table(Path(synth_source) / "training" / "camera_image" / f"{segment}.parquet")
+    image_column = next(c for c in source.column_names if c.endswith(".image"))
+    source_bytes = set(source.column(image_column).to_pylist())
+    stored = pq.read_table(tables[0]).column("image").to_pylist()
+    assert stored and all(s["bytes"] in source_bytes for s in stored)
+
+
+def test_datasets_loads_the_release_normal_and_streaming(release, exported_output, tmp_path):
+    """`datasets.load_dataset` reads the card's configs; one clip's tracks and visibility equal the
+    exported DriveTrack npz of the same clip."""
+    datasets = pytest.importorskip("datasets")
+    clips = datasets.load_dataset(release, "clips", split="training", cache_dir=str(tmp_path))
+    assert clips.num_rows >= 10
+    row = clips[3]
+    n, t = row["num_tracks"], row["num_frames"]
+    npz = _npz(Path(exported_output) / "tracks" / "training" / f"{row['clip']}.npz")
+    np.testing.assert_array_equal(np.asarray(row["tracks"], np.float32).reshape(n, t, 2), npz["tracks"])
+    np.testing.assert_array_equal(np.asarray(row["visibles"], bool).reshape(n, t), npz["visibles"])
+    np.testing.assert_array_equal(np.asarray(row["query_frames"]), npz["query_frames"])
+
+    streamed = datasets.load_dataset(release, "clips", split="training", streaming=True, cache_dir=str(tmp_path))
+    first = next(iter(streamed))
+    assert first["clip"] == clips[0]["clip"]
+    np.testing.assert_array_equal(np.asarray(first["tracks"], np.float32), np.asarray(clips[0]["tracks"], np.float32))
+
+    frames = datasets.load_dataset(release, "frames", split="training", cache_dir=str(tmp_path))
+    image = frames[0]["image"]
+    assert image.size == (row["width"], row["height"])
+    streamed_frames = next(iter(datasets.load_dataset(release, "frames", split="training", streaming=True,
+                                                           cache_dir=str(tmp_path))))
+    assert streamed_frames["image"].size == image.size
+
+
+def test_mlcroissant_iterates_both_record_sets(release):
+    mlc = pytest.importorskip("mlcroissant")
+    dataset = mlc.Dataset(str(Path(release) / "croissant.json"))
+    clip = next(iter(dataset.records("clips")))
+    assert clip["clips/clip"].decode().startswith("waymo_")
+    n, t = clip["clips/num_tracks"], clip["clips/num_frames"]
+    assert len(clip["clips/tracks"]) == n * t * 2 and len(clip["clips/visibles"]) == n * t
+    frame = next(iter(dataset.records("frames")))
+    assert frame["frames/image"].size[0] > 0
+
+
+def test_load_clip_matches_the_export(release, exported_output):
+    import drivetrack
+
+    stem = sorted(p.stem for p in (Path(exported_output) / "tracks" / "training").glob("*.npz"))[1]
+    clip = drivetrack.load_clip(release, stem)
+    npz = _npz(Path(exported_output) / "tracks" / "training" / f"{stem}.npz")
+    np.testing.assert_array_equal(clip.tracks, npz["tracks"])
+    np.testing.assert_array_equal(clip.visibles, npz["visibles"])
+    assert clip.video.shape == npz["video"].shape
+    np.testing.assert_array_equal(clip.video[2], npz["video"][2])
+    with pytest.raises(FileNotFoundError, match="no clip waymo_nosuch_FRONT_x"):
+        drivetrack.load_clip(release, "waymo_nosuch_FRONT_x")
+
+
+def test_export_cli_writes_one_format(release, tmp_path, capsys):
+    assert main(["export", release, "--format", "tapvid3d", "--out", str(tmp_path)]) == 0
+    assert sorted(p.parts[-3] for p in tmp_path.rglob("*.npz")) == ["tapvid3d"] * len(list(tmp_path.rglob("*.npz")))
+    assert "exported" in capsys.readouterr().err
+
+
+def _copy_release_out(annotated_output, tmp_path) -> Path:
+    out = tmp_path / "out"
+    shutil.copytree(annotated_output, out)
+    return out
+
+
+def test_missing_frame_reference_is_named(annotated_output, tmp_path, capsys):
+    """A frames table without a frame a clip uses: export, load_clip and publish name file, clip, frame."""
+    import drivetrack
+    from drivetrack.compact.read import CompactFormatError
+
+    out = _copy_release_out(annotated_output, tmp_path)
+    frames_path = sorted((out / "frames" / "training").glob("*_FRONT.parquet"))[0]
+    table = pq.read_table(frames_path)
+    dropped = table.column("frame")[5].as_py()
+    pq.write_table(table.filter(pa.compute.not_equal(table.column("frame"), dropped)), frames_path)
+    clips = pq.read_table(sorted((out / "clips" / "training").glob("*.parquet"))[0], columns=["clip", "camera", "frames"])
+    stem = next(c for c, cam, f in zip(*(clips.column(k).to_pylist() for k in ("clip", "camera", "frames")))
+                if cam == "FRONT" and dropped in f)
+    with pytest.raises(CompactFormatError, match=rf"{frames_path.name}.*{stem}.*frame {dropped}"):
+        drivetrack.load_clip(str(out), stem)
+    assert main(["export", str(out), "--format", "drivetrack-npz", "--out", str(tmp_path / "exp")]) == 1
+    assert f"frame {dropped}" in capsys.readouterr().err
+    assert main(["publish", str(out), "--store", str(tmp_path / "store"), "--version", "0.1.0"]) != 0
+    err = capsys.readouterr().err
+    assert stem in err and f"refers to frame {dropped}" in err and frames_path.name in err
+    assert not (tmp_path / "store" / "drivetrack-waymo" / "0.1.0" / "manifest.json").exists()
+
+
+def test_truncated_clips_table_is_named(annotated_output, tmp_path, capsys):
+    import drivetrack
+    from drivetrack.compact.read import CompactFormatError
+
+    out = _copy_release_out(annotated_output, tmp_path)
+    path = sorted((out / "clips" / "training").glob("*.parquet"))[0]
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    rel = f"clips/training/{path.name}"
+    with pytest.raises(CompactFormatError, match=rf"{rel}: not a readable Parquet table"):
+        drivetrack.load_clip(str(out), f"waymo_{path.stem}_FRONT_x")
+    assert main(["export", str(out), "--format", "tapvid3d", "--out", str(tmp_path / "exp")]) == 1
+    assert rel in capsys.readouterr().err
+    assert main(["gates", str(out)]) != 0
+    assert rel in capsys.readouterr().err
