@@ -29,12 +29,13 @@ def _bytes(root: Path, pattern: str) -> int:
     return sum(p.stat().st_size for p in root.glob(pattern))
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    """``argv`` None (as ``bench.run`` calls it): the defaults."""
     ap = argparse.ArgumentParser()
     ap.add_argument("--preset", default="medium", choices=["small", "medium", "full"])
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--seed", type=int, default=7)
-    args = ap.parse_args()
+    args = ap.parse_args(argv or [])
 
     import pyarrow.parquet as pq
 
@@ -91,4 +92,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    import sys
+
+    raise SystemExit(main(sys.argv[1:]))

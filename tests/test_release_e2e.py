@@ -32,10 +32,15 @@ def test_good_release_passes_gates_and_verifies(annotated_output, tmp_path, caps
     assert card.startswith("---\n") and "gate" in card.lower()
     assert main(["verify", str(store), "--version", "0.1.0"]) == 0
     subprocess.run(["sha256sum", "--quiet", "-c", "SHA256SUMS"], cwd=release, check=True)
-    # the clips are in the release under tracks/{split}/ and the card's configs point at them
-    assert list((release / "tracks" / "training").glob("waymo_*.npz"))
-    assert "tracks/training/waymo_*.npz" in card and "tapvid3d/training/waymo_*.npz" in card
-    assert manifest["counts"]["splits"]["training"]["clips"] == len(list((release / "tracks" / "training").glob("*.npz")))
+    # the clips are in the release as clips/{split}/ and frames/{split}/ tables, the card's configs
+    # point at them, and the manifest counts the clip rows
+    import pyarrow.parquet as pq
+
+    tables = list((release / "clips" / "training").glob("*.parquet"))
+    assert tables and list((release / "frames" / "training").glob("*.parquet"))
+    assert "clips/training/*.parquet" in card and "frames/training/*.parquet" in card
+    assert not list(release.rglob("*.npz"))
+    assert manifest["counts"]["splits"]["training"]["clips"] == sum(pq.read_metadata(t).num_rows for t in tables)
     capsys.readouterr()
 
 

@@ -97,18 +97,18 @@ def test_s3_object_corrupted_after_publish_is_reported(tmp_path, s3_server, s3_s
     src = make_output(tmp_path / "out", n_clips=1)
     publish_release(src, url, "1.0.0", storage_options=opts, gate_report=gates_of(src))
     bucket = url.removeprefix("s3://").split("/")[0]
-    key = f"releases/{DS}/1.0.0/tracks/training/waymo_seg0_FRONT_tra0.npz"
+    key = f"releases/{DS}/1.0.0/clips/training/seg0.parquet"
     client = s3_server.client()
     body = bytearray(client.get_object(Bucket=bucket, Key=key)["Body"].read())
     body[-10] ^= 0x01
     client.put_object(Bucket=bucket, Key=key, Body=bytes(body))
     client.delete_object(Bucket=bucket, Key=f"releases/{DS}/1.0.0/stats/segments.parquet")
     report = verify_release(url, "1.0.0", storage_options=opts)
-    assert [(c["path"], c["problem"]) for c in report.corrupt] == [("tracks/training/waymo_seg0_FRONT_tra0.npz", "sha256")]
+    assert [(c["path"], c["problem"]) for c in report.corrupt] == [("clips/training/seg0.parquet", "sha256")]
     assert report.missing == ["stats/segments.parquet"] and not report.ok
     assert cli(["verify", url, "--version", "1.0.0", "--endpoint-url", s3_server.endpoint_url]) == 1
     out = capsys.readouterr().out
-    assert "CORRUPT  tracks/training/waymo_seg0_FRONT_tra0.npz: sha256" in out and "MISSING  stats/segments.parquet" in out
+    assert "CORRUPT  clips/training/seg0.parquet: sha256" in out and "MISSING  stats/segments.parquet" in out
 
 
 def test_server_stopped_mid_publish_leaves_nothing_visible_then_resume(tmp_path):
