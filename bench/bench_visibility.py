@@ -3,8 +3,9 @@
 Generates one hard-world segment (``SynthConfig(world="hard")``: oblique cars 20-70 m away, a car
 sliding behind a van, poles and a low sign, pedestrians by cars, cars passing close beside the
 ego, a turning car, a crossing cyclist; cameras triggered as the TOP sweep passes them), annotates
-it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; the default with the back-face
-test of ``drivetrack.visibility``), each with the default pipeline otherwise
+it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; with the back-face test of
+``drivetrack.visibility``; the default ``occlusion="surface"``, which adds the z-buffer of the other
+objects' returns), each with the default pipeline otherwise
 (``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
 clips at all) and scores the tracks against the exact truth:
@@ -144,8 +145,10 @@ def _f(x, digits=3):
 
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
-    "depth-ratio (paper)": {"back_face_max_deg": None},
-    "depth-ratio + back faces (default)": {},
+    "depth-ratio (paper)": {"occlusion": "depth-ratio"},
+    # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
+    "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9},
+    "surface: + z-buffer of other objects (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 

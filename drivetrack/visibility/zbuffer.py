@@ -1,0 +1,87 @@
+"""Z-buffer of the other labelled objects' own surfaces (issue 15).
+
+The depth-ratio test (``d_map < occlusion_ratio * z``) cannot see an occluder less than
+``1 - occlusion_ratio`` of the distance in front of a point (at 50 m and 0.95: 2.5 m, a car behind
+a car), and the completed LiDAR map bleeds across object outlines. Every labelled object's own
+returns, in its box frame and carried by its pose at the image's capture time
+(:func:`drivetrack.tracks.core.clip_poses`, the poses the tracks use), give its surface in each
+image: each return is splatted as a square footprint of ``radius_m`` at its depth (``f * radius_m /
+z`` pixels, at most ``max_px``) into a per-pixel nearest-depth buffer. A point of the tracked object
+is hidden by another object when that buffer at its pixel is nearer than its own depth by more than
+``abs_m + rel * z``.
+
+Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x forward = depth).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["nearest_depth", "hidden_by_others"]
+
+
+def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
+                  radius_m: float, max_px: int) -> np.ndarray:
+    """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
+
+    ``pixels`` float64 [m, 2] (x, y), ``depth`` float64 [m] (> 0; callers drop the rest). A return
+    covers the (2r+1)^2 pixels around its own, ``r = min(max_px, round(focal * radius_m / depth))``.
+    """
+    buffer = np.full(height * width, np.inf, dtype=np.float32)
+    if depth.size == 0:
+        return buffer.reshape(height, width)
+    col = np.floor(pixels[:, 0]).astype(np.int64)
+    row = np.floor(pixels[:, 1]).astype(np.int64)
+    radius = np.minimum(np.rint(focal * radius_m / depth), max_px).astype(np.int64)
+    z = depth.astype(np.float32)
+    for r in np.unique(radius).tolist():
+        sel = radius == r
+        d = np.arange(-r, r + 1)
+        dy, dx = np.meshgrid(d, d, indexing="ij")
+        rows = row[sel, None] + dy.ravel()[None]                                     # [k, (2r+1)^2]
+        cols = col[sel, None] + dx.ravel()[None]
+        ok = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+        np.minimum.at(buffer, (rows * width + cols)[ok], np.broadcast_to(z[sel, None], rows.shape)[ok])
+    return buffer.reshape(height, width)
+
+
+def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
+                     occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
+                     radius_m: float, max_px: int, abs_m: float, rel: float) -> np.ndarray:
+    """bool [T, n]: the tracked point lies behind another object's surface at that frame.
+
+    Args:
+        points_camera: float64 [T, n, 3], the tracked points in the camera frame.
+        pixels: float64 [T, n, 2] their pixels; ``valid`` bool [T, n] where the projection holds.
+        occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t]) of the other objects'
+            returns projected in that frame's image (only valid projections in front of the camera).
+        width, height, focal: the image and its focal length (pixels).
+        radius_m, max_px: the footprint (see :func:`nearest_depth`).
+        abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
+    """
+    t_count, n = valid.shape
+    hidden = np.zeros((t_count, n), dtype=bool)
+    for tau in range(t_count):                       # one image at a time: bounded memory
+        occ_pixels, occ_depth = occluders[tau]
+        if occ_depth.size == 0 or n == 0:
+            continue
+        z = points_camera[tau, :, 0]
+        px = np.where(valid[tau, :, None] & np.isfinite(pixels[tau]), pixels[tau], -1.0)
+        col, row = np.floor(px[:, 0]).astype(np.int64), np.floor(px[:, 1]).astype(np.int64)
+        inside = valid[tau] & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        if not inside.any():
+            continue
+        # Only the window the tracked points fall in matters: splat into that crop of the image
+        # (a return's footprint reaches at most max_px beyond its own pixel).
+        c0, c1 = int(col[inside].min()), int(col[inside].max()) + 1
+        r0, r1 = int(row[inside].min()), int(row[inside].max()) + 1
+        occ_col, occ_row = np.floor(occ_pixels[:, 0]), np.floor(occ_pixels[:, 1])
+        near = ((occ_col >= c0 - max_px) & (occ_col < c1 + max_px) & (occ_row >= r0 - max_px)
+                & (occ_row < r1 + max_px))
+        if not near.any():
+            continue
+        buffer = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0, focal,
+                               radius_m, max_px)
+        nearest = np.full(n, np.inf, dtype=np.float64)
+        nearest[inside] = buffer[row[inside] - r0, col[inside] - c0]
+        hidden[tau] = inside & (nearest < z - (abs_m + rel * z))
+    return hidden
