@@ -163,6 +163,12 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              f"Annotation wall time per variant: "
              + ", ".join(f"{n} {setup['annotate_s'][n]:.0f} s" for n in names) + f". Machine: {machine}.", "",
              "| measure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    # the cost (issue 15: track stage plus visibility against track stage plus depth completion);
+    # the visibility tests run inside the track stage
+    stages = setup.get("stage_s", {})
+    if stages:
+        lines.append("| depth + track stages s | " + " | ".join(
+            _f(stages[n].get("depth", float("nan")) + stages[n].get("tracks", float("nan")), 1) for n in names) + " |")
 
     def row(label, get, digits=3):
         lines.append(f"| {label} | " + " | ".join(_f(get(results[n]), digits) for n in names) + " |")
@@ -195,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_hard_world_arguments(ap)
     args = ap.parse_args(argv if argv is not None else [])
-    results, annotate_s = {}, {}
+    results, annotate_s, stage_s = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
@@ -213,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
             if result.status != "done":
                 raise RuntimeError(f"annotation of {seg} failed at {result.stage}: {result.error}")
             annotate_s[name] = time.perf_counter() - start
+            stage_s[name] = {str(k2): float(v) for k2, v in result.timings_s.items()}
             tracks = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
             clips = evaluate_tracks(tracks, f"{tmp}/src").clips
             summary = summarise(point_frames(tracks, f"{tmp}/src"), clips)
@@ -221,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             results[name] = summary
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
-             "annotate_s": annotate_s}
+             "annotate_s": annotate_s, "stage_s": stage_s}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())

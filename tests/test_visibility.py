@@ -91,12 +91,17 @@ def test_zbuffer_hides_a_car_behind_a_car():
 
 def test_zbuffer_window_equals_the_full_image_buffer():
     """hidden_by_others splats only into the window of the tracked points' pixels (plus the
-    footprint); it decides exactly as a lookup in the z-buffer of the whole image."""
+    footprints); it decides exactly as the whole image's z-buffer, where a point is hidden when
+    the farthest buffer value over its own footprint is nearer than it by the tolerance."""
+    from scipy.ndimage import maximum_filter
+
     from drivetrack.visibility import hidden_by_others, nearest_depth
 
     rng = np.random.default_rng(3)
     focal, width, height, t_count, n = 400.0, 320, 240, 4, 300
     pixels = rng.uniform([-20, -20], [width + 20, height + 20], size=(t_count, n, 2))
+    pixels[:2] = rng.uniform([120, 80], [160, 110], size=(2, n, 2))       # a small window inside the image
+    pixels[2, :, 0] = rng.uniform(0, 6, size=n)                           # ... and one along its left border
     points = np.concatenate([rng.uniform(5, 40, size=(t_count, n, 1)), np.zeros((t_count, n, 2))], axis=-1)
     valid = rng.random((t_count, n)) > 0.1
     occluders = [(rng.uniform([100, 50], [200, 150], size=(500, 2)), rng.uniform(3, 40, size=500))
@@ -107,10 +112,13 @@ def test_zbuffer_window_equals_the_full_image_buffer():
         col, row = np.floor(pixels[tau, :, 0]).astype(int), np.floor(pixels[tau, :, 1]).astype(int)
         inside = valid[tau] & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         z = points[tau, :, 0]
+        radius = np.minimum(np.rint(focal * 0.05 / z), 2).astype(int)
+        farthest = np.stack([maximum_filter(buffer, size=2 * r + 1, mode="nearest") for r in range(3)])
         want = np.zeros(n, bool)
-        want[inside] = buffer[row[inside], col[inside]] < z[inside] - (0.3 + 0.02 * z[inside])
+        want[inside] = (farthest[radius[inside], row[inside], col[inside]]
+                        < z[inside] - (0.3 + 0.02 * z[inside]))
         np.testing.assert_array_equal(got[tau], want)
-    assert got.any() and not got.all()
+    assert got[:2].any(axis=1).all() and not got.all()
 
 
 def test_config_checks_the_occlusion_method():
@@ -179,8 +187,10 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     """Measured on this scene: 805 matched back-face point-frames inside the image; the depth-ratio
     test calls 55% of them visible, with the back-face test 11% (normals too thin to trust), with
     ``occlusion="surface"`` 10%. 9,730 point-frames facing the camera but hidden by another object:
-    depth ratio 20% called visible, back faces alone 16%, surface (z-buffer) 7%. Truly visible
-    point-frames called visible 0.9883 (depth ratio) -> 0.9879 (back faces) -> 0.9841 (surface)."""
+    depth ratio 20% called visible, back faces alone 16%, surface (z-buffer) 12.5%. Truly visible
+    point-frames called visible 0.9883 (depth ratio) -> 0.9879 (back faces) -> 0.9872 (surface).
+    (A z-buffer whose footprints also grew the occluders' outlines: 7% and 0.9841; the pedestrians
+    whose heads show just above a parked car's roof were called hidden.)"""
     root, segment = hard_scene
     old_back, old_visible, _ = _back_face_calls(root, segment, str(tmp_path / "paper"), None, "numba",
                                                 "depth-ratio")
@@ -195,9 +205,10 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     # hidden by another object (cars behind cars, pedestrians behind cars): the z-buffer of the
     # other objects' returns hides most of what the 5% depth ratio calls visible
     assert old_others.size > 3000 and old_others.mean() > 0.15
-    assert new_others.mean() < 0.1
-    # the cost: occluder footprints bleeding over outlines hide some truly visible point-frames
-    assert new_visible.mean() > old_visible.mean() - 0.006
+    assert new_others.mean() < 0.15
+    # the cost: occluders' outlines are known to about a pixel, so a few truly visible point-frames
+    # along them are hidden (the footprint rule on both sides keeps the outlines from growing)
+    assert new_visible.mean() > old_visible.mean() - 0.002
     # the numpy path (the reference) decides exactly as the numba kernel
     _, _, numpy_clips = _back_face_calls(root, segment, str(tmp_path / "numpy"), 90.0, "numpy", "surface")
     assert numpy_clips.keys() == new_clips.keys()

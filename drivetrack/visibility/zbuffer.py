@@ -15,6 +15,7 @@ Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x 
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 __all__ = ["nearest_depth", "hidden_by_others"]
 
@@ -70,10 +71,11 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         inside = valid[tau] & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         if not inside.any():
             continue
-        # Only the window the tracked points fall in matters: splat into that crop of the image
-        # (a return's footprint reaches at most max_px beyond its own pixel).
-        c0, c1 = int(col[inside].min()), int(col[inside].max()) + 1
-        r0, r1 = int(row[inside].min()), int(row[inside].max()) + 1
+        # Only the window the tracked points fall in matters (grown by the footprint the test
+        # looks over): splat into that crop of the image; a return's own footprint reaches at
+        # most max_px beyond its pixel.
+        c0, c1 = max(0, int(col[inside].min()) - max_px), min(width, int(col[inside].max()) + 1 + max_px)
+        r0, r1 = max(0, int(row[inside].min()) - max_px), min(height, int(row[inside].max()) + 1 + max_px)
         occ_col, occ_row = np.floor(occ_pixels[:, 0]), np.floor(occ_pixels[:, 1])
         near = ((occ_col >= c0 - max_px) & (occ_col < c1 + max_px) & (occ_row >= r0 - max_px)
                 & (occ_row < r1 + max_px))
@@ -81,7 +83,14 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
             continue
         buffer = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0, focal,
                                radius_m, max_px)
-        nearest = np.full(n, np.inf, dtype=np.float64)
-        nearest[inside] = buffer[row[inside] - r0, col[inside] - c0]
-        hidden[tau] = inside & (nearest < z - (abs_m + rel * z))
+        # The same footprint rule on the point's side: it is hidden only when the occluders cover
+        # its whole footprint (the farthest buffer value over it is nearer than the point), so the
+        # footprints that close the gaps between an occluder's returns do not grow its outline.
+        radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
+        farthest = np.full(n, np.inf, dtype=np.float64)
+        for r in np.unique(radius[inside]).tolist():
+            sel = inside & (radius == r)
+            covered = buffer if r == 0 else maximum_filter(buffer, size=2 * r + 1, mode="nearest")
+            farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
+        hidden[tau] = inside & (farthest < z - (abs_m + rel * z))
     return hidden
