@@ -121,6 +121,22 @@ def test_zbuffer_window_equals_the_full_image_buffer():
     assert got[:2].any(axis=1).all() and not got.all()
 
 
+def test_surfel_subsample_keeps_the_first_return_of_each_cube():
+    from drivetrack.visibility.zbuffer import surfel_subsample
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-1.0, 1.0, size=(5000, 3))
+    keep = surfel_subsample(points, 0.25)
+    cells = np.floor(points / 0.25).astype(int)
+    kept_cells = {tuple(c) for c in cells[keep]}
+    assert len(kept_cells) == keep.size == len({tuple(c) for c in cells})     # one per occupied cube
+    first = {}
+    for i, c in enumerate(map(tuple, cells)):
+        first.setdefault(c, i)
+    assert keep.tolist() == sorted(first.values())
+    assert surfel_subsample(np.zeros((0, 3)), 0.25).size == 0
+
+
 def test_config_checks_the_occlusion_method():
     with pytest.raises(ValueError, match=r"TrackConfig.occlusion must be one of \('surface', 'depth-ratio'\)"):
         TrackConfig(occlusion="zbuffer")

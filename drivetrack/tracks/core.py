@@ -514,40 +514,88 @@ def _points_box(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, li
         + box_from_vehicle[source_clip, :3, 3]
 
 
-def _occluders(plan, job, frames: np.ndarray, reach_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+#: Angle (radians) added to the sum of two objects' angular radii before an object is skipped as an
+#: occluder of another (:func:`_occluders`): label boxes are at the frame time, images a few tens
+#: of milliseconds away, and a box centre moves a degree or two in that time beside the ego.
+_OCCLUDER_ANGLE_MARGIN_RAD = np.radians(5.0)
+
+
+def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
+               target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
 
     Every object but ``job``'s with a box at some clip frame and returns selected by the plan is
     carried by its own :func:`clip_poses` (the capture time of ``job.camera``'s image), its clip
-    returns in its box frame (:func:`_points_box`). Objects whose box lies entirely farther from
-    the camera than ``reach_m`` float64 [T] at every frame cannot occlude and are skipped.
+    returns in its box frame (:func:`_points_box`), one per cube of ``surfel_radius_m``
+    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). The tracked object is the sphere of
+    centre ``target_camera`` float64 [T, 3] (camera frame, metres) and radius ``target_radius_m``
+    float64 [T] at each clip frame; an object's box row is skipped when its own bounding sphere
+    lies entirely farther from the camera than the target's far side, or is seen at an angle from
+    the target's that their angular radii (plus :data:`_OCCLUDER_ANGLE_MARGIN_RAD`, for the motion
+    between label and image time) cannot bridge: it cannot occlude the target in that image.
     """
+    from drivetrack.visibility.zbuffer import surfel_subsample
+
     scene = plan.scene
     boxes = scene.boxes
+    # Occluder returns are thinned to one per cube of half the footprint (a return covers the
+    # footprint either side of its own position, so half is dense enough for the footprints of
+    # a sampled surface to overlap: measured on the small hard world, a whole footprint drops OA).
+    cube_m = 0.5 * float(plan.config.surfel_radius_m)
     geometry = plan.cameras[job.camera]
     model = scene.cameras[job.camera].model
     t_count = frames.size
     slot = np.full(scene.num_frames, -1, dtype=np.int64)
     slot[frames] = np.arange(t_count)
+    # objects with selected returns somewhere in the segment occlude at every clip frame they have a box in
+    with_points = np.unique(boxes.object_id[plan.box_point_offsets[1:] > plan.box_point_offsets[:-1]])
     in_clip = np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id != job.object_id)
-                             & (plan.box_point_offsets[1:] > plan.box_point_offsets[:-1]))
+                             & np.isin(boxes.object_id, with_points))
+    candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     if in_clip.size:
         # distance from the camera centre to each candidate box's centre, minus its half diagonal
         centre_camera = (np.einsum("nij,nj->ni", geometry.camera_from_vehicle[boxes.frame[in_clip], :3, :3],
                                    boxes.center[in_clip]) + geometry.camera_from_vehicle[boxes.frame[in_clip], :3, 3])
-        near = (np.linalg.norm(centre_camera, axis=-1) - 0.5 * np.linalg.norm(boxes.size[in_clip], axis=-1)
-                < reach_m[slot[boxes.frame[in_clip]]])
-        in_clip = in_clip[near]
+        radius = 0.5 * np.linalg.norm(boxes.size[in_clip], axis=-1)
+        distance = np.linalg.norm(centre_camera, axis=-1)
+        at = slot[boxes.frame[in_clip]]
+        target_distance = np.linalg.norm(target_camera, axis=-1)[at]
+        near = distance - radius < target_distance + target_radius_m[at]
+        # ... and whose angular disc can overlap the target's in the image
+        cosine = np.einsum("ni,ni->n", centre_camera, target_camera[at]) / np.maximum(distance * target_distance, 1e-9)
+        apart = np.arccos(np.clip(cosine, -1.0, 1.0))
+        reach = (np.arcsin(np.clip(radius / np.maximum(distance, 1e-9), 0.0, 1.0))
+                 + np.arcsin(np.clip(target_radius_m[at] / np.maximum(target_distance, 1e-9), 0.0, 1.0)))
+        in_clip = in_clip[near & (apart <= reach + _OCCLUDER_ANGLE_MARGIN_RAD)]
     for object_id in np.unique(boxes.object_id[in_clip]).tolist():
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
-        lidar_rows, source = plan.box_points(obj_rows)
-        if lidar_rows.size == 0:
-            continue
         poses = clip_poses(plan, job.camera, obj_frames, obj_rows)
-        points_box = _points_box(plan, obj_frames, obj_rows, poses, lidar_rows, source)
+        if poses.trajectory is not None:
+            # On the segment's trajectory an object's returns in its box frame do not depend on the
+            # camera or the clip: all its returns over the segment, thinned to the first of each
+            # surfel cube, computed once per object and segment.
+            points_box = plan.occluder_cache.get(object_id)
+            if points_box is None:
+                all_rows = np.flatnonzero(boxes.object_id == object_id)
+                all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+                lidar_rows, source = plan.box_points(all_rows)
+                points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses,
+                                         lidar_rows, source)
+                points_box = points_box[surfel_subsample(points_box, cube_m)]
+                plan.occluder_cache[object_id] = points_box
+        else:
+            # the clip's returns (of the frames it has a box in, before the skips above)
+            clip_rows = candidates[boxes.object_id[candidates] == object_id]
+            clip_rows = clip_rows[np.argsort(boxes.frame[clip_rows], kind="stable")]
+            lidar_rows, source = plan.box_points(clip_rows)
+            points_box = _points_box(plan, boxes.frame[clip_rows].astype(np.int64), clip_rows,
+                                     clip_poses(plan, job.camera, boxes.frame[clip_rows], clip_rows), lidar_rows, source)
+            points_box = points_box[surfel_subsample(points_box, cube_m)]
+        if points_box.shape[0] == 0:
+            continue
         points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
         pixels, valid = model.pixels_from_camera(points_camera)
         valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
@@ -620,9 +668,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
-        reach_m = (np.linalg.norm(centre_camera, axis=-1)
-                   + 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))                   # [T]
-        occluders = _occluders(plan, job, frames, reach_m)
+        occluders = _occluders(plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
         if any(d.size for _, d in occluders):
             hidden_other = np.zeros((t_count, n), dtype=bool)
             for start in range(0, n, config.chunk_points):

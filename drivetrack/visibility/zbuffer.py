@@ -17,7 +17,37 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-__all__ = ["nearest_depth", "hidden_by_others"]
+__all__ = ["first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
+
+
+def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """int64 [m]: the cube of side ``radius_m`` each of ``points_box`` float64 [m, 3] lies in (a key)."""
+    if points_box.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cell = np.floor(points_box / radius_m).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    return (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+
+
+def first_of_cells(sorted_cells: np.ndarray) -> np.ndarray:
+    """int64 [k]: the first index of each run of equal keys in ``sorted_cells`` int64 [m] (sorted)."""
+    if sorted_cells.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate([[True], sorted_cells[1:] != sorted_cells[:-1]]))
+
+
+def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """int64 [k] sorted indices of ``points_box`` float64 [m, 3] keeping one point per cube of side ``radius_m``.
+
+    An occluder's returns accumulated over a clip are far denser than its splat footprint (a
+    return covers ``radius_m`` either side of its own position): one return per cube covers the
+    same surface without gaps, and the z-buffer splats (and projects) a fraction of them. The kept
+    point of a cube is its first in order, so the choice is deterministic.
+    """
+    cells = surfel_cells(points_box, radius_m)
+    order = np.argsort(cells, kind="stable")
+    return np.sort(order[first_of_cells(cells[order])])
 
 
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
