@@ -3,8 +3,9 @@
 Generates one hard-world segment (``SynthConfig(world="hard")``: oblique cars 20-70 m away, a car
 sliding behind a van, poles and a low sign, pedestrians by cars, cars passing close beside the
 ego, a turning car, a crossing cyclist; cameras triggered as the TOP sweep passes them), annotates
-it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; the default with the back-face
-test of ``drivetrack.visibility``), each with the default pipeline otherwise
+it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; with the back-face test of
+``drivetrack.visibility``; the default ``occlusion="surface"``, which adds the z-buffer of the other
+objects' returns), each with the default pipeline otherwise
 (``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
 clips at all) and scores the tracks against the exact truth:
@@ -144,8 +145,10 @@ def _f(x, digits=3):
 
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
-    "depth-ratio (paper)": {"back_face_max_deg": None},
-    "depth-ratio + back faces (default)": {},
+    "depth-ratio (paper)": {"occlusion": "depth-ratio"},
+    # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
+    "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9},
+    "surface: + z-buffer of other objects (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 
@@ -160,6 +163,12 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              f"Annotation wall time per variant: "
              + ", ".join(f"{n} {setup['annotate_s'][n]:.0f} s" for n in names) + f". Machine: {machine}.", "",
              "| measure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    # the cost (issue 15: track stage plus visibility against track stage plus depth completion);
+    # the visibility tests run inside the track stage
+    stages = setup.get("stage_s", {})
+    if stages:
+        lines.append("| depth + track stages s | " + " | ".join(
+            _f(stages[n].get("depth", float("nan")) + stages[n].get("tracks", float("nan")), 1) for n in names) + " |")
 
     def row(label, get, digits=3):
         lines.append(f"| {label} | " + " | ".join(_f(get(results[n]), digits) for n in names) + " |")
@@ -192,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_hard_world_arguments(ap)
     args = ap.parse_args(argv if argv is not None else [])
-    results, annotate_s = {}, {}
+    results, annotate_s, stage_s = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
@@ -210,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
             if result.status != "done":
                 raise RuntimeError(f"annotation of {seg} failed at {result.stage}: {result.error}")
             annotate_s[name] = time.perf_counter() - start
+            stage_s[name] = {str(k2): float(v) for k2, v in result.timings_s.items()}
             tracks = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
             clips = evaluate_tracks(tracks, f"{tmp}/src").clips
             summary = summarise(point_frames(tracks, f"{tmp}/src"), clips)
@@ -218,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             results[name] = summary
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
-             "annotate_s": annotate_s}
+             "annotate_s": annotate_s, "stage_s": stage_s}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())

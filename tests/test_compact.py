@@ -37,15 +37,37 @@ def _npz(path: Path) -> dict:
         return {k: z[k] for k in z.files}
 
 
-def test_export_is_byte_identical_to_the_writers_npz(exported_output):
-    """Every golden clip (sha256 of the npz the writers wrote before layout v2) exports to the same bytes."""
+@pytest.fixture(scope="module")
+def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> str:
+    """The shared source annotated as the golden npz were (before the z-buffer of other objects,
+    issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds), exported."""
+    from drivetrack.annotate import AnnotateConfig, annotate
+    from drivetrack.compact.export import FORMATS, export_clips
+    from drivetrack.tracks import TrackConfig
+
+    out = tmp_path_factory.mktemp("annotated_before_zbuffer")
+    results = annotate(synth_source, "training", synth_segments, str(out),
+                       AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9)), threads=2)
+    assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
+    exported = tmp_path_factory.mktemp("exported_before_zbuffer")
+    export_clips(str(out), list(FORMATS), str(exported))
+    return str(exported)
+
+
+def test_export_is_byte_identical_to_the_writers_npz(exported_before_zbuffer, exported_output):
+    """Every golden clip (sha256 of the npz the writers wrote before layout v2) exports to the same
+    bytes, annotated with the visibility of that time; the default (z-buffer) exports the same files."""
     golden = json.loads(GOLDEN_NPZ.read_text())
     assert len(golden) >= 10
-    got = {rel: hashlib.sha256((Path(exported_output) / rel).read_bytes()).hexdigest()
-           for rel in golden if (Path(exported_output) / rel).exists()}
+    root = Path(exported_before_zbuffer)
+    got = {rel: hashlib.sha256((root / rel).read_bytes()).hexdigest() for rel in golden if (root / rel).exists()}
     assert got == golden
-    exported = sorted(p.relative_to(exported_output).as_posix() for p in Path(exported_output).rglob("*.npz"))
-    assert exported == sorted(golden)
+    for folder in (exported_before_zbuffer, exported_output):
+        exported = sorted(p.relative_to(folder).as_posix() for p in Path(folder).rglob("*.npz"))
+        assert exported == sorted(golden)
+    changed = [rel for rel in golden
+               if hashlib.sha256((Path(exported_output) / rel).read_bytes()).hexdigest() != golden[rel]]
+    assert changed, "the z-buffer changed no clip of the shared scene"
 
 
 def test_release_holds_tables_and_no_npz(release):

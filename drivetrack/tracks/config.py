@@ -20,6 +20,9 @@ FOV_RUN_POLICIES = ("reject", "longest")
 
 #: Implementations of the track stage's global-shutter inner loop (``TrackConfig.kernel``).
 TRACK_KERNELS = ("numba", "numpy")
+#: How the track stage decides occlusion (``TrackConfig.occlusion``): ``surface`` = depth map +
+#: back faces + z-buffer of the other labelled objects; ``depth-ratio`` = the paper's depth test alone.
+OCCLUSION_METHODS = ("surface", "depth-ratio")
 
 _DEPTH = DepthConfig()
 
@@ -49,7 +52,17 @@ class TrackConfig:
         back_face_max_deg: a point is also occluded at a frame when its surface normal (from the
             object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
             with the direction to the camera: its face turns away and its own object hides it.
-            None: the depth test alone (the paper's method).
+            None: the depth test alone (the paper's method). Used under ``occlusion="surface"``.
+        occlusion: how occlusion is decided (:data:`OCCLUSION_METHODS`). ``surface`` (default):
+            the depth-map test, plus back faces (``back_face_max_deg``), plus the z-buffer of the
+            other labelled objects' returns (:mod:`drivetrack.visibility.zbuffer`: hidden when
+            another object's surface lies nearer than ``z - (occluder_tolerance_m +
+            occluder_tolerance_rel * z)`` at the point's pixel). ``depth-ratio``: the paper's
+            method exactly (the depth-map test alone).
+        occluder_tolerance_m, occluder_tolerance_rel: that tolerance (metres, fraction of z).
+        surfel_radius_m, surfel_max_px: each occluder return covers a square of
+            ``min(surfel_max_px, round(f * surfel_radius_m / z))`` pixels either side of its own.
+            Only objects of ``object_types`` have returns, so only they occlude this way.
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser: the depth
             stage's knobs, see :class:`drivetrack.depth.config.DepthConfig`.
@@ -90,6 +103,11 @@ class TrackConfig:
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
     back_face_max_deg: float | None = 90.0
+    occlusion: str = "surface"
+    occluder_tolerance_m: float = 0.3
+    occluder_tolerance_rel: float = 0.02
+    surfel_radius_m: float = 0.05
+    surfel_max_px: int = 2
     # The depth knobs (DepthConfig's fields, in its order; defaults from there).
     depth_completer: str = _DEPTH.depth_completer
     depth_completer_options: dict = field(default_factory=dict, hash=False)
@@ -137,6 +155,14 @@ class TrackConfig:
         if self.back_face_max_deg is not None and not 0 < self.back_face_max_deg <= 180:
             raise ValueError(f"TrackConfig.back_face_max_deg must be None or in (0, 180], got "
                              f"{self.back_face_max_deg!r}")
+        if self.occlusion not in OCCLUSION_METHODS:
+            raise ValueError(f"TrackConfig.occlusion must be one of {OCCLUSION_METHODS}, got {self.occlusion!r}")
+        if not (self.occluder_tolerance_m >= 0 and self.occluder_tolerance_rel >= 0):
+            raise ValueError(f"TrackConfig.occluder_tolerance_m and occluder_tolerance_rel must be >= 0, got "
+                             f"{self.occluder_tolerance_m!r}, {self.occluder_tolerance_rel!r}")
+        if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
+            raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
+                             f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
         from drivetrack.tracks.trajectory import LABEL_TIMES, TIME_MODELS
 
         if self.time_model not in TIME_MODELS:

@@ -479,6 +479,133 @@ def clip_poses(plan, camera: int, frames: np.ndarray, rows: np.ndarray) -> ClipP
                      np.zeros(frames.size))
 
 
+def _points_box(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, lidar_rows: np.ndarray,
+                source_clip: np.ndarray) -> np.ndarray:
+    """float64 [n, 3]: an object's returns ``lidar_rows`` (from clip frame ``source_clip``) in its box frame.
+
+    ``frames``, ``rows`` int [T] the clip frames and the object's box rows there; ``poses`` its
+    :func:`clip_poses`. Under the trajectory the box is taken at each return's capture time;
+    under ``velocity`` the box moves during the sweep when ``compensate_sweep_motion``.
+    """
+    scene, config = plan.scene, plan.config
+    boxes, lidar = scene.boxes, scene.lidar
+    vehicle_from_box = poses.vehicle_from_box
+    box_from_vehicle = invert_rigid(vehicle_from_box)
+    if poses.trajectory is not None:
+        # ... with the object at each return's capture time, on its trajectory
+        offsets_s = (lidar.capture_offset_s[lidar_rows].astype(np.float64)
+                     if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
+        world_from_vehicle = scene.world_from_vehicle[frames][source_clip]                   # [n,4,4]
+        points_world = (np.einsum("nij,nj->ni", world_from_vehicle[:, :3, :3], lidar.points_vehicle[lidar_rows])
+                        + world_from_vehicle[:, :3, 3])
+        return points_box_at(poses.trajectory, rows[source_clip],
+                             poses.trajectory.frame_time_s[rows][source_clip] + offsets_s, points_world)
+    if config.compensate_sweep_motion and lidar.capture_offset_s is not None:
+        # ... with the box at each return's capture time (object motion during the sweep).
+        timestamps = scene.timestamps_micros[frames].astype(np.int64)
+        world_from_box = scene.world_from_vehicle[frames] @ vehicle_from_box
+        yaw_rate = box_motion_world(world_from_box, timestamps * 1e-6)[1]
+        velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], poses.velocity_world)
+        return points_box_at_capture(lidar.points_vehicle[lidar_rows], lidar.capture_offset_s[lidar_rows],
+                                     boxes.center[rows][source_clip], boxes.heading[rows][source_clip],
+                                     velocity_vehicle[source_clip], yaw_rate[source_clip],
+                                     *(None if a is None else a[source_clip] for a in boxes.tilt(rows)))
+    return np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
+        + box_from_vehicle[source_clip, :3, 3]
+
+
+#: Angle (radians) added to the sum of two objects' angular radii before an object is skipped as an
+#: occluder of another (:func:`_occluders`): label boxes are at the frame time, images a few tens
+#: of milliseconds away, and a box centre moves a degree or two in that time beside the ego.
+_OCCLUDER_ANGLE_MARGIN_RAD = np.radians(5.0)
+
+
+def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
+               target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
+
+    Every object but ``job``'s with a box at some clip frame and returns selected by the plan is
+    carried by its own :func:`clip_poses` (the capture time of ``job.camera``'s image), its clip
+    returns in its box frame (:func:`_points_box`), one per cube of ``surfel_radius_m``
+    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). The tracked object is the sphere of
+    centre ``target_camera`` float64 [T, 3] (camera frame, metres) and radius ``target_radius_m``
+    float64 [T] at each clip frame; an object's box row is skipped when its own bounding sphere
+    lies entirely farther from the camera than the target's far side, or is seen at an angle from
+    the target's that their angular radii (plus :data:`_OCCLUDER_ANGLE_MARGIN_RAD`, for the motion
+    between label and image time) cannot bridge: it cannot occlude the target in that image.
+    """
+    from drivetrack.visibility.zbuffer import surfel_subsample
+
+    scene = plan.scene
+    boxes = scene.boxes
+    # Occluder returns are thinned to one per cube of half the footprint (a return covers the
+    # footprint either side of its own position, so half is dense enough for the footprints of
+    # a sampled surface to overlap: measured on the small hard world, a whole footprint drops OA).
+    cube_m = 0.5 * float(plan.config.surfel_radius_m)
+    geometry = plan.cameras[job.camera]
+    model = scene.cameras[job.camera].model
+    t_count = frames.size
+    slot = np.full(scene.num_frames, -1, dtype=np.int64)
+    slot[frames] = np.arange(t_count)
+    # objects with selected returns somewhere in the segment occlude at every clip frame they have a box in
+    with_points = np.unique(boxes.object_id[plan.box_point_offsets[1:] > plan.box_point_offsets[:-1]])
+    in_clip = np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id != job.object_id)
+                             & np.isin(boxes.object_id, with_points))
+    candidates = in_clip
+    per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
+    if in_clip.size:
+        # distance from the camera centre to each candidate box's centre, minus its half diagonal
+        centre_camera = (np.einsum("nij,nj->ni", geometry.camera_from_vehicle[boxes.frame[in_clip], :3, :3],
+                                   boxes.center[in_clip]) + geometry.camera_from_vehicle[boxes.frame[in_clip], :3, 3])
+        radius = 0.5 * np.linalg.norm(boxes.size[in_clip], axis=-1)
+        distance = np.linalg.norm(centre_camera, axis=-1)
+        at = slot[boxes.frame[in_clip]]
+        target_distance = np.linalg.norm(target_camera, axis=-1)[at]
+        near = distance - radius < target_distance + target_radius_m[at]
+        # ... and whose angular disc can overlap the target's in the image
+        cosine = np.einsum("ni,ni->n", centre_camera, target_camera[at]) / np.maximum(distance * target_distance, 1e-9)
+        apart = np.arccos(np.clip(cosine, -1.0, 1.0))
+        reach = (np.arcsin(np.clip(radius / np.maximum(distance, 1e-9), 0.0, 1.0))
+                 + np.arcsin(np.clip(target_radius_m[at] / np.maximum(target_distance, 1e-9), 0.0, 1.0)))
+        in_clip = in_clip[near & (apart <= reach + _OCCLUDER_ANGLE_MARGIN_RAD)]
+    for object_id in np.unique(boxes.object_id[in_clip]).tolist():
+        obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
+        obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
+        obj_frames = boxes.frame[obj_rows].astype(np.int64)
+        poses = clip_poses(plan, job.camera, obj_frames, obj_rows)
+        if poses.trajectory is not None:
+            # On the segment's trajectory an object's returns in its box frame do not depend on the
+            # camera or the clip: all its returns over the segment, thinned to the first of each
+            # surfel cube, computed once per object and segment.
+            points_box = plan.occluder_cache.get(object_id)
+            if points_box is None:
+                all_rows = np.flatnonzero(boxes.object_id == object_id)
+                all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+                lidar_rows, source = plan.box_points(all_rows)
+                points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses,
+                                         lidar_rows, source)
+                points_box = points_box[surfel_subsample(points_box, cube_m)]
+                plan.occluder_cache[object_id] = points_box
+        else:
+            # the clip's returns (of the frames it has a box in, before the skips above)
+            clip_rows = candidates[boxes.object_id[candidates] == object_id]
+            clip_rows = clip_rows[np.argsort(boxes.frame[clip_rows], kind="stable")]
+            lidar_rows, source = plan.box_points(clip_rows)
+            points_box = _points_box(plan, boxes.frame[clip_rows].astype(np.int64), clip_rows,
+                                     clip_poses(plan, job.camera, boxes.frame[clip_rows], clip_rows), lidar_rows, source)
+            points_box = points_box[surfel_subsample(points_box, cube_m)]
+        if points_box.shape[0] == 0:
+            continue
+        points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
+        pixels, valid = model.pixels_from_camera(points_camera)
+        valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
+        for k, t in enumerate(obj_frames.tolist()):
+            ok = valid[k]
+            per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0]))
+    return [(np.concatenate([p for p, _ in parts]) if parts else np.empty((0, 2)),
+             np.concatenate([d for _, d in parts]) if parts else np.empty(0)) for parts in per_frame]
+
+
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     """Point tracks of one accepted clip (see the module docstring). Pure: writes nothing."""
     from drivetrack.depth import lookup_max4
@@ -507,33 +634,14 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         keep = np.sort(rng.choice(n_candidates, size=config.max_tracks_per_object, replace=False))
         lidar_rows, source_clip = lidar_rows[keep], source_clip[keep]
     n = lidar_rows.size
-    # Points in their box's frame, computed once: p_box = box_from_vehicle_t X_t.
     box_from_vehicle = invert_rigid(vehicle_from_box)
-    if poses.trajectory is not None:
-        # ... with the object at each return's capture time, on its trajectory
-        offsets_s = (lidar.capture_offset_s[lidar_rows].astype(np.float64)
-                     if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
-        world_from_vehicle = scene.world_from_vehicle[frames][source_clip]                   # [n,4,4]
-        points_world = (np.einsum("nij,nj->ni", world_from_vehicle[:, :3, :3], lidar.points_vehicle[lidar_rows])
-                        + world_from_vehicle[:, :3, 3])
-        p_box = points_box_at(poses.trajectory, rows[source_clip],
-                              poses.trajectory.frame_time_s[rows][source_clip] + offsets_s, points_world)
-    elif config.compensate_sweep_motion and lidar.capture_offset_s is not None:
-        # ... with the box at each return's capture time (object motion during the sweep).
-        yaw_rate = box_motion_world(world_from_box, timestamps * 1e-6)[1]
-        velocity_vehicle = np.einsum("tji,tj->ti", scene.world_from_vehicle[frames, :3, :3], poses.velocity_world)
-        p_box = points_box_at_capture(lidar.points_vehicle[lidar_rows], lidar.capture_offset_s[lidar_rows],
-                                      boxes.center[rows][source_clip], boxes.heading[rows][source_clip],
-                                      velocity_vehicle[source_clip], yaw_rate[source_clip],
-                                      *(None if a is None else a[source_clip] for a in boxes.tilt(rows)))
-    else:
-        p_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], lidar.points_vehicle[lidar_rows]) \
-            + box_from_vehicle[source_clip, :3, 3]
+    p_box = _points_box(plan, frames, rows, poses, lidar_rows, source_clip)
 
     # Back faces (drivetrack.visibility.facing): normals from the object's own returns, turned
     # towards the ego that saw them; None when the test is off (the paper's depth test alone).
+    by_surface = config.occlusion == "surface"
     surfels = centres_box = None
-    if config.back_face_max_deg is not None:
+    if by_surface and config.back_face_max_deg is not None:
         from drivetrack.visibility import camera_centres_box, sensor_positions, surfel_normals
 
         sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
@@ -542,7 +650,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         surfels = surfel_normals(p_box, sensor_box)
         centres_box = camera_centres_box(camera_from_box, shift_camera)
 
-    def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
+    def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
         """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them)."""
         if surfels is None:
             return None
@@ -551,6 +659,37 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         idx = np.arange(start, stop) if where is None else where
         return facing_mask(p_box[idx], SurfelNormals(surfels.normal[idx], surfels.reliable[idx]), centres_box,
                            float(config.back_face_max_deg))
+
+    # Other objects (drivetrack.visibility.zbuffer): hidden[T, n] where another labelled object's
+    # splatted returns lie nearer than the point, beyond the tolerance. The same numpy decision
+    # (global-shutter pixel at the image pose) for the kernel and numpy paths.
+    hidden_other = None
+    if by_surface:
+        from drivetrack.visibility.zbuffer import hidden_by_others
+
+        centre_camera = camera_from_box[:, :3, 3] + shift_camera
+        occluders = _occluders(plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
+        if any(d.size for _, d in occluders):
+            hidden_other = np.zeros((t_count, n), dtype=bool)
+            for start in range(0, n, config.chunk_points):
+                stop = min(start + config.chunk_points, n)
+                points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
+                pixels, valid = model.pixels_from_camera(points_camera)
+                valid &= points_camera[..., 0] > 0
+                hidden_other[:, start:stop] = hidden_by_others(
+                    points_camera, pixels, valid, occluders, int(model.width), int(model.height),
+                    float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
+                    float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
+            del occluders
+
+    def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
+        """bool [T, k]: not hidden by the surface tests (back faces, other objects) for candidates
+        ``start:stop`` (``where``: a subset of them); None when both are off."""
+        faces = back_faces(start, stop, where)
+        if hidden_other is None:
+            return faces
+        idx = np.arange(start, stop) if where is None else where
+        return ~hidden_other[:, idx] if faces is None else faces & ~hidden_other[:, idx]
 
     projector = rolling_shutter_projector() if config.rolling_shutter else None
     # A camera whose shutter data say global shutter at every clip frame projects exactly like
@@ -612,8 +751,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
                                               float(model.width), float(model.height), query_pixels[start:stop])
         del scratch_tracks
-        if surfels is not None:
-            # points seen only on back faces are not kept (as points the depth test hides everywhere)
+        if surfels is not None or hidden_other is not None:
+            # points seen only on back faces or behind other objects are not kept (as points the depth test hides everywhere)
             seen = visibles.any(axis=1)
             if not seen.all():
                 status[kept_rows[~seen]] = kernel.DROPPED_INVISIBLE

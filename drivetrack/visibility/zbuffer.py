@@ -1,0 +1,126 @@
+"""Z-buffer of the other labelled objects' own surfaces (issue 15).
+
+The depth-ratio test (``d_map < occlusion_ratio * z``) cannot see an occluder less than
+``1 - occlusion_ratio`` of the distance in front of a point (at 50 m and 0.95: 2.5 m, a car behind
+a car), and the completed LiDAR map bleeds across object outlines. Every labelled object's own
+returns, in its box frame and carried by its pose at the image's capture time
+(:func:`drivetrack.tracks.core.clip_poses`, the poses the tracks use), give its surface in each
+image: each return is splatted as a square footprint of ``radius_m`` at its depth (``f * radius_m /
+z`` pixels, at most ``max_px``) into a per-pixel nearest-depth buffer. A point of the tracked object
+is hidden by another object when that buffer at its pixel is nearer than its own depth by more than
+``abs_m + rel * z``.
+
+Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x forward = depth).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import maximum_filter
+
+__all__ = ["first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
+
+
+def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """int64 [m]: the cube of side ``radius_m`` each of ``points_box`` float64 [m, 3] lies in (a key)."""
+    if points_box.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cell = np.floor(points_box / radius_m).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    return (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+
+
+def first_of_cells(sorted_cells: np.ndarray) -> np.ndarray:
+    """int64 [k]: the first index of each run of equal keys in ``sorted_cells`` int64 [m] (sorted)."""
+    if sorted_cells.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate([[True], sorted_cells[1:] != sorted_cells[:-1]]))
+
+
+def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """int64 [k] sorted indices of ``points_box`` float64 [m, 3] keeping one point per cube of side ``radius_m``.
+
+    An occluder's returns accumulated over a clip are far denser than its splat footprint (a
+    return covers ``radius_m`` either side of its own position): one return per cube covers the
+    same surface without gaps, and the z-buffer splats (and projects) a fraction of them. The kept
+    point of a cube is its first in order, so the choice is deterministic.
+    """
+    cells = surfel_cells(points_box, radius_m)
+    order = np.argsort(cells, kind="stable")
+    return np.sort(order[first_of_cells(cells[order])])
+
+
+def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
+                  radius_m: float, max_px: int) -> np.ndarray:
+    """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
+
+    ``pixels`` float64 [m, 2] (x, y), ``depth`` float64 [m] (> 0; callers drop the rest). A return
+    covers the (2r+1)^2 pixels around its own, ``r = min(max_px, round(focal * radius_m / depth))``.
+    """
+    buffer = np.full(height * width, np.inf, dtype=np.float32)
+    if depth.size == 0:
+        return buffer.reshape(height, width)
+    col = np.floor(pixels[:, 0]).astype(np.int64)
+    row = np.floor(pixels[:, 1]).astype(np.int64)
+    radius = np.minimum(np.rint(focal * radius_m / depth), max_px).astype(np.int64)
+    z = depth.astype(np.float32)
+    for r in np.unique(radius).tolist():
+        sel = radius == r
+        d = np.arange(-r, r + 1)
+        dy, dx = np.meshgrid(d, d, indexing="ij")
+        rows = row[sel, None] + dy.ravel()[None]                                     # [k, (2r+1)^2]
+        cols = col[sel, None] + dx.ravel()[None]
+        ok = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
+        np.minimum.at(buffer, (rows * width + cols)[ok], np.broadcast_to(z[sel, None], rows.shape)[ok])
+    return buffer.reshape(height, width)
+
+
+def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
+                     occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
+                     radius_m: float, max_px: int, abs_m: float, rel: float) -> np.ndarray:
+    """bool [T, n]: the tracked point lies behind another object's surface at that frame.
+
+    Args:
+        points_camera: float64 [T, n, 3], the tracked points in the camera frame.
+        pixels: float64 [T, n, 2] their pixels; ``valid`` bool [T, n] where the projection holds.
+        occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t]) of the other objects'
+            returns projected in that frame's image (only valid projections in front of the camera).
+        width, height, focal: the image and its focal length (pixels).
+        radius_m, max_px: the footprint (see :func:`nearest_depth`).
+        abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
+    """
+    t_count, n = valid.shape
+    hidden = np.zeros((t_count, n), dtype=bool)
+    for tau in range(t_count):                       # one image at a time: bounded memory
+        occ_pixels, occ_depth = occluders[tau]
+        if occ_depth.size == 0 or n == 0:
+            continue
+        z = points_camera[tau, :, 0]
+        px = np.where(valid[tau, :, None] & np.isfinite(pixels[tau]), pixels[tau], -1.0)
+        col, row = np.floor(px[:, 0]).astype(np.int64), np.floor(px[:, 1]).astype(np.int64)
+        inside = valid[tau] & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        if not inside.any():
+            continue
+        # Only the window the tracked points fall in matters (grown by the footprint the test
+        # looks over): splat into that crop of the image; a return's own footprint reaches at
+        # most max_px beyond its pixel.
+        c0, c1 = max(0, int(col[inside].min()) - max_px), min(width, int(col[inside].max()) + 1 + max_px)
+        r0, r1 = max(0, int(row[inside].min()) - max_px), min(height, int(row[inside].max()) + 1 + max_px)
+        occ_col, occ_row = np.floor(occ_pixels[:, 0]), np.floor(occ_pixels[:, 1])
+        near = ((occ_col >= c0 - max_px) & (occ_col < c1 + max_px) & (occ_row >= r0 - max_px)
+                & (occ_row < r1 + max_px))
+        if not near.any():
+            continue
+        buffer = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0, focal,
+                               radius_m, max_px)
+        # The same footprint rule on the point's side: it is hidden only when the occluders cover
+        # its whole footprint (the farthest buffer value over it is nearer than the point), so the
+        # footprints that close the gaps between an occluder's returns do not grow its outline.
+        radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
+        farthest = np.full(n, np.inf, dtype=np.float64)
+        for r in np.unique(radius[inside]).tolist():
+            sel = inside & (radius == r)
+            covered = buffer if r == 0 else maximum_filter(buffer, size=2 * r + 1, mode="nearest")
+            farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
+        hidden[tau] = inside & (farthest < z - (abs_m + rel * z))
+    return hidden
