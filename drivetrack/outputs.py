@@ -111,6 +111,7 @@ OBJECT_COLUMNS = (
     "num_nonfinite_visible", "num_visible_outside_image", "num_candidates",
     "num_dropped_invisible", "num_dropped_speed", "projection",
     "time_model", "label_time", "time_residual_m", "num_unreliable_normals",
+    "num_ambiguous_occlusion", "ambiguous_occlusion_fraction",
 )
 #: ``stats/segments.parquet``: one row per segment.
 SEGMENT_COLUMNS = (

@@ -239,3 +239,24 @@ def test_older_tables_without_label_columns_skip_the_refinement_gate(tmp_path):
     report = run_gates(str(write_output(tmp_path, objects, segments, rejections)), data_docs=False)
     assert report.success
     assert "object.refine_speed_err_not_worse" not in {r.gate for r in report.results}
+
+
+def test_clips_with_mostly_ambiguous_occlusion_fail_the_ambiguity_gate(tmp_path):
+    """A clip whose occlusion decisions were mostly close to flipping (issue 15) is named by
+    object.ambiguous_occlusion; tables without the column (older outputs) skip the gate."""
+    objects, segments, rejections = good_tables(seed=4)
+    objects = objects.copy()
+    cells = objects["num_tracks"] * objects["num_frames"]
+    objects["num_ambiguous_occlusion"] = (0.02 * cells).astype(int)
+    bad = objects.index[-2:]
+    objects.loc[bad, "num_ambiguous_occlusion"] = (0.4 * cells[bad]).astype(int)
+    objects["ambiguous_occlusion_fraction"] = objects["num_ambiguous_occlusion"] / cells
+    report = run_gates(str(write_output(tmp_path / "out", objects, segments, rejections)), data_docs=False)
+    assert _failed(report) == {"object.ambiguous_occlusion"}, _failed(report)
+    assert _objects(_failure(report, "object.ambiguous_occlusion")) == {
+        tuple(objects.loc[i, ["segment", "camera", "object_id"]]) for i in bad}
+
+    plain = good_tables(seed=4)[0].drop(columns=["num_ambiguous_occlusion", "ambiguous_occlusion_fraction"],
+                                        errors="ignore")
+    report = run_gates(str(write_output(tmp_path / "plain", plain, segments, rejections)), data_docs=False)
+    assert report.success and "object.ambiguous_occlusion" not in {r.gate for r in report.results}

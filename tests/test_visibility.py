@@ -77,16 +77,16 @@ def test_zbuffer_hides_a_car_behind_a_car():
     buffer = nearest_depth(project(near), near[:, 0], width, height, focal, 0.05, 2)
     assert np.isinf(buffer[0, 0]) and np.nanmin(buffer) == np.float32(50.0)
     hidden = hidden_by_others(far[None], project(far)[None], np.ones((1, len(far)), bool),
-                              [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0]
+                              [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0][0]
     column = project(far)[:, 0]                          # the near car covers columns 90..110
     behind, beside = column < 110.0, column >= 112.0
     assert hidden[behind].all() and not hidden[beside].any()
     # the near car is never hidden by the far one, nor a point within the tolerance of its occluder
     assert not hidden_by_others(near[None], project(near)[None], np.ones((1, len(near)), bool),
-                                [(project(far), far[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02).any()
+                                [(project(far), far[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0].any()
     close = near + [0.9, 0.0, 0.0]                                                  # 0.9 m < 0.3 + 2% of 50.9
     assert not hidden_by_others(close[None], project(close)[None], np.ones((1, len(close)), bool),
-                                [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02).any()
+                                [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0].any()
 
 
 def test_zbuffer_window_equals_the_full_image_buffer():
@@ -106,7 +106,7 @@ def test_zbuffer_window_equals_the_full_image_buffer():
     valid = rng.random((t_count, n)) > 0.1
     occluders = [(rng.uniform([100, 50], [200, 150], size=(500, 2)), rng.uniform(3, 40, size=500))
                  for _ in range(t_count)]
-    got = hidden_by_others(points, pixels, valid, occluders, width, height, focal, 0.05, 2, 0.3, 0.02)
+    got, margin = hidden_by_others(points, pixels, valid, occluders, width, height, focal, 0.05, 2, 0.3, 0.02)
     for tau, (occ_pixels, occ_depth) in enumerate(occluders):
         buffer = nearest_depth(occ_pixels, occ_depth, width, height, focal, 0.05, 2)
         col, row = np.floor(pixels[tau, :, 0]).astype(int), np.floor(pixels[tau, :, 1]).astype(int)
@@ -118,6 +118,14 @@ def test_zbuffer_window_equals_the_full_image_buffer():
         want[inside] = (farthest[radius[inside], row[inside], col[inside]]
                         < z[inside] - (0.3 + 0.02 * z[inside]))
         np.testing.assert_array_equal(got[tau], want)
+        # the margin: how far the farthest covering depth lies beyond the threshold (< 0 iff hidden)
+        covered = np.zeros(n, bool)
+        covered[inside] = np.isfinite(farthest[radius[inside], row[inside], col[inside]])
+        np.testing.assert_array_equal(margin[tau] < 0, want)
+        assert np.isinf(margin[tau][~covered]).all() and np.isfinite(margin[tau][covered]).all()
+        threshold = z - (0.3 + 0.02 * z)
+        np.testing.assert_allclose(margin[tau][covered], (farthest[radius[covered], row[covered], col[covered]]
+                                                          - threshold[covered]), rtol=1e-5, atol=1e-4)
     assert got[:2].any(axis=1).all() and not got.all()
 
 
@@ -175,6 +183,11 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
     assert (unreliable <= candidates).all()
     off = back_face_max_deg is None or occlusion == "depth-ratio"
     assert (unreliable == 0).all() if off else (unreliable > 0).any()
+    ambiguous = result.objects["num_ambiguous_occlusion"]
+    cells = result.objects["num_tracks"] * result.objects["num_frames"]
+    assert (ambiguous <= cells).all()
+    assert np.allclose(result.objects["ambiguous_occlusion_fraction"], ambiguous / cells)
+    assert (ambiguous == 0).all() if occlusion == "depth-ratio" else (ambiguous > 0).any()
     index = TruthIndex.load(root, "training", segment)
     back, visible, clips = [], [], {}
     for t in result.tracks:

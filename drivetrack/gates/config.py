@@ -125,6 +125,7 @@ def _check_values(cfg: dict, source: str) -> None:
         number("object", key, lo=0)
     number("object", "speed_err_mostly", lo=0, hi=1)
     number("object", "visible_fraction_min", lo=0, hi=1)
+    number("object", "ambiguous_occlusion_fraction_max", lo=0, hi=1)
     for key in ("min_num_tracks", "max_nonfinite_visible", "max_visible_outside_image",
                 "min_num_frames"):
         number("object", key, lo=0)

@@ -116,6 +116,12 @@ def object_specs(cfg: dict, tables: GateTables) -> list[GateSpec]:
              "mostly": float(v("speed_err_mostly"))},
             r("refine_speed_err_increase_max_mps") + " | mostly: " + r("speed_err_mostly"), keys,
             ("speed_err_p50", "label_speed_err_p50", "refine_reason")))
+    if "ambiguous_occlusion_fraction" in tables.objects.columns:
+        specs.append(GateSpec(
+            "object.ambiguous_occlusion", "object", "objects", "ExpectColumnValuesToBeBetween",
+            {"column": "ambiguous_occlusion_fraction", "min_value": 0.0,
+             "max_value": float(v("ambiguous_occlusion_fraction_max"))},
+            r("ambiguous_occlusion_fraction_max"), keys, ("num_ambiguous_occlusion", "num_tracks", "num_frames")))
     if v("require_files"):
         specs.append(GateSpec("object.file_exists", "object", "objects", "ExpectColumnValuesToBeInSet",
                               {"column": "file_exists", "value_set": [True]}, r("require_files"), keys))

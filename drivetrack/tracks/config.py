@@ -60,6 +60,9 @@ class TrackConfig:
             occluder_tolerance_rel * z)`` at the point's pixel). ``depth-ratio``: the paper's
             method exactly (the depth-map test alone).
         occluder_tolerance_m, occluder_tolerance_rel: that tolerance (metres, fraction of z).
+        ambiguity_m, ambiguity_deg: a surface decision this close to flipping (metres of depth
+            from the z-buffer's threshold, degrees from ``back_face_max_deg``) is counted as
+            ambiguous (``num_ambiguous_occlusion`` in ``stats/objects.parquet``; a gate bounds it).
         surfel_radius_m, surfel_max_px: each occluder return covers a square of
             ``min(surfel_max_px, round(f * surfel_radius_m / z))`` pixels either side of its own.
             Only objects of ``object_types`` have returns, so only they occlude this way.
@@ -106,6 +109,8 @@ class TrackConfig:
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.3
     occluder_tolerance_rel: float = 0.02
+    ambiguity_m: float = 0.1
+    ambiguity_deg: float = 5.0
     surfel_radius_m: float = 0.05
     surfel_max_px: int = 2
     # The depth knobs (DepthConfig's fields, in its order; defaults from there).
@@ -160,6 +165,9 @@ class TrackConfig:
         if not (self.occluder_tolerance_m >= 0 and self.occluder_tolerance_rel >= 0):
             raise ValueError(f"TrackConfig.occluder_tolerance_m and occluder_tolerance_rel must be >= 0, got "
                              f"{self.occluder_tolerance_m!r}, {self.occluder_tolerance_rel!r}")
+        if not (self.ambiguity_m >= 0 and 0 <= self.ambiguity_deg <= 90):
+            raise ValueError(f"TrackConfig.ambiguity_m must be >= 0 and ambiguity_deg in [0, 90], got "
+                             f"{self.ambiguity_m!r}, {self.ambiguity_deg!r}")
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")

@@ -95,6 +95,10 @@ class ObjectTracks:
         num_unreliable_normals: candidates whose surface normal is too poorly supported for the
             back-face test (:mod:`drivetrack.visibility.facing`; the depth test alone decides for
             them); 0 when ``TrackConfig.back_face_max_deg`` is None.
+        num_ambiguous_occlusion: (track, frame) pairs of the kept tracks, inside the image, whose
+            surface decision was close to flipping: another object's surface within
+            ``TrackConfig.ambiguity_m`` of the z-buffer's hiding threshold, or a trusted normal
+            within ``ambiguity_deg`` of ``back_face_max_deg``; 0 under ``occlusion="depth-ratio"``.
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -135,6 +139,7 @@ class ObjectTracks:
     label_time: str = "frame"
     time_residual_m: float = float("nan")
     num_unreliable_normals: int = 0
+    num_ambiguous_occlusion: int = 0
     _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -662,25 +667,42 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
     # Other objects (drivetrack.visibility.zbuffer): hidden[T, n] where another labelled object's
     # splatted returns lie nearer than the point, beyond the tolerance. The same numpy decision
-    # (global-shutter pixel at the image pose) for the kernel and numpy paths.
-    hidden_other = None
+    # (global-shutter pixel at the image pose) for the kernel and numpy paths. ``ambiguous[T, n]``:
+    # point-frames inside the image whose surface decision was close to flipping (an occluder
+    # within ``ambiguity_m`` of the hiding threshold, or a reliable normal within
+    # ``ambiguity_deg`` of ``back_face_max_deg``); counted per clip on the kept tracks.
+    hidden_other = ambiguous = None
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
         occluders = _occluders(plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
-        if any(d.size for _, d in occluders):
+        any_occluder = any(d.size for _, d in occluders)
+        if any_occluder:
             hidden_other = np.zeros((t_count, n), dtype=bool)
-            for start in range(0, n, config.chunk_points):
-                stop = min(start + config.chunk_points, n)
-                points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
-                pixels, valid = model.pixels_from_camera(points_camera)
-                valid &= points_camera[..., 0] > 0
-                hidden_other[:, start:stop] = hidden_by_others(
+        ambiguous = np.zeros((t_count, n), dtype=bool)
+        cos_max = np.cos(np.radians(config.back_face_max_deg)) if surfels is not None else None
+        for start in range(0, n, config.chunk_points):
+            stop = min(start + config.chunk_points, n)
+            points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
+            pixels, valid = model.pixels_from_camera(points_camera)
+            valid &= points_camera[..., 0] > 0
+            if any_occluder:
+                hidden_other[:, start:stop], margin = hidden_by_others(
                     points_camera, pixels, valid, occluders, int(model.width), int(model.height),
                     float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
                     float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
-            del occluders
+                ambiguous[:, start:stop] |= np.abs(margin) < config.ambiguity_m
+            if surfels is not None:
+                to_camera = centres_box[:, None, :] - p_box[None, start:stop]                  # [T, k, 3]
+                angle = np.degrees(np.arccos(np.clip(
+                    np.einsum("tki,ki->tk", to_camera, surfels.normal[start:stop])
+                    / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-9), -1.0, 1.0)))
+                ambiguous[:, start:stop] |= ((np.abs(angle - config.back_face_max_deg) < config.ambiguity_deg)
+                                             & surfels.reliable[None, start:stop])
+            inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
+            ambiguous[:, start:stop] &= inside
+        del occluders
 
     def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
         """bool [T, k]: not hidden by the surface tests (back faces, other objects) for candidates
@@ -760,6 +782,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 kept_box, query_source = np.ascontiguousarray(kept_box[seen]), query_source[seen]
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
+        final_rows = np.flatnonzero(status == kernel.KEPT)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
@@ -814,6 +837,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         del parts
         source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
+        final_rows = np.flatnonzero(keep)
 
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
@@ -838,6 +862,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
         time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
         num_unreliable_normals=0 if surfels is None else surfels.num_unreliable,
+        num_ambiguous_occlusion=0 if ambiguous is None else int(ambiguous[:, final_rows].sum()),
     )
     return result
 

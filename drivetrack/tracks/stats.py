@@ -32,6 +32,9 @@ def _object_row(t: ObjectTracks, file: str) -> dict:
         "num_dropped_speed": int(t.num_dropped_speed), "projection": t.projection,
         "time_model": t.time_model, "label_time": t.label_time, "time_residual_m": float(t.time_residual_m),
         "num_unreliable_normals": int(t.num_unreliable_normals),
+        "num_ambiguous_occlusion": int(t.num_ambiguous_occlusion),
+        "ambiguous_occlusion_fraction": (float(t.num_ambiguous_occlusion / visible.size) if visible.size
+                                         else float("nan")),
     }
     row.update({c: float(v) for c, v in zip(SPEED_ERR_COLUMNS, pct)})
     return row

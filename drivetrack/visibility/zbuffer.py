@@ -88,9 +88,16 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         width, height, focal: the image and its focal length (pixels).
         radius_m, max_px: the footprint (see :func:`nearest_depth`).
         abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
+
+    Returns:
+        ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
+        farthest buffer value over the point's footprint lies beyond the hiding threshold
+        ``z - (abs_m + rel * z)``: negative when hidden, positive when an occluder covers the
+        footprint but too far in front to hide it, +inf where no occluder covers it whole.
     """
     t_count, n = valid.shape
     hidden = np.zeros((t_count, n), dtype=bool)
+    margin = np.full((t_count, n), np.inf, dtype=np.float32)
     for tau in range(t_count):                       # one image at a time: bounded memory
         occ_pixels, occ_depth = occluders[tau]
         if occ_depth.size == 0 or n == 0:
@@ -122,5 +129,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
             sel = inside & (radius == r)
             covered = buffer if r == 0 else maximum_filter(buffer, size=2 * r + 1, mode="nearest")
             farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
-        hidden[tau] = inside & (farthest < z - (abs_m + rel * z))
-    return hidden
+        threshold = z - (abs_m + rel * z)
+        hidden[tau] = inside & (farthest < threshold)
+        covered = inside & np.isfinite(farthest)
+        margin[tau, covered] = (farthest[covered] - threshold[covered]).astype(np.float32)
+    return hidden, margin
