@@ -529,9 +529,12 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
                target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
 
-    Every object but ``job``'s with a box at some clip frame and returns selected by the plan is
-    carried by its own :func:`clip_poses` (the capture time of ``job.camera``'s image), its clip
-    returns in its box frame (:func:`_points_box`), one per cube of ``surfel_radius_m``
+    Every object but ``job``'s with a box at some clip frame and returns selected by the plan
+    (somewhere in the segment) is carried by its own :func:`clip_poses` (the capture time of
+    ``job.camera``'s image). Its surface is its returns in its box frame (:func:`_points_box`):
+    under the trajectory all its returns over the segment, computed once per object
+    (``plan.occluder_cache``); under ``time_model="velocity"`` those of the clip frames. Both are
+    thinned to one return per cube of half ``surfel_radius_m``
     (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). The tracked object is the sphere of
     centre ``target_camera`` float64 [T, 3] (camera frame, metres) and radius ``target_radius_m``
     float64 [T] at each clip frame; an object's box row is skipped when its own bounding sphere
