@@ -7,6 +7,7 @@ truth: oblique and passing cars show the camera faces their own front hides; the
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from drivetrack.annotate import AnnotateConfig, annotate_segment
@@ -167,10 +168,12 @@ def hard_scene(tmp_path_factory):
     return root, generate_segment(root, SCENE, 0)["segment"]
 
 
-def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="surface", others=None):
+def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="surface", others=None, calls=None):
     """(predicted visible of every matched back-face point-frame, of every truly visible one,
     {(camera, object id): visibles bool [N, T]}); ``others`` (a list) receives the predicted
-    visible of every point-frame facing the camera but hidden (by another object, in the truth)."""
+    visible of every point-frame facing the camera but hidden (by another object, in the truth);
+    ``calls`` (a list) one DataFrame per clip of its matched point-frames inside the image:
+    camera, truth point, segment frame, predicted visible, truth visible, truth facing."""
     from drivetrack.evaluation import TruthIndex, clip_from_tracks
 
     config = AnnotateConfig(track=TrackConfig(cameras=CAMERAS, min_frames=8, max_camera_distance_m=75.0,
@@ -209,6 +212,11 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
         visible.append(pred[truth_visible])
         if others is not None:
             others.append(pred[inside & facing & ~truth_visible])
+        if calls is not None:
+            point, frame = np.broadcast_to(hit[ok][:, None], pred.shape), np.broadcast_to(frames[None, :], pred.shape)
+            calls.append(pd.DataFrame({"camera": clip.camera, "point": point[inside], "frame": frame[inside],
+                                       "pred": pred[inside], "visible": truth_visible[inside],
+                                       "facing": facing[inside]}))
     return np.concatenate(back), np.concatenate(visible), clips
 
 
@@ -223,10 +231,21 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     root, segment = hard_scene
     old_back, old_visible, _ = _back_face_calls(root, segment, str(tmp_path / "paper"), None, "numba",
                                                 "depth-ratio")
-    old_others, new_others = [], []
-    _back_face_calls(root, segment, str(tmp_path / "paper90"), 90.0, "numba", "depth-ratio", old_others)
+    old_others, new_others, old_calls, new_calls = [], [], [], []
+    _back_face_calls(root, segment, str(tmp_path / "paper90"), 90.0, "numba", "depth-ratio", old_others, old_calls)
     new_back, new_visible, new_clips = _back_face_calls(root, segment, str(tmp_path / "faces"), 90.0, "numba",
-                                                        "surface", new_others)
+                                                        "surface", new_others, new_calls)
+    # the same point-frames, one by one: a back face and a point behind another object that the
+    # depth ratio calls visible and the surface test hides, as the truth does
+    both = pd.concat(old_calls).merge(pd.concat(new_calls), on=["camera", "point", "frame"], suffixes=("_old", "_new"))
+    assert (both["visible_old"] == both["visible_new"]).all() and len(both) > 10000
+    fixed = both["pred_old"] & ~both["pred_new"] & ~both["visible_old"]
+    assert (fixed & ~both["facing_old"]).sum() > 50                      # back faces
+    assert (fixed & both["facing_old"]).sum() > 500                      # hidden by another object
+    # and per point-frame the surface test fixes many more decisions than it breaks (it breaks
+    # truly visible point-frames along occluders' outlines: measured 160 broken, 978 fixed)
+    right_old, right_new = both["pred_old"] == both["visible_old"], both["pred_new"] == both["visible_old"]
+    assert (right_old & ~right_new).sum() * 3 < (~right_old & right_new).sum()
     old_others, new_others = np.concatenate(old_others), np.concatenate(new_others)
     assert old_back.size > 300 and new_back.size > 300
     assert old_back.mean() > 0.4
