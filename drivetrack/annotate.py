@@ -352,7 +352,7 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
 
         begin(Stage.DEPTH)
         if depth_fn is None:     # each batch completed as soon as it is projected: one sparse batch per thread
-            dense, info = list(in_threads(lambda job: complete_depth_batch(sparse_depth_batch(scene, config, job), config),
+            dense, info = list(in_threads(lambda job: complete_depth_batch(sparse_depth_batch(scene, config, job, plan), config),
                                           depth_jobs(scene, config.track, plan))), {}
         else:
             batches = sparse_depth_batches(scene, config, plan, map_fn=in_threads)

@@ -42,6 +42,11 @@ class DepthConfig:
             ``see_through_window_deg``, 0.5 degree when that is None): a car beside the camera
             that no LiDAR sees there occludes instead of being unknown, and what other lidars
             saw under or round it is dropped.
+        depth_object_motion: move each labelled object's returns (those the track stage selects
+            for it) from their capture time to the image's pose time on the object's trajectory
+            before projecting them (``TrackConfig.time_model="trajectory"`` only): the returns are
+            compensated for the ego's motion only, so a car moving beside the ego, captured tens
+            of milliseconds from the exposure, otherwise lands tens of centimetres off in the map.
     """
     depth_completer: str = "nearest"
     depth_completer_options: dict = field(default_factory=dict, hash=False)
@@ -51,6 +56,7 @@ class DepthConfig:
     see_through_window_deg: float | None = 0.5
     see_through_min_quadrants: int = 3
     blind_zone_laser: str | None = "TOP"
+    depth_object_motion: bool = True
 
     def __post_init__(self):
         for name, value in self.check({f.name: getattr(self, f.name) for f in fields(self)}).items():
@@ -83,6 +89,8 @@ class DepthConfig:
         if out["blind_zone_laser"] is not None and out["blind_zone_laser"] not in out["depth_lasers"]:
             raise ValueError(f"{where}.blind_zone_laser must be None or one of depth_lasers "
                              f"{out['depth_lasers']}, got {out['blind_zone_laser']!r}")
+        if not isinstance(out["depth_object_motion"], bool):
+            raise ValueError(f"{where}.depth_object_motion must be true or false, got {out['depth_object_motion']!r}")
         out["depth_completer_options"] = dict(out["depth_completer_options"])
         return out
 

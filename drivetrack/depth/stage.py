@@ -63,7 +63,67 @@ def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = Non
     return jobs
 
 
-def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray:
+def _labelled_motion(scene: Scene, config: TrackConfig, plan: SegmentPlan | None):
+    """(owner int64 [M], trajectory) for moving labelled returns to image time, or None.
+
+    ``owner[i]`` is the box row whose object return ``i`` of ``scene.lidar`` belongs to (-1: none),
+    from the track stage's point selection; the trajectory is the segment's
+    (:func:`drivetrack.tracks.trajectory.segment_trajectory`). None when
+    ``config.depth_object_motion`` is off or ``config.time_model`` is not ``trajectory``. Without
+    ``plan`` one is made (:func:`drivetrack.tracks.plan.plan_segment`) and kept on the scene.
+    """
+    if not config.depth_object_motion or config.time_model != "trajectory":
+        return None
+    from drivetrack.tracks.plan import plan_segment
+    from drivetrack.tracks.trajectory import segment_trajectory
+
+    if plan is None:
+        plans = scene.__dict__.setdefault("_depth_plans", {})
+        key = repr(config.to_dict())
+        if key not in plans:
+            plans[key] = plan_segment(scene, config)
+        plan = plans[key]
+    cache = plan.__dict__.setdefault("_depth_motion", {})
+    if "owner" not in cache:
+        owner = np.full(scene.lidar.points_vehicle.shape[0], -1, dtype=np.int64)
+        counts = np.diff(plan.box_point_offsets)
+        owner[plan.box_point_index] = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
+        cache["owner"] = owner
+    return cache["owner"], segment_trajectory(plan)[0]
+
+
+def points_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, trajectory, camera: int,
+                         frame: int, rows: np.ndarray, points_vehicle: np.ndarray) -> np.ndarray:
+    """float64 [n, 3]: returns ``rows`` (int [n], rows of ``scene.lidar`` of ``frame``; vehicle frame
+    of the frame, ``points_vehicle`` float [n, 3]) with each labelled object's returns moved on its
+    trajectory from their capture time to the pose time of ``camera``'s image of ``frame``
+    (vehicle frame of the frame, still). Unlabelled returns are unchanged.
+    """
+    from drivetrack.tracks.core import image_time_offsets
+    from drivetrack.tracks.trajectory import points_box_at
+
+    out = np.array(points_vehicle, dtype=np.float64)
+    box_rows = owner[rows]
+    moving = np.flatnonzero(box_rows >= 0)
+    if moving.size == 0:
+        return out
+    box_rows = box_rows[moving]
+    lidar = scene.lidar
+    offsets = (np.nan_to_num(lidar.capture_offset_s[rows[moving]].astype(np.float64))
+               if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
+    world_from_vehicle = scene.world_from_vehicle[frame]
+    world = out[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
+    frame_time = trajectory.frame_time_s[box_rows]
+    points_box = points_box_at(trajectory, box_rows, frame_time + offsets, world)
+    image_time = frame_time + image_time_offsets(scene, camera, np.array([frame]))[0]
+    world_from_box = trajectory.world_from_box(box_rows, image_time)
+    world = np.einsum("nij,nj->ni", world_from_box[:, :3, :3], points_box) + world_from_box[:, :3, 3]
+    vehicle_from_world = invert_rigid(world_from_vehicle)
+    out[moving] = world @ vehicle_from_world[:3, :3].T + vehicle_from_world[:3, 3]
+    return out
+
+
+def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: SegmentPlan | None = None) -> np.ndarray:
     """float32 [B, H, W] sparse z-depth maps of ``job`` from the LiDAR: > 0 a return, 0 none, < 0 a bound.
 
     Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
@@ -75,7 +135,10 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     ``config.blind_zone_laser``, the region below that lidar's lowest scan line (its first
     returns: second returns lie behind an edge) is bounded by the line's depth
     (:func:`drivetrack.depth.bound_blind_zone`): pixels there without a return hold ``-bound``
-    (:func:`complete_depth` applies it after completion).
+    (:func:`complete_depth` applies it after completion). With ``config.depth_object_motion`` (and
+    the trajectory time model), each labelled object's returns are first moved on its trajectory to
+    the image's pose time (:func:`points_at_image_time`; ``plan``: the segment's, or one made once
+    per scene and configuration).
     """
     from drivetrack.depth import (bound_blind_zone, horizontal_depth_scale, see_through_returns,
                                   sparse_depth_from_points)
@@ -87,6 +150,7 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
     out = np.zeros((job.frames.size, model.height, model.width), dtype=np.float32)
     window_px = max(1, int(round(model.f_u * np.tan(np.radians(config.see_through_window_deg or 0.5)))))
     scale = horizontal_depth_scale(model) if config.blind_zone_laser is not None else None
+    motion = _labelled_motion(scene, config, plan)
     for i, t in enumerate(job.frames.tolist()):
         part = lidar.of_frame(t)
         points = lidar.points_vehicle[part]
@@ -94,6 +158,9 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob) -> np.ndarray
         keep = np.isin(lasers, config.depth_laser_values) & np.isin(returns, config.depth_returns)
         if not keep.all():
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
+        if motion is not None:
+            rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
+            points = points_at_image_time(scene, config, motion[0], motion[1], job.camera, t, rows, points)
         image_world_from_vehicle = frames.world_from_vehicle[t]
         image_vehicle_from_vehicle = None
         if np.all(np.isfinite(image_world_from_vehicle)):
@@ -160,13 +227,15 @@ def sparse_depth_batches(scene: Scene, config: "AnnotateConfig", plan: SegmentPl
     from drivetrack.tracks.plan import plan_segment
 
     plan = plan if plan is not None else plan_segment(scene, config.track)
-    return list((map_fn or map)(lambda job: sparse_depth_batch(scene, config, job),
+    return list((map_fn or map)(lambda job: sparse_depth_batch(scene, config, job, plan),
                                 depth_jobs(scene, config.track, plan)))
 
 
-def sparse_depth_batch(scene: Scene, config: "AnnotateConfig", job: DepthJob) -> DepthBatch:
-    """The sparse :class:`DepthBatch` of one :class:`DepthJob` (:func:`sparse_depth`)."""
-    return DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job))
+def sparse_depth_batch(scene: Scene, config: "AnnotateConfig", job: DepthJob,
+                       plan: SegmentPlan | None = None) -> DepthBatch:
+    """The sparse :class:`DepthBatch` of one :class:`DepthJob` (:func:`sparse_depth`; ``plan``: the
+    segment's, when the caller has it, for moving labelled returns to image time)."""
+    return DepthBatch(scene.segment, job.camera, job.frames, sparse_depth(scene, config.track, job, plan))
 
 
 def complete_depth_batch(batch: DepthBatch, config: "AnnotateConfig", device: str | None = None) -> DepthBatch:

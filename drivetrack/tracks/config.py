@@ -67,7 +67,8 @@ class TrackConfig:
             ``min(surfel_max_px, round(f * surfel_radius_m / z))`` pixels either side of its own.
             Only objects of ``object_types`` have returns, so only they occlude this way.
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
-            see_through_window_deg, see_through_min_quadrants, blind_zone_laser: the depth
+            see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
+            depth_object_motion: the depth
             stage's knobs, see :class:`drivetrack.depth.config.DepthConfig`.
         compensate_sweep_motion: when the scene has ``lidar.capture_offset_s``, select points in
             boxes and compute box-frame points with each box moved to the return's capture time
@@ -122,6 +123,7 @@ class TrackConfig:
     see_through_window_deg: float | None = _DEPTH.see_through_window_deg
     see_through_min_quadrants: int = _DEPTH.see_through_min_quadrants
     blind_zone_laser: str | None = _DEPTH.blind_zone_laser
+    depth_object_motion: bool = _DEPTH.depth_object_motion
     rolling_shutter: bool = True
     compensate_sweep_motion: bool = True
     time_model: str = "trajectory"

@@ -88,7 +88,7 @@ def prepare_segment(scene: Scene, config: TrackConfig, depth: dict[int, tuple[np
             maps = np.zeros((frames.size, model.height, model.width), dtype=np.float32)
             for start in range(0, frames.size, config.depth_batch):
                 job = DepthJob(camera, frames[start:start + config.depth_batch])
-                maps[start:start + job.frames.size] = complete_depth(sparse_depth(scene, config, job), config)
+                maps[start:start + job.frames.size] = complete_depth(sparse_depth(scene, config, job, plan), config)
             stacks[camera] = _stack(scene, camera, frames, maps)
     else:
         for camera, frames in needed.items():
