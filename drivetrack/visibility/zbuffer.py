@@ -51,19 +51,24 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
 
 
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
-                  radius_m: float, max_px: int) -> np.ndarray:
+                  radius_m: float, max_px: int, with_radius: bool = False):
     """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
 
     ``pixels`` float64 [m, 2] (x, y), ``depth`` float64 [m] (> 0; callers drop the rest). A return
     covers the (2r+1)^2 pixels around its own, ``r = min(max_px, round(focal * radius_m / depth))``.
+    With ``with_radius``, returns ``(buffer, radius int8 [height, width])``: the footprint ``r`` of
+    the return that holds each pixel's depth (the largest among equal depths; 0 where none lands).
     """
     buffer = np.full(height * width, np.inf, dtype=np.float32)
+    footprint = np.zeros(height * width, dtype=np.int8)
     if depth.size == 0:
-        return buffer.reshape(height, width)
+        return (buffer.reshape(height, width), footprint.reshape(height, width)) if with_radius \
+            else buffer.reshape(height, width)
     col = np.floor(pixels[:, 0]).astype(np.int64)
     row = np.floor(pixels[:, 1]).astype(np.int64)
     radius = np.minimum(np.rint(focal * radius_m / depth), max_px).astype(np.int64)
     z = depth.astype(np.float32)
+    groups = []
     for r in np.unique(radius).tolist():
         sel = radius == r
         d = np.arange(-r, r + 1)
@@ -71,8 +76,16 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
         rows = row[sel, None] + dy.ravel()[None]                                     # [k, (2r+1)^2]
         cols = col[sel, None] + dx.ravel()[None]
         ok = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
-        np.minimum.at(buffer, (rows * width + cols)[ok], np.broadcast_to(z[sel, None], rows.shape)[ok])
-    return buffer.reshape(height, width)
+        flat, values = (rows * width + cols)[ok], np.broadcast_to(z[sel, None], rows.shape)[ok]
+        np.minimum.at(buffer, flat, values)
+        if with_radius:
+            groups.append((r, flat, values))
+    if not with_radius:
+        return buffer.reshape(height, width)
+    for r, flat, values in groups:                   # the footprint of the return each pixel kept
+        won = flat[values == buffer[flat]]
+        np.maximum.at(footprint, won, np.int8(r))
+    return buffer.reshape(height, width), footprint.reshape(height, width)
 
 
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
@@ -118,12 +131,17 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
                 & (occ_row < r1 + max_px))
         if not near.any():
             continue
-        buffer = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0, focal,
-                               radius_m, max_px)
+        buffer, footprint = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0,
+                                          focal, radius_m, max_px, with_radius=True)
         # The same footprint rule on the point's side: it is hidden only when the occluders cover
         # its whole footprint (the farthest buffer value over it is nearer than the point), so the
         # footprints that close the gaps between an occluder's returns do not grow its outline.
+        # The window is the larger of the point's footprint and that of the occluder return at its
+        # pixel: splatting grows an outline by the occluder's footprint, and looking as far round
+        # the point takes that back (a morphological closing), also for a far point whose own
+        # footprint is smaller than a near occluder's.
         radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
+        radius[inside] = np.maximum(radius[inside], footprint[row[inside] - r0, col[inside] - c0])
         farthest = np.full(n, np.inf, dtype=np.float64)
         for r in np.unique(radius[inside]).tolist():
             sel = inside & (radius == r)
