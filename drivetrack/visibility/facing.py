@@ -7,8 +7,9 @@ and time on the hard world": 33% of back-face point-frames). Each object's own r
 surface: a point whose outward normal points away from the camera is on a face its own object
 hides, at any distance.
 
-Normals: PCA over each return's ``k`` nearest neighbours among the clip's returns of the object
-in its box frame (``drivetrack.refine.kernel.knn`` / ``normals``, the refinement's estimator),
+Normals: PCA over each return's ``k`` nearest neighbours among the object's returns in its box
+frame, the clip's or (``cloud``) all of the segment's (``drivetrack.refine.kernel.knn`` /
+``normals``, the refinement's estimator),
 oriented towards the lidar that saw the return (a lidar sees the outside of a surface), placed
 by its ``lidar_calibration`` extrinsic (:func:`sensor_positions`; :data:`SENSOR_VEHICLE_M` where a
 scene has none). The position matters for objects beside the ego: a car 1.5 m away has its roof
