@@ -61,6 +61,24 @@ def test_thin_neighbourhoods_are_unreliable_and_never_back_faces():
     assert few.normal.shape == (5, 3) and not few.reliable.any()
 
 
+def test_normals_from_the_segments_returns_fix_a_sparse_clips_faces():
+    """A far car's clip has few returns per face: their 12 nearest neighbours reach over 0.5 m or
+    round its edges, so most normals are unreliable. Taken among the object's returns over the
+    whole segment (``cloud``), the same points get reliable outward normals."""
+    rng = np.random.default_rng(1)
+    clip, clip_normal = _box_cloud(rng, per_face=6)                          # a sparse clip: 36 returns
+    segment, _ = _box_cloud(rng, per_face=600)                               # the segment: 3600
+    sensor = clip + 20.0 * clip_normal
+    alone = surfel_normals(clip, sensor)
+    among = surfel_normals(clip, sensor, cloud=segment)
+    assert among.normal.shape == (36, 3)
+    assert alone.reliable.mean() < 0.5 and among.reliable.mean() > 0.8
+    cosine = np.einsum("ni,ni->n", among.normal, clip_normal)
+    assert np.median(cosine[among.reliable]) > 0.99
+    # fewer cloud points than neighbours: nothing is fixed
+    assert not surfel_normals(clip, sensor, cloud=segment[:5]).reliable.any()
+
+
 def test_zbuffer_hides_a_car_behind_a_car():
     """Two flat 'cars' facing the camera, the far one 2 m behind the near one (4% at 50 m: the
     depth ratio of 0.95 cannot see it); only the part behind the near one is hidden."""
@@ -182,6 +200,13 @@ def test_config_checks_the_occlusion_method():
     with pytest.raises(ValueError, match=r"TrackConfig.occlusion must be one of \('surface', 'depth-ratio'\)"):
         TrackConfig(occlusion="zbuffer")
     assert TrackConfig().occlusion == "surface"
+
+
+def test_config_checks_the_normals():
+    with pytest.raises(ValueError, match="normals_from"):
+        TrackConfig(normals_from="frame")
+    with pytest.raises(ValueError, match="normal_neighbours"):
+        TrackConfig(normal_neighbours=2)
 
 
 def test_config_checks_the_angle():

@@ -53,6 +53,11 @@ class TrackConfig:
             object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
             with the direction to the camera: its face turns away and its own object hides it.
             None: the depth test alone (the paper's method). Used under ``occlusion="surface"``.
+        normals_from: where the back-face normals' neighbourhoods come from: ``segment`` (default)
+            all the object's returns over the segment in its box frame, thinned to cubes of half
+            ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
+            clip's otherwise), or ``clip`` the clip's returns. ``normal_neighbours``: k of the
+            k-nearest-neighbour PCA.
         occlusion: how occlusion is decided (:data:`OCCLUSION_METHODS`). ``surface`` (default):
             the depth-map test, plus back faces (``back_face_max_deg``), plus the z-buffer of the
             other labelled objects' returns (:mod:`drivetrack.visibility.zbuffer`: hidden when
@@ -107,6 +112,8 @@ class TrackConfig:
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
     back_face_max_deg: float | None = 90.0
+    normals_from: str = "segment"
+    normal_neighbours: int = 12
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.3
     occluder_tolerance_rel: float = 0.02
@@ -162,6 +169,10 @@ class TrackConfig:
         if self.back_face_max_deg is not None and not 0 < self.back_face_max_deg <= 180:
             raise ValueError(f"TrackConfig.back_face_max_deg must be None or in (0, 180], got "
                              f"{self.back_face_max_deg!r}")
+        if self.normals_from not in ("segment", "clip"):
+            raise ValueError(f"TrackConfig.normals_from must be 'segment' or 'clip', got {self.normals_from!r}")
+        if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
+            raise ValueError(f"TrackConfig.normal_neighbours must be an integer >= 3, got {self.normal_neighbours!r}")
         if self.occlusion not in OCCLUSION_METHODS:
             raise ValueError(f"TrackConfig.occlusion must be one of {OCCLUSION_METHODS}, got {self.occlusion!r}")
         if not (self.occluder_tolerance_m >= 0 and self.occluder_tolerance_rel >= 0):

@@ -525,6 +525,25 @@ def _points_box(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, li
 _OCCLUDER_ANGLE_MARGIN_RAD = np.radians(5.0)
 
 
+def segment_surface(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
+    to one per cube of half ``surfel_radius_m``; computed once per object and segment
+    (``plan.occluder_cache``). ``poses``: any :func:`clip_poses` of the object on the segment's
+    trajectory (the returns' box-frame positions do not depend on the camera or the clip)."""
+    from drivetrack.visibility.zbuffer import surfel_subsample
+
+    points_box = plan.occluder_cache.get(object_id)
+    if points_box is None:
+        boxes = plan.scene.boxes
+        all_rows = np.flatnonzero(boxes.object_id == object_id)
+        all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+        lidar_rows, source = plan.box_points(all_rows)
+        points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+        points_box = points_box[surfel_subsample(points_box, 0.5 * float(plan.config.surfel_radius_m))]
+        plan.occluder_cache[object_id] = points_box
+    return points_box
+
+
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
                target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
@@ -585,15 +604,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
             # On the segment's trajectory an object's returns in its box frame do not depend on the
             # camera or the clip: all its returns over the segment, thinned to the first of each
             # surfel cube, computed once per object and segment.
-            points_box = plan.occluder_cache.get(object_id)
-            if points_box is None:
-                all_rows = np.flatnonzero(boxes.object_id == object_id)
-                all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
-                lidar_rows, source = plan.box_points(all_rows)
-                points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses,
-                                         lidar_rows, source)
-                points_box = points_box[surfel_subsample(points_box, cube_m)]
-                plan.occluder_cache[object_id] = points_box
+            points_box = segment_surface(plan, object_id, poses)
         else:
             # the clip's returns (of the frames it has a box in, before the skips above)
             clip_rows = candidates[boxes.object_id[candidates] == object_id]
@@ -655,7 +666,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
         sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
                       + box_from_vehicle[source_clip, :3, 3])
-        surfels = surfel_normals(p_box, sensor_box)
+        # neighbourhoods among all the object's returns over the segment (on the trajectory): denser
+        # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
+        cloud = (segment_surface(plan, job.object_id, poses)
+                 if poses.trajectory is not None and config.normals_from == "segment" else None)
+        surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
         centres_box = camera_centres_box(camera_from_box, shift_camera)
 
     def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:

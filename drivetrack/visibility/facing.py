@@ -7,8 +7,9 @@ and time on the hard world": 33% of back-face point-frames). Each object's own r
 surface: a point whose outward normal points away from the camera is on a face its own object
 hides, at any distance.
 
-Normals: PCA over each return's ``k`` nearest neighbours among the clip's returns of the object
-in its box frame (``drivetrack.refine.kernel.knn`` / ``normals``, the refinement's estimator),
+Normals: PCA over each return's ``k`` nearest neighbours among the object's returns in its box
+frame, the clip's or (``cloud``) all of the segment's (``drivetrack.refine.kernel.knn`` /
+``normals``, the refinement's estimator),
 oriented towards the lidar that saw the return (a lidar sees the outside of a surface), placed
 by its ``lidar_calibration`` extrinsic (:func:`sensor_positions`; :data:`SENSOR_VEHICLE_M` where a
 scene has none). The position matters for objects beside the ego: a car 1.5 m away has its roof
@@ -63,7 +64,8 @@ class SurfelNormals:
 
 
 def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: int = 12,
-                   max_neighbour_m: float = 0.5, min_planarity: float = 0.2) -> SurfelNormals:
+                   max_neighbour_m: float = 0.5, min_planarity: float = 0.2,
+                   cloud: np.ndarray | None = None) -> SurfelNormals:
     """Normals of every point float64 [n, 3] of one object, from its own point cloud.
 
     Args:
@@ -73,15 +75,25 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
         neighbours: k of the k-nearest-neighbour PCA.
         max_neighbour_m: the k-th neighbour must lie within this distance.
         min_planarity: smallest ``(l2 - l1) / l3`` of the neighbourhood's covariance.
+        cloud: float64 [m, 3], box frame: the neighbours are taken from these points (the object's
+            returns over the whole segment, :func:`drivetrack.tracks.core.segment_surface`)
+            instead of from ``points_box`` itself.
     """
+    from scipy.spatial import cKDTree
+
     from drivetrack.refine.kernel import knn, normals
 
     points_box = np.ascontiguousarray(points_box, dtype=np.float64)
     n = points_box.shape[0]
-    if n < neighbours:
+    model = points_box if cloud is None else np.ascontiguousarray(cloud, dtype=np.float64)
+    if model.shape[0] < neighbours:
         return SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool))
-    dist, index = knn(points_box, neighbours)
-    normal, planarity = normals(points_box, index)
+    if cloud is None:
+        dist, index = knn(points_box, neighbours)
+    else:
+        dist, index = cKDTree(model).query(points_box, k=neighbours)
+        dist, index = dist.reshape(n, neighbours), index.reshape(n, neighbours).astype(np.int64)
+    normal, planarity = normals(model, index)
     flip = np.einsum("ni,ni->n", normal, sensor_box - points_box) < 0
     normal[flip] *= -1.0
     reliable = (dist[:, -1] <= max_neighbour_m) & (planarity >= min_planarity)
