@@ -76,3 +76,26 @@ def test_objects_table_carries_the_labels_figures(tracked, annotated_output):
     assert set(columns) <= set(table.columns)
     assert np.isfinite(table[columns].to_numpy()).all()
     assert np.all(np.abs(table["label_speed_err_p50"] - table["speed_err_p50"]) < 0.05)
+
+
+def test_source_rows_use_one_sorted_key_table_per_lidar(tracked):
+    """The sorted key table is built once per LidarReturns and rebuilt when its columns change."""
+    scene, tracks, _ = tracked
+    t = tracks[0]
+    frames = t.frames[t.query_frames]
+    lidar = dataclasses.replace(scene.lidar)                       # a fresh object: no table yet
+    first = lidar_rows_from_sources(lidar, frames, t.lidar_sources, where="first")
+    table = lidar.__dict__["_sorted_return_keys"]
+    np.testing.assert_array_equal(lidar_rows_from_sources(lidar, frames, t.lidar_sources, where="again"), first)
+    assert lidar.__dict__["_sorted_return_keys"] is table
+    lidar = scene.lidar
+    # the rows found name exactly the tracks' source returns
+    for name, column in (("laser", 0), ("return_index", 1), ("row", 2), ("col", 3)):
+        np.testing.assert_array_equal(getattr(lidar, name)[first], t.lidar_sources[:, column])
+    np.testing.assert_array_equal(lidar.frame[first], frames)
+    # new columns (same lengths, other objects): the table is rebuilt, not reused
+    moved = dataclasses.replace(lidar, col=lidar.col.copy())
+    moved.__dict__["_sorted_return_keys"] = table
+    moved.col[first] = (moved.col[first] + 1) % 4
+    with pytest.raises(ValueError, match="names a LiDAR return"):
+        lidar_rows_from_sources(moved, frames, t.lidar_sources, where="moved")

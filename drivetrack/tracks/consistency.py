@@ -25,6 +25,23 @@ __all__ = ["lidar_rows_from_sources", "label_speed_errors", "CHUNK_POINTS"]
 CHUNK_POINTS = 32768
 
 
+def _sorted_return_keys(lidar, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(order int64 [M], keys int64 [M] sorted): the segment's return keys
+    (:func:`drivetrack.waymo.lidar.return_keys`) in ascending order and the rows that give them.
+    Computed once per :class:`LidarReturns` (every clip of a segment joins against the same
+    table; recomputing it per clip was a fifth of a medium segment's annotation time) and kept on
+    it, tied to the identity and length of its columns."""
+    stamp = tuple((id(a), a.shape[0]) for a in (lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col))
+    cached = lidar.__dict__.get("_sorted_return_keys")
+    if cached is not None and cached[0] == stamp:
+        return cached[1], cached[2]
+    table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
+    order = np.argsort(table, kind="stable")
+    ordered = table[order]
+    lidar.__dict__["_sorted_return_keys"] = (stamp, order, ordered)
+    return order, ordered
+
+
 def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray, where: str = "") -> np.ndarray:
     """Row indices into ``lidar`` (:class:`drivetrack.scene.LidarReturns`) of tracks' source returns.
 
@@ -41,9 +58,7 @@ def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray
     frames = np.asarray(frames, np.int64).reshape(-1)
     if sources.shape[0] != frames.shape[0]:
         raise ValueError(f"{where}: {frames.shape[0]} source frames for {sources.shape[0]} lidar_sources")
-    table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
-    order = np.argsort(table, kind="stable")
-    ordered = table[order]
+    order, ordered = _sorted_return_keys(lidar, where)
     wanted = return_keys(frames, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3], where)
     pos = np.minimum(np.searchsorted(ordered, wanted), max(ordered.size - 1, 0))
     found = ordered[pos] == wanted if ordered.size else np.zeros(wanted.size, bool)
