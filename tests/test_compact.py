@@ -40,8 +40,9 @@ def _npz(path: Path) -> dict:
 @pytest.fixture(scope="module")
 def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> str:
     """The shared source annotated as the golden npz were (before the z-buffer of other objects,
-    issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds, and with the
-    labelled returns of the depth maps left at their capture time), exported."""
+    issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds, the labelled
+    returns of the depth maps left at their capture time and back-face normals from the clip's
+    returns), exported."""
     from drivetrack.annotate import AnnotateConfig, annotate
     from drivetrack.compact.export import FORMATS, export_clips
     from drivetrack.tracks import TrackConfig
@@ -49,7 +50,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
     out = tmp_path_factory.mktemp("annotated_before_zbuffer")
     results = annotate(synth_source, "training", synth_segments, str(out),
                        AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9,
-                                                                    depth_object_motion=False)), threads=2)
+                                                                    depth_object_motion=False,
+                                                                    normals_from="clip")), threads=2)
     assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
     exported = tmp_path_factory.mktemp("exported_before_zbuffer")
     export_clips(str(out), list(FORMATS), str(exported))
