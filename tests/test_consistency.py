@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from drivetrack.annotate import AnnotateConfig, annotate_segment, load_scene_for
-from drivetrack.tracks.consistency import label_speed_errors, lidar_rows_from_sources
+from drivetrack.tracks.consistency import label_speed_errors, lidar_rows_from_sources, sorted_return_keys
 from drivetrack.tracks import TrackConfig
 
 
@@ -78,24 +78,18 @@ def test_objects_table_carries_the_labels_figures(tracked, annotated_output):
     assert np.all(np.abs(table["label_speed_err_p50"] - table["speed_err_p50"]) < 0.05)
 
 
-def test_source_rows_use_one_sorted_key_table_per_lidar(tracked):
-    """The sorted key table is built once per LidarReturns and rebuilt when its columns change."""
+def test_source_rows_with_a_shared_sorted_key_table(tracked):
+    """One sorted key table per segment, passed to every clip, finds the same rows as building it
+    per call; the rows name exactly the tracks' source returns."""
     scene, tracks, _ = tracked
-    t = tracks[0]
-    frames = t.frames[t.query_frames]
-    lidar = dataclasses.replace(scene.lidar)                       # a fresh object: no table yet
-    first = lidar_rows_from_sources(lidar, frames, t.lidar_sources, where="first")
-    table = lidar.__dict__["_sorted_return_keys"]
-    np.testing.assert_array_equal(lidar_rows_from_sources(lidar, frames, t.lidar_sources, where="again"), first)
-    assert lidar.__dict__["_sorted_return_keys"] is table
-    lidar = scene.lidar
-    # the rows found name exactly the tracks' source returns
-    for name, column in (("laser", 0), ("return_index", 1), ("row", 2), ("col", 3)):
-        np.testing.assert_array_equal(getattr(lidar, name)[first], t.lidar_sources[:, column])
-    np.testing.assert_array_equal(lidar.frame[first], frames)
-    # new columns (same lengths, other objects): the table is rebuilt, not reused
-    moved = dataclasses.replace(lidar, col=lidar.col.copy())
-    moved.__dict__["_sorted_return_keys"] = table
-    moved.col[first] = (moved.col[first] + 1) % 4
-    with pytest.raises(ValueError, match="names a LiDAR return"):
-        lidar_rows_from_sources(moved, frames, t.lidar_sources, where="moved")
+    keys = sorted_return_keys(scene.lidar)
+    assert np.all(np.diff(keys[1]) > 0)                       # keys are unique and ascending
+    for t in tracks:
+        frames = t.frames[t.query_frames]
+        rows = lidar_rows_from_sources(scene.lidar, frames, t.lidar_sources, "shared", keys)
+        np.testing.assert_array_equal(rows, lidar_rows_from_sources(scene.lidar, frames, t.lidar_sources, "own"))
+        for name, column in (("laser", 0), ("return_index", 1), ("row", 2), ("col", 3)):
+            np.testing.assert_array_equal(getattr(scene.lidar, name)[rows], t.lidar_sources[:, column])
+        np.testing.assert_array_equal(scene.lidar.frame[rows], frames)
+        np.testing.assert_array_equal(label_speed_errors(scene, scene.boxes, t, keys),
+                                      label_speed_errors(scene, scene.boxes, t))
