@@ -434,7 +434,7 @@ def segment_tables(out_url: str, scene: Scene, plan: SegmentPlan, tracks: list[O
 
 def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[ObjectTracks]) -> pd.DataFrame:
     """Objects table plus ``label_speed_err_p*``: speed-error percentiles under the labelled poses."""
-    from drivetrack.tracks.consistency import label_speed_errors
+    from drivetrack.tracks.consistency import label_speed_errors, sorted_return_keys
 
     columns = list(LABEL_SPEED_ERR_COLUMNS)
     if objects.empty:
@@ -445,10 +445,11 @@ def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[Ob
     # refined poses, or the trajectory (which levels yaw-only labels' ego tilt, docs/time.md)
     labels = scene.box_labels if scene.box_labels is not None else scene.boxes
     rows = {}
+    keys = sorted_return_keys(scene.lidar, f"segment {scene.segment!r}")     # one table for every clip
     for t in tracks:
         if t.rejection is not None:
             continue
-        errors = label_speed_errors(scene, labels, t)
+        errors = label_speed_errors(scene, labels, t, keys)
         errors = errors[np.isfinite(errors)]
         rows[(t.camera_name, t.object_id)] = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
                                               else np.full(len(SPEED_PERCENTILES), np.nan))

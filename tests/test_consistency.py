@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from drivetrack.annotate import AnnotateConfig, annotate_segment, load_scene_for
-from drivetrack.tracks.consistency import label_speed_errors, lidar_rows_from_sources
+from drivetrack.tracks.consistency import label_speed_errors, lidar_rows_from_sources, sorted_return_keys
 from drivetrack.tracks import TrackConfig
 
 
@@ -76,3 +76,20 @@ def test_objects_table_carries_the_labels_figures(tracked, annotated_output):
     assert set(columns) <= set(table.columns)
     assert np.isfinite(table[columns].to_numpy()).all()
     assert np.all(np.abs(table["label_speed_err_p50"] - table["speed_err_p50"]) < 0.05)
+
+
+def test_source_rows_with_a_shared_sorted_key_table(tracked):
+    """One sorted key table per segment, passed to every clip, finds the same rows as building it
+    per call; the rows name exactly the tracks' source returns."""
+    scene, tracks, _ = tracked
+    keys = sorted_return_keys(scene.lidar)
+    assert np.all(np.diff(keys[1]) > 0)                       # keys are unique and ascending
+    for t in tracks:
+        frames = t.frames[t.query_frames]
+        rows = lidar_rows_from_sources(scene.lidar, frames, t.lidar_sources, "shared", keys)
+        np.testing.assert_array_equal(rows, lidar_rows_from_sources(scene.lidar, frames, t.lidar_sources, "own"))
+        for name, column in (("laser", 0), ("return_index", 1), ("row", 2), ("col", 3)):
+            np.testing.assert_array_equal(getattr(scene.lidar, name)[rows], t.lidar_sources[:, column])
+        np.testing.assert_array_equal(scene.lidar.frame[rows], frames)
+        np.testing.assert_array_equal(label_speed_errors(scene, scene.boxes, t, keys),
+                                      label_speed_errors(scene, scene.boxes, t))

@@ -61,11 +61,15 @@ def test_unlabelled_returns_and_other_time_models_are_left_alone(world):
     scene, plan, truth = world
     track = _config().track
     from drivetrack.depth.stage import _labelled_motion
-    owner, trajectory = _labelled_motion(scene, track, plan)
+    owner, trajectory, memo = _labelled_motion(scene, track, plan)
     part = scene.lidar.of_frame(1)
     rows = np.arange(part.start, part.stop, dtype=np.int64)
     points = scene.lidar.points_vehicle[part]
     out = points_at_image_time(scene, track, owner, trajectory, int(CameraName.FRONT_LEFT), 1, rows, points)
+    # the memo of box-frame positions (shared by the cameras of a frame) changes nothing
+    for _ in range(2):
+        np.testing.assert_array_equal(points_at_image_time(scene, track, owner, trajectory, int(CameraName.FRONT_LEFT),
+                                                           1, rows, points, memo=memo), out)
     labelled = owner[rows] >= 0
     assert labelled.any() and (~labelled).any()
     np.testing.assert_array_equal(out[~labelled], points[~labelled])

@@ -64,13 +64,14 @@ def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = Non
 
 
 def _labelled_motion(scene: Scene, config: TrackConfig, plan: SegmentPlan | None):
-    """(owner int64 [M], trajectory) for moving labelled returns to image time, or None.
+    """(owner int64 [M], trajectory, memo dict) for moving labelled returns to image time, or None.
 
     ``owner[i]`` is the box row whose object return ``i`` of ``scene.lidar`` belongs to (-1: none),
     from the track stage's point selection; the trajectory is the segment's
     (:func:`drivetrack.tracks.trajectory.segment_trajectory`). None when
     ``config.depth_object_motion`` is off or ``config.time_model`` is not ``trajectory``. Without
-    ``plan`` one is made (:func:`drivetrack.tracks.plan.plan_segment`) and kept on the scene.
+    ``plan`` one is made (:func:`drivetrack.tracks.plan.plan_segment`) and kept on the scene. The
+    memo keeps, per frame, the labelled returns' box-frame positions (:func:`points_at_image_time`).
     """
     if not config.depth_object_motion or config.time_model != "trajectory":
         return None
@@ -89,18 +90,22 @@ def _labelled_motion(scene: Scene, config: TrackConfig, plan: SegmentPlan | None
         counts = np.diff(plan.box_point_offsets)
         owner[plan.box_point_index] = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
         cache["owner"] = owner
-    return cache["owner"], segment_trajectory(plan)[0]
+    return cache["owner"], segment_trajectory(plan)[0], cache.setdefault("points_box", {})
 
 
 def points_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, trajectory, camera: int,
-                         frame: int, rows: np.ndarray, points_vehicle: np.ndarray) -> np.ndarray:
+                         frame: int, rows: np.ndarray, points_vehicle: np.ndarray,
+                         memo: dict | None = None) -> np.ndarray:
     """float64 [n, 3]: returns ``rows`` (int [n], rows of ``scene.lidar`` of ``frame``; vehicle frame
     of the frame, ``points_vehicle`` float [n, 3]) with each labelled object's returns moved on its
     trajectory from their capture time to the pose time of ``camera``'s image of ``frame``
     (vehicle frame of the frame, still). Unlabelled returns are unchanged.
+
+    The labelled returns' box-frame positions do not depend on the camera: with ``memo`` (a dict
+    kept with the plan, :func:`_labelled_motion`) they are computed once per frame; each object is
+    then posed once per image, not once per return.
     """
     from drivetrack.tracks.core import image_time_offsets
-    from drivetrack.tracks.trajectory import points_box_at
 
     out = np.array(points_vehicle, dtype=np.float64)
     box_rows = owner[rows]
@@ -108,19 +113,33 @@ def points_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, t
     if moving.size == 0:
         return out
     box_rows = box_rows[moving]
-    lidar = scene.lidar
-    offsets = (np.nan_to_num(lidar.capture_offset_s[rows[moving]].astype(np.float64))
-               if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
-    world_from_vehicle = scene.world_from_vehicle[frame]
-    world = out[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
-    frame_time = trajectory.frame_time_s[box_rows]
-    points_box = points_box_at(trajectory, box_rows, frame_time + offsets, world)
-    image_time = frame_time + image_time_offsets(scene, camera, np.array([frame]))[0]
-    world_from_box = trajectory.world_from_box(box_rows, image_time)
-    world = np.einsum("nij,nj->ni", world_from_box[:, :3, :3], points_box) + world_from_box[:, :3, 3]
-    vehicle_from_world = invert_rigid(world_from_vehicle)
-    out[moving] = world @ vehicle_from_world[:3, :3].T + vehicle_from_world[:3, 3]
+    points_box = _labelled_points_box(scene, config, trajectory, frame, rows[moving], box_rows, out[moving],
+                                      {} if memo is None else memo)
+    unique_rows, which = np.unique(box_rows, return_inverse=True)
+    image_time = trajectory.frame_time_s[unique_rows] + image_time_offsets(scene, camera, np.array([frame]))[0]
+    vehicle_from_world = invert_rigid(scene.world_from_vehicle[frame])
+    vehicle_from_box = vehicle_from_world[None] @ trajectory.world_from_box(unique_rows, image_time)   # [u, 4, 4]
+    out[moving] = (np.einsum("nij,nj->ni", vehicle_from_box[which, :3, :3], points_box)
+                   + vehicle_from_box[which, :3, 3])
     return out
+
+
+def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: int, rows: np.ndarray,
+                         box_rows: np.ndarray, points_vehicle: np.ndarray, memo: dict) -> np.ndarray:
+    """float64 [k, 3]: labelled returns ``rows`` (int [k], owners ``box_rows``, at ``points_vehicle``
+    float [k, 3] in the vehicle frame of ``frame``) in their box frame at their capture time;
+    memoised in ``memo`` per frame and set of rows (the same for every camera)."""
+    from drivetrack.tracks.trajectory import points_box_at
+
+    key = (frame, rows.tobytes())
+    if key not in memo:
+        lidar = scene.lidar
+        offsets = (np.nan_to_num(lidar.capture_offset_s[rows].astype(np.float64))
+                   if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
+        world_from_vehicle = scene.world_from_vehicle[frame]
+        world = points_vehicle @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
+        memo[key] = points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world)
+    return memo[key]
 
 
 def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: SegmentPlan | None = None) -> np.ndarray:
@@ -160,7 +179,7 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
         if motion is not None:
             rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
-            points = points_at_image_time(scene, config, motion[0], motion[1], job.camera, t, rows, points)
+            points = points_at_image_time(scene, config, *motion[:2], job.camera, t, rows, points, memo=motion[2])
         image_world_from_vehicle = frames.world_from_vehicle[t]
         image_vehicle_from_vehicle = None
         if np.all(np.isfinite(image_world_from_vehicle)):

@@ -19,13 +19,24 @@ import numpy as np
 from drivetrack.geometry import box_from_center_heading, invert_rigid
 from drivetrack.waymo.lidar import return_keys
 
-__all__ = ["lidar_rows_from_sources", "label_speed_errors", "CHUNK_POINTS"]
+__all__ = ["lidar_rows_from_sources", "label_speed_errors", "sorted_return_keys", "CHUNK_POINTS"]
 
 #: Points carried at once (bounds the [T, chunk, 3] float64 temporaries: 48 MB at 200 frames).
 CHUNK_POINTS = 32768
 
 
-def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray, where: str = "") -> np.ndarray:
+def sorted_return_keys(lidar, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """(order int64 [M], keys int64 [M] ascending): the return keys of ``lidar``
+    (:func:`drivetrack.waymo.lidar.return_keys`) sorted, and the rows that give them. Build it once
+    per segment and pass it to :func:`lidar_rows_from_sources` / :func:`label_speed_errors` for
+    every clip: rebuilding it per clip was a fifth of a medium segment's annotation time."""
+    table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
+    order = np.argsort(table, kind="stable")
+    return order, table[order]
+
+
+def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray, where: str = "",
+                            keys: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Row indices into ``lidar`` (:class:`drivetrack.scene.LidarReturns`) of tracks' source returns.
 
     Args:
@@ -33,6 +44,7 @@ def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray
         frames: int [N], segment frame of each track's source return.
         lidar_sources: int [N, 4], (laser_name, return 1|2, range-image row, col).
         where: named in the error.
+        keys: :func:`sorted_return_keys` of ``lidar`` (built here when None).
 
     Raises:
         ValueError naming ``where`` and the first source that is not a return of ``lidar``.
@@ -41,9 +53,7 @@ def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray
     frames = np.asarray(frames, np.int64).reshape(-1)
     if sources.shape[0] != frames.shape[0]:
         raise ValueError(f"{where}: {frames.shape[0]} source frames for {sources.shape[0]} lidar_sources")
-    table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
-    order = np.argsort(table, kind="stable")
-    ordered = table[order]
+    order, ordered = keys if keys is not None else sorted_return_keys(lidar, where)
     wanted = return_keys(frames, sources[:, 0], sources[:, 1], sources[:, 2], sources[:, 3], where)
     pos = np.minimum(np.searchsorted(ordered, wanted), max(ordered.size - 1, 0))
     found = ordered[pos] == wanted if ordered.size else np.zeros(wanted.size, bool)
@@ -55,7 +65,7 @@ def lidar_rows_from_sources(lidar, frames: np.ndarray, lidar_sources: np.ndarray
     return order[pos] if ordered.size else np.zeros(0, np.int64)
 
 
-def label_speed_errors(scene, labels, tracks) -> np.ndarray:
+def label_speed_errors(scene, labels, tracks, keys: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """float64 [N]: ``|track speed under the labelled poses - annotated box speed|`` per track.
 
     Args:
@@ -63,6 +73,7 @@ def label_speed_errors(scene, labels, tracks) -> np.ndarray:
             its boxes may be the refined ones: they are not used).
         labels: :class:`drivetrack.scene.Boxes`, the labelled boxes (before refinement).
         tracks: :class:`drivetrack.tracks.ObjectTracks` of one clip.
+        keys: :func:`sorted_return_keys` of ``scene.lidar``, shared by the segment's clips.
 
     NaN for every track when a clip frame has no label for the object, when the clip has a
     single frame or zero duration, or when the object has no annotated speed.
@@ -87,7 +98,7 @@ def label_speed_errors(scene, labels, tracks) -> np.ndarray:
     box_from_vehicle = invert_rigid(vehicle_from_box)
 
     source_clip = np.asarray(tracks.query_frames, np.int64)
-    lidar_rows = lidar_rows_from_sources(scene.lidar, frames[source_clip], tracks.lidar_sources, where)
+    lidar_rows = lidar_rows_from_sources(scene.lidar, frames[source_clip], tracks.lidar_sources, where, keys)
     x = scene.lidar.points_vehicle[lidar_rows]                                                  # [N,3]
     q = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], x) + box_from_vehicle[source_clip, :3, 3]
     speeds = np.empty(n)
