@@ -87,8 +87,8 @@ def _labelled_motion(scene: Scene, config: TrackConfig, plan: SegmentPlan | None
     cache = plan.__dict__.setdefault("_depth_motion", {})
     if "owner" not in cache:
         owner = np.full(scene.lidar.points_vehicle.shape[0], -1, dtype=np.int64)
-        counts = np.diff(plan.box_point_offsets)
-        owner[plan.box_point_index] = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
+        lidar_rows, box_rows = plan.box_points(np.arange(plan.box_point_offsets.size - 1))
+        owner[lidar_rows] = box_rows
         cache["owner"] = owner
     return cache["owner"], segment_trajectory(plan)[0], cache.setdefault("points_box", {})
 

@@ -525,6 +525,14 @@ def _points_box(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, li
 _OCCLUDER_ANGLE_MARGIN_RAD = np.radians(5.0)
 
 
+def _surfel_cube_m(config) -> float:
+    """Side (metres) of the cubes object surfaces are thinned to, one return each: half the splat
+    footprint ``surfel_radius_m`` (a return covers the footprint either side of its own position,
+    so half is dense enough for the footprints of a sampled surface to overlap: measured on the
+    small hard world, a whole footprint drops OA)."""
+    return 0.5 * float(config.surfel_radius_m)
+
+
 def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
     to one per cube of half ``surfel_radius_m``; computed once per object and segment
@@ -539,7 +547,7 @@ def segment_surface(plan, object_id: str, poses) -> np.ndarray:
         all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
         lidar_rows, source = plan.box_points(all_rows)
         points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
-        points_box = points_box[surfel_subsample(points_box, 0.5 * float(plan.config.surfel_radius_m))]
+        points_box = points_box[surfel_subsample(points_box, _surfel_cube_m(plan.config))]
         plan.occluder_cache[object_id] = points_box
     return points_box
 
@@ -565,10 +573,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
 
     scene = plan.scene
     boxes = scene.boxes
-    # Occluder returns are thinned to one per cube of half the footprint (a return covers the
-    # footprint either side of its own position, so half is dense enough for the footprints of
-    # a sampled surface to overlap: measured on the small hard world, a whole footprint drops OA).
-    cube_m = 0.5 * float(plan.config.surfel_radius_m)
+    cube_m = _surfel_cube_m(plan.config)
     geometry = plan.cameras[job.camera]
     model = scene.cameras[job.camera].model
     t_count = frames.size
@@ -699,7 +704,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         if any_occluder:
             hidden_other = np.zeros((t_count, n), dtype=bool)
         ambiguous = np.zeros((t_count, n), dtype=bool)
-        cos_max = np.cos(np.radians(config.back_face_max_deg)) if surfels is not None else None
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
@@ -712,10 +716,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
                 ambiguous[:, start:stop] |= np.abs(margin) < config.ambiguity_m
             if surfels is not None:
-                to_camera = centres_box[:, None, :] - p_box[None, start:stop]                  # [T, k, 3]
+                from drivetrack.visibility.facing import facing_cosine
+
                 angle = np.degrees(np.arccos(np.clip(
-                    np.einsum("tki,ki->tk", to_camera, surfels.normal[start:stop])
-                    / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-9), -1.0, 1.0)))
+                    facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box), -1.0, 1.0)))
                 ambiguous[:, start:stop] |= ((np.abs(angle - config.back_face_max_deg) < config.ambiguity_deg)
                                              & surfels.reliable[None, start:stop])
             inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)

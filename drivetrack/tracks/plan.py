@@ -109,8 +109,9 @@ class SegmentPlan:
     rejections: list[dict] = field(default_factory=list)
     num_objects_labelled: int = 0
     num_clips_considered: int = 0
-    #: object id -> (box rows int64 [P], box-frame points float64 [P, 3]) of its selected returns,
-    #: filled by the track stage's z-buffer (drivetrack.tracks.core._occluders) for reuse across clips.
+    #: object id -> float64 [m, 3], its selected returns over the segment in its box frame, thinned
+    #: (drivetrack.tracks.core.segment_surface): the z-buffer's occluder surfaces and the back-face
+    #: normals' neighbourhoods, reused across clips.
     occluder_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def box_points(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

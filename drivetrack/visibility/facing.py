@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_mask"]
+           "facing_cosine", "facing_mask"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -117,7 +117,12 @@ def facing_mask(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.
     A face turns towards the camera when the angle between its outward normal and the direction
     to the camera centre is below ``max_angle_deg`` (90: any face not turned away).
     """
-    to_camera = centres_box[:, None, :] - points_box[None]                         # [T, n, 3]
-    cosine = np.einsum("tni,ni->tn", to_camera, surfels.normal) / np.maximum(
-        np.linalg.norm(to_camera, axis=-1), 1e-9)
+    cosine = facing_cosine(points_box, surfels.normal, centres_box)
     return (cosine > np.cos(np.radians(max_angle_deg))) | ~surfels.reliable[None]
+
+
+def facing_cosine(points_box: np.ndarray, normal: np.ndarray, centres_box: np.ndarray) -> np.ndarray:
+    """float64 [T, n]: cosine of the angle between each point's normal (float [n, 3], unit) and the
+    direction from the point (float [n, 3]) to the camera centre of each frame (float [T, 3])."""
+    to_camera = centres_box[:, None, :] - points_box[None]                         # [T, n, 3]
+    return np.einsum("tni,ni->tn", to_camera, normal) / np.maximum(np.linalg.norm(to_camera, axis=-1), 1e-9)
