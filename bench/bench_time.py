@@ -7,10 +7,12 @@ turning car, a crossing cyclist), under ``label_time`` frame and sweep, with exa
 widened as in ``bench_visibility`` (all five cameras, every object type, ``min_frames`` 8,
 ``max_camera_distance_m`` 75), once per time model:
 
-- ``before``: ``TrackConfig(time_model="velocity")``, the object moved along the finite-difference
+- ``velocity``: ``TrackConfig(time_model="velocity")``, the object moved along the finite-difference
   box velocity from the frame time to the image pose time (main's code before issue 16);
-- ``after``: ``TrackConfig(time_model="trajectory")`` (the default), the object's continuous-time
-  trajectory (:mod:`drivetrack.tracks.trajectory`) evaluated at each pixel's capture time.
+- ``trajectory/linear``: ``TrackConfig(time_model="trajectory", label_tilt="linear")``, the
+  object's continuous-time trajectory (:mod:`drivetrack.tracks.trajectory`) evaluated at each
+  pixel's capture time, yaw-only labels' world tilt a straight line in time (before this stop);
+- ``trajectory``: the defaults (``label_tilt="constant"``: one tilt per object).
 
 Per clip: median pixel error over truth-visible point-frames and AJ (TAP-Vid, query mode
 ``first``); the targets of issue 16 are checked on clips of >= 8 frames.
@@ -86,7 +88,8 @@ def run_scenario(label_time: str, noise: float, args, models: tuple[str, ...]) -
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
         role_of = dict(zip(objects["object_id"].astype(str), objects["role"].astype(str)))
         for model in models:
-            extra = {"time_model": model} if model != "main" else {}
+            # "trajectory/linear": time_model, then label_tilt
+            extra = (dict(zip(("time_model", "label_tilt"), model.split("/"))) if model != "main" else {})
             config = AnnotateConfig(track=TrackConfig(
                 cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
                 max_camera_distance_m=75.0, **extra))
@@ -114,8 +117,9 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
              f"`bench/bench_time.py`: one `SynthConfig(world=\"hard\", rolling_shutter=True)` segment per "
              f"scenario (cameras triggered as the TOP sweep passes them), preset `{setup['preset']}`, "
              f"{setup['frames']} frames, seed {setup['seed']}, cameras {', '.join(CAMERAS)}; clip selection "
-             f"as `bench_visibility` (`min_frames` 8). `before` = `time_model=\"velocity\"` (main's code), "
-             f"`after` = `time_model=\"trajectory\"` (default, `label_time=\"auto\"`). Per clip of >= 8 frames: "
+             f"as `bench_visibility` (`min_frames` 8). `velocity` = `time_model=\"velocity\"` (before issue 16), "
+             f"`trajectory/linear` = the trajectory with yaw-only labels' tilt a line in time (`label_tilt=\"linear\"`), "
+             f"`trajectory` = the defaults (`label_time=\"auto\"`, `label_tilt=\"constant\"`). Per clip of >= 8 frames: "
              f"median px error over truth-visible point-frames and AJ (query mode `first`). Target (exact "
              f"labels): every clip median <= 0.05 px and AJ >= 0.99; with noise pooled AJ >= 0.90. "
              f"Machine: {machine}.", "",
@@ -149,8 +153,9 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_hard_world_arguments(ap)
-    ap.add_argument("--models", default="velocity,trajectory",
-                    help="comma-separated TrackConfig.time_model values (\"main\": no time_model argument)")
+    ap.add_argument("--models", default="velocity,trajectory/linear,trajectory",
+                    help="comma-separated TrackConfig.time_model values, each optionally /label_tilt "
+                         "(\"main\": the defaults)")
     ap.add_argument("--scenarios", default="all", help="'all' or e.g. 'frame:0,sweep:0.05'")
     args = ap.parse_args(argv if argv is not None else [])
     scenarios = SCENARIOS if args.scenarios == "all" else tuple(

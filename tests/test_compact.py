@@ -41,8 +41,8 @@ def _npz(path: Path) -> dict:
 def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> str:
     """The shared source annotated as the golden npz were (before the z-buffer of other objects,
     issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds, the labelled
-    returns of the depth maps left at their capture time and back-face normals from the clip's
-    returns), exported."""
+    returns of the depth maps left at their capture time, back-face normals from the clip's
+    returns and yaw-only labels' tilt a straight line in time), exported."""
     from drivetrack.annotate import AnnotateConfig, annotate
     from drivetrack.compact.export import FORMATS, export_clips
     from drivetrack.tracks import TrackConfig
@@ -51,7 +51,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
     results = annotate(synth_source, "training", synth_segments, str(out),
                        AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9,
                                                                     depth_object_motion=False,
-                                                                    normals_from="clip")), threads=2)
+                                                                    normals_from="clip",
+                                                                    label_tilt="linear")), threads=2)
     assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
     exported = tmp_path_factory.mktemp("exported_before_zbuffer")
     export_clips(str(out), list(FORMATS), str(exported))

@@ -80,7 +80,8 @@ class TrackConfig:
             (object motion during the LiDAR sweep, :mod:`drivetrack.tracks.sweep_motion`).
         time_model: how an object is placed at each pixel's capture time. ``trajectory``
             (default): its continuous-time trajectory (:mod:`drivetrack.tracks.trajectory`:
-            cubic Hermite in world position and yaw through the labels at their label times),
+            local constant acceleration in world position and yaw through the labels at their
+            label times),
             evaluated at the image time (global shutter) or at each point's solved row/column
             time (rolling shutter), and at each LiDAR return's capture time; ``velocity``: the
             box moved along its finite-difference velocity from the frame time to the image pose
@@ -89,6 +90,12 @@ class TrackConfig:
             (when the TOP sweep passed its centre) or ``auto`` (default: the convention with the
             smaller residual against the returns, one choice per segment, recorded in
             ``stats/segments.parquet``). Used by ``time_model="trajectory"``.
+        label_tilt: the world pitch and roll of an object whose boxes are all yaw-only (labels
+            are level in the vehicle frame, so their world tilt is the ego's at that frame):
+            ``constant`` (default): the mean over the object's boxes, one tilt per object;
+            ``linear``: a straight line in time per object through the ego's tilts (before).
+            Only changes of tilt over time move the tracks (docs/time.md). Used by
+            ``time_model="trajectory"``; refined 6-DOF boxes keep their own tilt.
         rolling_shutter: project with ``drivetrack.camera.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the
@@ -135,6 +142,7 @@ class TrackConfig:
     compensate_sweep_motion: bool = True
     time_model: str = "trajectory"
     label_time: str = "auto"
+    label_tilt: str = "constant"
     max_speed_deviation_mps: float | None = None
     max_tracks_per_object: int | None = None
     seed: int = 0
@@ -184,12 +192,14 @@ class TrackConfig:
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
-        from drivetrack.tracks.trajectory import LABEL_TIMES, TIME_MODELS
+        from drivetrack.tracks.trajectory import LABEL_TILTS, LABEL_TIMES, TIME_MODELS
 
         if self.time_model not in TIME_MODELS:
             raise ValueError(f"TrackConfig.time_model must be one of {TIME_MODELS}, got {self.time_model!r}")
         if self.label_time not in LABEL_TIMES:
             raise ValueError(f"TrackConfig.label_time must be one of {LABEL_TIMES}, got {self.label_time!r}")
+        if self.label_tilt not in LABEL_TILTS:
+            raise ValueError(f"TrackConfig.label_tilt must be one of {LABEL_TILTS}, got {self.label_tilt!r}")
         if self.kernel not in TRACK_KERNELS:
             raise ValueError(f"TrackConfig.kernel must be one of {TRACK_KERNELS}, got {self.kernel!r}")
         if self.chunk_points < 1 or self.depth_batch < 1:

@@ -22,8 +22,11 @@ behind the ego lie on both sides of the sweep's start and may be a millisecond a
 a window is robust to that, a spline's tangents are not. Pitch and roll in the world frame are
 held from the sample: a refined 6-DOF box's (``Boxes.pitch`` / ``roll``, issue 8) as they
 are; for yaw-only labels, whose world tilt is the ego's frame-to-frame pitch and roll rather than
-the object's, a straight line in time per object fitted to them (objects stand on the road, whose
-slope changes slowly). An object with one sample moves with its ``speed`` column (world
+the object's, one tilt per object, their mean (``label_tilt="constant"``; ``"linear"``: a
+straight line in time through them). A tilt that is constant over time cancels from every track
+(an object's points are put into its box frame and taken out again with the same tilt), so only
+tilt *changes* move the tracks, and the ego's pitch and roll changes (suspension, its own road)
+say nothing about the object's. An object with one sample moves with its ``speed`` column (world
 velocity in the vehicle frame) when finite, else stands still. Positions and yaw pass through
 the labels exactly: smoothing would move the labels themselves, which the pose refinement
 (issue 8) owns.
@@ -39,11 +42,14 @@ import numpy as np
 from drivetrack.geometry import rotation_from_rpy
 from drivetrack.waymo.schema import LaserName
 
-__all__ = ["LABEL_TIMES", "TIME_MODELS", "BoxTrajectory", "build_trajectory", "sweep_label_offsets",
+__all__ = ["LABEL_TILTS", "LABEL_TIMES", "TIME_MODELS", "BoxTrajectory", "build_trajectory", "sweep_label_offsets",
            "label_time_residual", "segment_trajectory", "points_box_at", "fit_sweep_law"]
 
 #: ``TrackConfig.label_time`` values.
 LABEL_TIMES = ("frame", "sweep", "auto")
+#: ``TrackConfig.label_tilt`` values: the world tilt of yaw-only labels, one per object (``constant``,
+#: their mean) or a straight line in time through them (``linear``).
+LABEL_TILTS = ("constant", "linear")
 #: ``TrackConfig.time_model`` values: ``trajectory`` (this module) or ``velocity`` (the box moved
 #: along its finite-difference velocity from the frame time to the image pose time, pre-issue 16).
 TIME_MODELS = ("trajectory", "velocity")
@@ -165,14 +171,19 @@ def _local_quadratic(delta: np.ndarray, tau: np.ndarray, valid: np.ndarray) -> t
     return velocity, acceleration
 
 
-def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame") -> BoxTrajectory:
+def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame",
+                     label_tilt: str = "constant") -> BoxTrajectory:
     """The :class:`BoxTrajectory` of every box row of ``scene``, sampled at frame time + ``label_offset_s``.
 
     Args:
         scene: a :class:`drivetrack.scene.Scene`.
         label_offset_s: float64 [K], seconds, each row's label time minus its frame time.
         label_time: the name of the convention (recorded only).
+        label_tilt: the world tilt of objects whose boxes are all yaw-only, one of
+            :data:`LABEL_TILTS` (module docstring).
     """
+    if label_tilt not in LABEL_TILTS:
+        raise ValueError(f"segment {scene.segment!r}: label_tilt must be one of {LABEL_TILTS}, got {label_tilt!r}")
     boxes = scene.boxes
     k = len(boxes)
     frame_time = ((np.asarray(scene.timestamps_micros, np.int64)[boxes.frame]
@@ -184,15 +195,16 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
     keys = np.unique(boxes.object_id.astype(str), return_inverse=True)[1] if k else np.zeros(0, np.int64)
     if k:
         # Yaw-only labels in the frame of a pitching, rolling ego tilt the object in the world by
-        # the ego's tilt, which changes frame to frame. Objects stand on the road: their world
-        # tilt changes slowly, so take it as a straight line in time per object (least squares),
-        # for objects whose boxes are all yaw-only (a refined 6-DOF pose is kept as it is).
+        # the ego's tilt, which changes frame to frame with the ego's suspension and road, not
+        # with the object: one tilt per object (their mean), or a straight line in time, for
+        # objects whose boxes are all yaw-only (a refined 6-DOF pose is kept as it is).
         box_pitch, box_roll = boxes.tilt()
         flat = (np.ones(k, bool) if box_pitch is None
                 else (box_pitch == 0) & (box_roll == 0))
         level = np.bincount(keys, ~flat, minlength=keys.max() + 1)[keys] == 0
         if level.any():
-            fitted = [_linear_in_time(a, time_s, keys) for a in (pitch, roll)]
+            fit = _linear_in_time if label_tilt == "linear" else _mean_per_key
+            fitted = [fit(a, time_s, keys) for a in (pitch, roll)]
             pitch = np.where(level, fitted[0], pitch)
             roll = np.where(level, fitted[1], roll)
     centre = world_from_box[:, :3, 3].copy()
@@ -210,6 +222,13 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
         velocity[alone] = np.einsum("nij,nj->ni", world_from_vehicle[alone, :3, :3], np.where(ok[:, None], speed, 0.0))
     return BoxTrajectory(label_time, frame_time, time_s, centre, yaw, pitch, roll, velocity, acceleration,
                          yaw_rate, yaw_acceleration)
+
+
+def _mean_per_key(values: np.ndarray, time_s: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """float64 [K]: per key (int [K]), the mean of ``values`` at each row (``time_s`` unused:
+    the signature of :func:`_linear_in_time`)."""
+    count = np.bincount(keys).astype(np.float64)
+    return (np.bincount(keys, values) / count)[keys]
 
 
 def _linear_in_time(values: np.ndarray, time_s: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -347,8 +366,9 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
         raise ValueError(f"segment {scene.segment!r}: TrackConfig.label_time must be one of {LABEL_TIMES}, "
                          f"got {label_time!r}")
     cache = scene.__dict__.setdefault("_label_times", {})
-    if label_time in cache:
-        return cache[label_time]
+    key = (label_time, config.label_tilt)
+    if key in cache:
+        return cache[key]
     k = len(scene.boxes)
     decision = {"requested": label_time, "residual_frame_m": float("nan"), "residual_sweep_m": float("nan"),
                 "votes": 0, "label_time": "frame"}
@@ -364,8 +384,8 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
         if label_time == "auto" and chosen is not None:
             decision.update(cache["decision"])
         elif label_time == "auto":
-            by_sweep = build_trajectory(scene, sweep, "sweep")
-            by_frame = build_trajectory(scene, np.zeros(k), "frame")
+            by_sweep = build_trajectory(scene, sweep, "sweep", config.label_tilt)
+            by_frame = build_trajectory(scene, np.zeros(k), "frame", config.label_tilt)
             shift = np.linalg.norm(by_frame.velocity, axis=-1) * np.abs(sweep)
             voters = np.flatnonzero(shift >= MIN_VOTE_SHIFT_M)
             if voters.size > MAX_VOTERS:       # evenly strided: the decision is per segment
@@ -385,8 +405,8 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
                 offsets = np.zeros(k)
                 decision["label_time"] = "frame"
     decision["requested"] = label_time
-    cache[label_time] = (offsets, decision)
-    return cache[label_time]
+    cache[key] = (offsets, decision)
+    return cache[key]
 
 
 def carry_label_times(source, target, config) -> None:
@@ -407,5 +427,6 @@ def segment_trajectory(plan, label_time: str | None = None) -> tuple[BoxTrajecto
     cache = plan.__dict__.setdefault("_trajectories", {})
     if config.label_time not in cache:
         offsets, decision = scene_label_times(plan.scene, config)
-        cache[config.label_time] = (build_trajectory(plan.scene, offsets, decision["label_time"]), decision)
+        cache[config.label_time] = (build_trajectory(plan.scene, offsets, decision["label_time"], config.label_tilt),
+                                    decision)
     return cache[config.label_time]
