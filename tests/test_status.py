@@ -191,7 +191,10 @@ def test_serving_a_build_folder_rerenders_live(tmp_path):
 
 # ---- quality beside state, previews and the version index, on a published annotation -------------
 
-STRICT_GATES = {"object": {"speed_err_p50_max_mps": {"value": 0.001, "reason": "demo: a bound some clips miss"}}}
+#: A bound some clips miss: track speeds agree with the labelled box speeds to 1e-7..1e-4 m/s on the
+#: synthetic segments since the labels' tilt is one per object (label_tilt: constant; some were above 1e-3 before).
+STRICT_BOUND_MPS = 1e-6
+STRICT_GATES = {"object": {"speed_err_p50_max_mps": {"value": STRICT_BOUND_MPS, "reason": "demo: a bound some clips miss"}}}
 
 
 def _status_of_folder(src: Path, version: str, previews: list[str]) -> ReleaseStatus:
@@ -234,7 +237,7 @@ def two_version_store(annotated_output, tmp_path_factory) -> Path:
     assert not report["success"]
     write_status(str(src), _status_of_folder(src, "0.2.0", previews), quality=read_quality(str(src)))
     publish_release(str(src), str(store), "0.2.0", gate_report=report,
-                    accept_failed_gates="demo: speed_err_p50 bound of 0.001 m/s is deliberately strict")
+                    accept_failed_gates=f"demo: speed_err_p50 bound of {STRICT_BOUND_MPS} m/s is deliberately strict")
     return store
 
 
@@ -256,12 +259,14 @@ def test_quality_beside_state_from_the_release_tables(two_version_store):
         assert got["refined_share"] == pytest.approx(float(mine.refine_applied.eq(True).mean()))
         assert got["rejected"] == {c[len("rejected_"):]: int(getattr(row, c)) for c in segs.columns
                                    if c.startswith("rejected_") and getattr(row, c)}
-        too_slow = mine[mine.speed_err_p50 > 0.001]
+        too_slow = mine[mine.speed_err_p50 > STRICT_BOUND_MPS]
         gate = [g for g in got["gates"] if g["gate"] == "object.speed_err_p50_max"]
         assert (len(gate) == 1 and gate[0]["num_failing"] == len(too_slow)) if len(too_slow) else not gate
     page = (rel / "status.html").read_text()    # the page published inside the release
     assert page.count('data-q="speed_err_p50"') == len(segs) and "object.speed_err_p50_max" in page
-    assert "speed_err_p50=" in page and "expected in [0, 0.001]" in page
+    from drivetrack.gates.report import _fmt
+
+    assert "speed_err_p50=" in page and f"expected in [0, {_fmt(STRICT_BOUND_MPS)}]" in page
 
 
 def _get(url: str) -> tuple[int, str, bytes]:
