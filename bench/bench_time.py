@@ -7,7 +7,7 @@ turning car, a crossing cyclist), under ``label_time`` frame and sweep, with exa
 widened as in ``bench_visibility`` (all five cameras, every object type, ``min_frames`` 8,
 ``max_camera_distance_m`` 75), once per time model:
 
-- ``velocity``: ``TrackConfig(time_model="velocity")``, the object moved along the finite-difference
+- ``velocity``: ``TrackConfig(time_model="velocity")`` (pose refinement's defaults), the object moved along the finite-difference
   box velocity from the frame time to the image pose time (main's code before issue 16);
 - ``trajectory/linear``: ``TrackConfig(time_model="trajectory", label_tilt="linear")``, the
   object's continuous-time trajectory (:mod:`drivetrack.tracks.trajectory`) evaluated at each
@@ -125,7 +125,8 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
              f"`bench/bench_time.py`: one `SynthConfig(world=\"hard\", rolling_shutter=True)` segment per "
              f"scenario (cameras triggered as the TOP sweep passes them), preset `{setup['preset']}`, "
              f"{setup['frames']} frames, seed {setup['seed']}, cameras {', '.join(CAMERAS)}; clip selection "
-             f"as `bench_visibility` (`min_frames` 8). `velocity` = `time_model=\"velocity\"` (before issue 16), "
+             f"as `bench_visibility` (`min_frames` 8). `velocity` = `time_model=\"velocity\"` (the model before issue 16; "
+             f"pose refinement's defaults), "
              f"`trajectory/linear` = the trajectory with yaw-only labels' tilt a line in time (`label_tilt=\"linear\"`, "
              f"`static_objects=False`), `no-static` = the defaults but `RefineConfig(static_objects=False)`, "
              f"`trajectory` = the defaults (`label_time=\"auto\"`, `label_tilt=\"constant\"`, static objects held at "
@@ -142,10 +143,11 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
                          f"{s['clips_meeting']} | {_f(s['worst_median_px'], 3)} | {_f(s['median_of_medians_px'], 3)} | "
                          f"{_f(s['min_aj'])} | {_f(s['mean_aj'])} | {m['annotate_s']:.0f} |")
     for r in results:
-        if r["noise_m"] > 0:
+        if r["noise_m"] > 0 and r["label_time"] != "frame":
             continue
         models = list(r["models"])
-        lines += ["", f"Per clip, `lidar_box` at {r['label_time']} time, exact labels (median px / AJ):", "",
+        labels = "exact labels" if r["noise_m"] == 0 else f"{r['noise_m'] * 100:.0f} cm label noise"
+        lines += ["", f"Per clip, `lidar_box` at {r['label_time']} time, {labels} (median px / AJ):", "",
                   "| camera | object (role) | frames | " + " | ".join(models) + " |",
                   "|---|---|---|" + "---|" * len(models)]
         base = r["models"][models[0]]["clips"]
