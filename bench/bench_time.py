@@ -7,12 +7,16 @@ turning car, a crossing cyclist), under ``label_time`` frame and sweep, with exa
 widened as in ``bench_visibility`` (all five cameras, every object type, ``min_frames`` 8,
 ``max_camera_distance_m`` 75), once per time model:
 
-- ``velocity``: ``TrackConfig(time_model="velocity")``, the object moved along the finite-difference
+- ``velocity``: ``TrackConfig(time_model="velocity")`` (pose refinement's defaults), the object moved along the finite-difference
   box velocity from the frame time to the image pose time (main's code before issue 16);
 - ``trajectory/linear``: ``TrackConfig(time_model="trajectory", label_tilt="linear")``, the
   object's continuous-time trajectory (:mod:`drivetrack.tracks.trajectory`) evaluated at each
-  pixel's capture time, yaw-only labels' world tilt a straight line in time (before this stop);
-- ``trajectory``: the defaults (``label_tilt="constant"``: one tilt per object).
+  pixel's capture time, yaw-only labels' world tilt a straight line in time, no static objects
+  (``RefineConfig(static_objects=False)``);
+- ``no-static``: the defaults but ``static_objects=False`` (one tilt per object);
+- ``trajectory``: the defaults (one tilt per object, static objects held at one world pose).
+
+(:data:`MODELS`).
 
 Per clip: median pixel error over truth-visible point-frames and AJ (TAP-Vid, query mode
 ``first``); the targets of issue 16 are checked on clips of >= 8 frames.
@@ -39,6 +43,11 @@ DOC = ROOT / "docs" / "benchmarks.md"
 DOC_START, DOC_END = "<!-- bench_time:start -->", "<!-- bench_time:end -->"
 CAMERAS = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
 SCENARIOS = (("frame", 0.0), ("sweep", 0.0), ("frame", 0.05), ("sweep", 0.05))
+#: model name -> (TrackConfig overrides, RefineConfig overrides); "main": the defaults
+MODELS = {"velocity": ({"time_model": "velocity"}, {}),
+          "trajectory/linear": ({"label_tilt": "linear"}, {"static_objects": False}),
+          "no-static": ({}, {"static_objects": False}),
+          "trajectory": ({}, {}), "main": ({}, {})}
 
 
 def clip_rows(tracks, clips, root: str, role_of: dict) -> list[dict]:
@@ -88,11 +97,10 @@ def run_scenario(label_time: str, noise: float, args, models: tuple[str, ...]) -
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
         role_of = dict(zip(objects["object_id"].astype(str), objects["role"].astype(str)))
         for model in models:
-            # "trajectory/linear": time_model, then label_tilt
-            extra = (dict(zip(("time_model", "label_tilt"), model.split("/"))) if model != "main" else {})
+            extra, refine = MODELS[model]
             config = AnnotateConfig(track=TrackConfig(
                 cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
-                max_camera_distance_m=75.0, **extra))
+                max_camera_distance_m=75.0, **extra), refine_options=dict(refine))
             start = time.perf_counter()
             result = annotate_segment(f"{tmp}/src", "training", seg, f"{tmp}/out_{model}", config,
                                       keep_tracks=True)
@@ -117,9 +125,12 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
              f"`bench/bench_time.py`: one `SynthConfig(world=\"hard\", rolling_shutter=True)` segment per "
              f"scenario (cameras triggered as the TOP sweep passes them), preset `{setup['preset']}`, "
              f"{setup['frames']} frames, seed {setup['seed']}, cameras {', '.join(CAMERAS)}; clip selection "
-             f"as `bench_visibility` (`min_frames` 8). `velocity` = `time_model=\"velocity\"` (before issue 16), "
-             f"`trajectory/linear` = the trajectory with yaw-only labels' tilt a line in time (`label_tilt=\"linear\"`), "
-             f"`trajectory` = the defaults (`label_time=\"auto\"`, `label_tilt=\"constant\"`). Per clip of >= 8 frames: "
+             f"as `bench_visibility` (`min_frames` 8). `velocity` = `time_model=\"velocity\"` (the model before issue 16; "
+             f"pose refinement's defaults), "
+             f"`trajectory/linear` = the trajectory with yaw-only labels' tilt a line in time (`label_tilt=\"linear\"`, "
+             f"`static_objects=False`), `no-static` = the defaults but `RefineConfig(static_objects=False)`, "
+             f"`trajectory` = the defaults (`label_time=\"auto\"`, `label_tilt=\"constant\"`, static objects held at "
+             f"one world pose). Per clip of >= 8 frames: "
              f"median px error over truth-visible point-frames and AJ (query mode `first`). Target (exact "
              f"labels): every clip median <= 0.05 px and AJ >= 0.99; with noise pooled AJ >= 0.90. "
              f"Machine: {machine}.", "",
@@ -132,10 +143,11 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
                          f"{s['clips_meeting']} | {_f(s['worst_median_px'], 3)} | {_f(s['median_of_medians_px'], 3)} | "
                          f"{_f(s['min_aj'])} | {_f(s['mean_aj'])} | {m['annotate_s']:.0f} |")
     for r in results:
-        if r["noise_m"] > 0:
+        if r["noise_m"] > 0 and r["label_time"] != "frame":
             continue
         models = list(r["models"])
-        lines += ["", f"Per clip, `lidar_box` at {r['label_time']} time, exact labels (median px / AJ):", "",
+        labels = "exact labels" if r["noise_m"] == 0 else f"{r['noise_m'] * 100:.0f} cm label noise"
+        lines += ["", f"Per clip, `lidar_box` at {r['label_time']} time, {labels} (median px / AJ):", "",
                   "| camera | object (role) | frames | " + " | ".join(models) + " |",
                   "|---|---|---|" + "---|" * len(models)]
         base = r["models"][models[0]]["clips"]
@@ -153,9 +165,8 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_hard_world_arguments(ap)
-    ap.add_argument("--models", default="velocity,trajectory/linear,trajectory",
-                    help="comma-separated TrackConfig.time_model values, each optionally /label_tilt "
-                         "(\"main\": the defaults)")
+    ap.add_argument("--models", default="velocity,trajectory/linear,no-static,trajectory",
+                    help=f"comma-separated model names, of {sorted(MODELS)}")
     ap.add_argument("--scenarios", default="all", help="'all' or e.g. 'frame:0,sweep:0.05'")
     args = ap.parse_args(argv if argv is not None else [])
     scenarios = SCENARIOS if args.scenarios == "all" else tuple(

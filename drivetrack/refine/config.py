@@ -59,6 +59,13 @@ class RefineConfig:
             labels: level in the vehicle frame); refined boxes then carry ``pitch``/``roll``.
         pitch_roll_accel_sigma_radps2: (6 DOF) motion model stiffness of the box's pitch and
             roll in the *world* (the ego's own pitch and roll are taken out with its pose).
+        static_objects: give an object the labels show standing still one world pose, the robust
+            mean of its labels' (:mod:`drivetrack.refine.static`), before registration; its box is
+            grown to hold its returns when the registration keeps that pose.
+        static_speed_mps, static_fit_speed_mps: an object is static when its labelled speed stays
+            under ``static_speed_mps`` in 90% of its frames and the least-squares line through
+            its labels' world centres over time moves slower than ``static_fit_speed_mps``
+            (``static_speed_mps`` when the labels carry no speed).
         min_points_total, min_frames_with_points, min_points_per_frame: fallback
             ``too_few_points`` unless the labels select at least ``min_points_total`` returns and
             at least ``min_frames_with_points`` frames have ``min_points_per_frame`` returns.
@@ -113,6 +120,9 @@ class RefineConfig:
     early_stop_iteration: int = 2
     tolerance_m: float = 1e-3
     tolerance_deg: float = 0.02
+    static_objects: bool = True
+    static_speed_mps: float = 0.1
+    static_fit_speed_mps: float = 0.25
     fit_extent: bool = True
     extent_margin_m: float = 0.02
     max_extent_growth_m: float = 0.1
@@ -123,7 +133,8 @@ class RefineConfig:
                     "point_sigma_floor_m", "min_planarity", "label_sigma_m", "label_sigma_deg", "accel_sigma_mps2",
                     "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "pitch_roll_accel_sigma_radps2",
                     "max_residual_m", "max_correction_m",
-                    "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg")
+                    "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg", "static_speed_mps",
+                    "static_fit_speed_mps")
         for name in positive:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):

@@ -47,6 +47,8 @@ class RefinedPoses:
         reason: a :class:`RefineReason`; ``detail``: human-readable numbers behind it.
         iterations: Gauss-Newton iterations run.
         cpu_seconds: process CPU time spent in the call.
+        static: the labels were replaced by one world pose first (a static object,
+            ``RefineConfig.static_objects``, :mod:`drivetrack.refine.static`).
     """
     vehicle_from_box: np.ndarray
     world_from_box: np.ndarray
@@ -67,6 +69,7 @@ class RefinedPoses:
     cpu_seconds: float = 0.0
     pitch: np.ndarray | None = None
     roll: np.ndarray | None = None
+    static: bool = False
 
     def summary(self) -> dict:
         """Flat dict for the statistics tables and the gates (one row per object)."""
@@ -89,7 +92,19 @@ class RefinedPoses:
             "refine_frames_without_points": int((self.num_points == 0).sum()),
             "refine_iterations": int(self.iterations),
             "refine_cpu_seconds": float(self.cpu_seconds),
+            "refine_static": bool(self.static),
         }
+
+
+def grown_extent(points_body: np.ndarray, half: np.ndarray, config: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(grow_lo, grow_hi)`` float64 [3] each, metres: how far to move the box's -x -y -z and
+    +x +y +z faces outwards so that it holds ``points_body`` (float [N, 3], body frame; ``half``
+    float [N, 3] or [3], the box's half size at each) with ``config.extent_margin_m`` to spare,
+    never shrinking, at most ``config.max_extent_growth_m``, never lowering the bottom (ground)."""
+    grow_hi = np.clip(np.max(points_body - half, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
+    grow_lo = np.clip(np.max(-points_body - half, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
+    grow_lo[2] = 0.0
+    return grow_lo, grow_hi
 
 
 def _check_inputs(vehicle_from_box, size, world_from_vehicle, points_vehicle, point_frame, timestamps_s, name):
@@ -328,11 +343,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         # error, the gauge) and, with point selection at the box faces, lose whole faces in every
         # frame where noisy labels lost them in about half the frames.
         fa = final_pairs.fa[inlier]
-        q = final_pairs.qa[inlier]                        # body points at the final state
-        half_f = half[fa]
-        grow_hi = np.clip(np.max(q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
-        grow_lo = np.clip(np.max(-q - half_f, axis=0) + config.extent_margin_m, 0.0, config.max_extent_growth_m)
-        grow_lo[2] = 0.0
+        grow_lo, grow_hi = grown_extent(final_pairs.qa[inlier], half[fa], config)   # body points at the final state
         if np.any(grow_hi > 0) or np.any(grow_lo > 0):
             offset = (grow_hi - grow_lo) / 2.0                                   # body frame
             center = center + vectors_from_box(np.broadcast_to(offset, (t_count, 3)), heading,

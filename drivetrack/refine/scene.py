@@ -1,13 +1,17 @@
 """Refinement of every object of a scene: candidate returns per box, then one object at a time."""
 from __future__ import annotations
 
+import dataclasses
+from types import SimpleNamespace
+
 import numpy as np
 
 from drivetrack.boxes import gather_candidates, inside_box
 from drivetrack.geometry import vectors_from_box
 from drivetrack.refine.config import RefineConfig, _use_kernel
-from drivetrack.refine.poses import refine_object_poses
+from drivetrack.refine.poses import grown_extent, refine_object_poses
 from drivetrack.refine.select import _body_points
+from drivetrack.refine.static import static_object_centres
 
 __all__ = ["refine_scene_boxes"]
 
@@ -45,6 +49,27 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     tilted = pitch_all is not None or config.pitch_roll_sigma_deg is not None
     pitch = (np.zeros(len(boxes)) if pitch_all is None else pitch_all.copy()) if tilted else None
     roll = (np.zeros(len(boxes)) if roll_all is None else roll_all.copy()) if tilted else None
+    object_rows = []
+    for oid in ids:
+        rows = np.flatnonzero(object_id == oid)
+        if rows.size == 0:
+            raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
+        object_rows.append(rows[np.argsort(boxes.frame[rows], kind="stable")])
+    # Objects standing still get one world pose first (refine/static.py); from here on "boxes" are
+    # these labels: the prior, the start, the sweep compensation's motion (a static object's
+    # finite-difference velocity from noisy labels is noise: 0.35 m/s at 5 cm, 1.8 cm over 50 ms).
+    static = set()
+    if config.static_objects:
+        for oid, rows in zip(ids, object_rows):
+            pose = static_object_centres(scene, rows, config.static_speed_mps, config.static_fit_speed_mps)
+            if pose is not None:
+                static.add(oid)
+                center[rows], heading[rows] = pose
+        if static:
+            boxes = Boxes(**{k: v for k, v in boxes.__dict__.items()})
+            boxes.center, boxes.heading = center.copy(), heading.copy()
+            scene = dataclasses.replace(scene, boxes=boxes) if dataclasses.is_dataclass(scene) else \
+                _with_boxes(scene, boxes)
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
     # move each candidate to where its surface was at the frame time (with the labels' motion)
     # before registering, as the track stage does (drivetrack.tracks.sweep_motion).
@@ -53,12 +78,6 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
 
         box_velocity, box_yaw_rate = scene_box_motion(scene)
-    object_rows = []
-    for oid in ids:
-        rows = np.flatnonzero(object_id == oid)
-        if rows.size == 0:
-            raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
-        object_rows.append(rows[np.argsort(boxes.frame[rows], kind="stable")])
     # Candidates of every box of every object at once: the returns of the box's frame within its
     # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
     all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
@@ -95,6 +114,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                      p[inside], owner[inside], timestamps_s[frames], config,
                                      name=f"{scene.segment}/{oid}")
+        result.static = oid in static
         results[oid] = result
         if result.refined:
             center[rows] = result.center_vehicle
@@ -102,7 +122,23 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             size[rows] = result.size
             if tilted:
                 pitch[rows], roll[rows] = result.pitch, result.roll
+        elif oid in static and config.fit_extent:
+            # the one world pose is the labels' mean: a label error of a centimetre or two puts a
+            # face's returns just outside the box, as after registration (poses.py), so the box
+            # is grown to hold the object's returns near it (a parked car lost half its returns)
+            near = inside_box(local, boxes.size[rows][owner], config.inlier_margin_m, config.ground_clearance_m)
+            if near.any():
+                grow_lo, grow_hi = grown_extent(local[near], 0.5 * boxes.size[rows][owner[near]], config)
+                if np.any(grow_hi > 0) or np.any(grow_lo > 0):
+                    offset = np.broadcast_to((grow_hi - grow_lo) / 2.0, (rows.size, 3))
+                    center[rows] = center[rows] + vectors_from_box(offset, heading[rows])
+                    size[rows] = boxes.size[rows] + (grow_hi + grow_lo)
     refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
     refined.center, refined.heading, refined.size = center, heading, size
     refined.pitch, refined.roll = pitch, roll
     return refined, results
+
+
+def _with_boxes(scene, boxes):
+    """A shallow stand-in for ``scene`` (not a dataclass: tests pass namespaces) with ``boxes``."""
+    return SimpleNamespace(**{**vars(scene), "boxes": boxes})
