@@ -20,7 +20,8 @@ LEVELS = ("object", "segment", "release")
 
 #: Outcomes of the pose refinement (drivetrack.refine) that are not a sign of trouble (plain str values).
 TRUSTED_REFINE_OUTCOMES = tuple(reason.value for reason in (RefineReason.REFINED, RefineReason.LABELS_CONSISTENT,
-                                                            RefineReason.TOO_FEW_POINTS, RefineReason.DISABLED))
+                                                            RefineReason.STATIC, RefineReason.TOO_FEW_POINTS,
+                                                            RefineReason.DISABLED))
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,13 @@ class RefineReason(StrEnum):
     """``RefinedPoses.reason`` values (``refine_reason`` in the objects table). ``refined``: refined
     poses returned; ``disabled``: refinement off by configuration; ``labels_consistent``: the labels
     are already as consistent with the LiDAR as the refined poses (within ``min_improvement``), so
-    they are kept unchanged; the others are fallbacks to the labels (``used_fallback``)."""
+    they are kept unchanged; ``static``: the labels show the object standing still, it keeps one
+    world pose (the labels' mean, :mod:`drivetrack.refine.static`) and is not registered frame by
+    frame; the others are fallbacks to the labels (``used_fallback``)."""
     REFINED = "refined"
     DISABLED = "disabled"
     LABELS_CONSISTENT = "labels_consistent"
+    STATIC = "static"
     TOO_FEW_POINTS = "too_few_points"
     LARGE_RESIDUAL = "large_residual"
     LARGE_CORRECTION = "large_correction"
@@ -65,7 +68,9 @@ class RefineConfig:
         static_speed_mps, static_fit_speed_mps: an object is static when its labelled speed stays
             under ``static_speed_mps`` in 90% of its frames and the least-squares line through
             its labels' world centres over time moves slower than ``static_fit_speed_mps``
-            (``static_speed_mps`` when the labels carry no speed).
+            (``static_speed_mps`` when the labels carry no speed) and by less than
+            ``static_max_drift_m`` over the object's labels. A static object is not registered
+            frame by frame (reason ``static``).
         min_points_total, min_frames_with_points, min_points_per_frame: fallback
             ``too_few_points`` unless the labels select at least ``min_points_total`` returns and
             at least ``min_frames_with_points`` frames have ``min_points_per_frame`` returns.
@@ -123,6 +128,7 @@ class RefineConfig:
     static_objects: bool = True
     static_speed_mps: float = 0.1
     static_fit_speed_mps: float = 0.25
+    static_max_drift_m: float = 0.2
     fit_extent: bool = True
     extent_margin_m: float = 0.02
     max_extent_growth_m: float = 0.1
@@ -134,7 +140,7 @@ class RefineConfig:
                     "yaw_accel_sigma_radps2", "vertical_accel_sigma_mps2", "pitch_roll_accel_sigma_radps2",
                     "max_residual_m", "max_correction_m",
                     "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg", "static_speed_mps",
-                    "static_fit_speed_mps")
+                    "static_fit_speed_mps", "static_max_drift_m")
         for name in positive:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):

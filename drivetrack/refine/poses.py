@@ -47,8 +47,6 @@ class RefinedPoses:
         reason: a :class:`RefineReason`; ``detail``: human-readable numbers behind it.
         iterations: Gauss-Newton iterations run.
         cpu_seconds: process CPU time spent in the call.
-        static: the labels were replaced by one world pose first (a static object,
-            ``RefineConfig.static_objects``, :mod:`drivetrack.refine.static`).
     """
     vehicle_from_box: np.ndarray
     world_from_box: np.ndarray
@@ -69,7 +67,6 @@ class RefinedPoses:
     cpu_seconds: float = 0.0
     pitch: np.ndarray | None = None
     roll: np.ndarray | None = None
-    static: bool = False
 
     def summary(self) -> dict:
         """Flat dict for the statistics tables and the gates (one row per object)."""
@@ -92,7 +89,6 @@ class RefinedPoses:
             "refine_frames_without_points": int((self.num_points == 0).sum()),
             "refine_iterations": int(self.iterations),
             "refine_cpu_seconds": float(self.cpu_seconds),
-            "refine_static": bool(self.static),
         }
 
 

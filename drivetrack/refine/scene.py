@@ -8,7 +8,7 @@ import numpy as np
 
 from drivetrack.boxes import gather_candidates, inside_box
 from drivetrack.geometry import vectors_from_box
-from drivetrack.refine.config import RefineConfig, _use_kernel
+from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
 from drivetrack.refine.select import _body_points
 from drivetrack.refine.static import static_object_centres
@@ -58,14 +58,17 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     # Objects standing still get one world pose first (refine/static.py); from here on "boxes" are
     # these labels: the prior, the start, the sweep compensation's motion (a static object's
     # finite-difference velocity from noisy labels is noise: 0.35 m/s at 5 cm, 1.8 cm over 50 ms).
-    static = set()
+    static, replaced = set(), set()
     if config.static_objects:
         for oid, rows in zip(ids, object_rows):
-            pose = static_object_centres(scene, rows, config.static_speed_mps, config.static_fit_speed_mps)
+            pose = static_object_centres(scene, rows, config.static_speed_mps, config.static_fit_speed_mps,
+                                         config.static_max_drift_m)
             if pose is not None:
                 static.add(oid)
-                center[rows], heading[rows] = pose
-        if static:
+                if pose[2]:
+                    replaced.add(oid)
+                    center[rows], heading[rows] = pose[0], pose[1]
+        if replaced:
             boxes = Boxes(**{k: v for k, v in boxes.__dict__.items()})
             boxes.center, boxes.heading = center.copy(), heading.copy()
             scene = dataclasses.replace(scene, boxes=boxes) if dataclasses.is_dataclass(scene) else \
@@ -111,10 +114,19 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             p = vectors_from_box(local, boxes.heading[rows][owner], *tilt_o) \
                 + boxes.center[rows][owner]
             inside = np.ones(owner.size, dtype=bool)
-        result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
-                                     p[inside], owner[inside], timestamps_s[frames], config,
-                                     name=f"{scene.segment}/{oid}")
-        result.static = oid in static
+        if oid in static:              # one pose: nothing frame to frame to register (refine/static.py)
+            result = dataclasses.replace(
+                refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
+                                    p[inside], owner[inside], timestamps_s[frames],
+                                    dataclasses.replace(config, enabled=False), name=f"{scene.segment}/{oid}"),
+                reason=RefineReason.STATIC,
+                detail="static: " + ("one world pose, the labels' mean" if oid in replaced
+                                     else "the labels already hold one world pose"),
+                num_points=np.bincount(owner[inside], minlength=rows.size).astype(np.int64))
+        else:
+            result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
+                                         p[inside], owner[inside], timestamps_s[frames], config,
+                                         name=f"{scene.segment}/{oid}")
         results[oid] = result
         if result.refined:
             center[rows] = result.center_vehicle
@@ -122,7 +134,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             size[rows] = result.size
             if tilted:
                 pitch[rows], roll[rows] = result.pitch, result.roll
-        elif oid in static and config.fit_extent:
+        elif oid in replaced and config.fit_extent:
             # the one world pose is the labels' mean: a label error of a centimetre or two puts a
             # face's returns just outside the box, as after registration (poses.py), so the box
             # is grown to hold the object's returns near it (a parked car lost half its returns)

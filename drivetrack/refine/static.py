@@ -9,7 +9,11 @@ refinement then starts from it and keeps it unless its own returns disagree.
 
 An object is static when its labelled speed (``lidar_box`` ``speed``, when given) stays under
 ``static_speed_mps`` in most frames and its labels' world centres show no motion either: the
-least-squares line through them over time moves slower than ``static_fit_speed_mps``.
+least-squares line through them over time moves slower than ``static_fit_speed_mps`` (and by
+less than ``static_max_drift_m`` over the object's labels). A static object is not registered
+frame by frame (:func:`drivetrack.refine.scene.refine_scene_boxes`, reason ``static``): with one
+pose there is no frame-to-frame error left to find, and a registration could only add jitter (a
+thin pole with 11 returns a frame was moved 4-13 cm off exact labels by its normals' error).
 """
 from __future__ import annotations
 
@@ -23,13 +27,15 @@ STATIC_FRACTION = 0.9
 SAME_POSE_M, SAME_POSE_RAD = 1e-3, 1e-4
 
 
-def static_object_centres(scene, rows: np.ndarray, speed_mps: float, fit_speed_mps: float
-                          ) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(centre float64 [R, 3] m, heading float64 [R] rad)``: one object's labels (box rows
-    ``rows``, int [R]) replaced by one world pose, in the vehicle frame of each row's frame; None
-    when the object is not static (module docstring), its boxes carry their own tilt, or its
-    labels already hold one pose (within :data:`SAME_POSE_M` and :data:`SAME_POSE_RAD`: kept as
-    they are, bit for bit).
+def static_object_centres(scene, rows: np.ndarray, speed_mps: float, fit_speed_mps: float,
+                          max_drift_m: float = 0.2) -> tuple[np.ndarray, np.ndarray, bool] | None:
+    """``(centre float64 [R, 3] m, heading float64 [R] rad, replaced bool)``: one object's labels
+    (box rows ``rows``, int [R]) as one world pose, in the vehicle frame of each row's frame; None
+    when the object is not static (module docstring; also when the line through its labels' world
+    centres drifts by more than ``max_drift_m`` over its labels, a slow mover over a long
+    segment) or its boxes carry their own tilt. ``replaced`` is False, and the labels are returned
+    as they are (bit for bit), when they already hold one pose (within :data:`SAME_POSE_M` and
+    :data:`SAME_POSE_RAD`).
 
     The world pose: the per-axis median of the labels' world centres and the circular mean of
     their world yaws (the heading axis projected on the world's horizontal plane).
@@ -51,7 +57,9 @@ def static_object_centres(scene, rows: np.ndarray, speed_mps: float, fit_speed_m
     if span <= 0:
         return None
     velocity = (dt[:, None] * (centre_w[:, :2] - centre_w[:, :2].mean(0))).sum(0) / span
-    if not np.linalg.norm(velocity) <= (speed_mps if not known.any() else fit_speed_mps):
+    speed_fit = float(np.linalg.norm(velocity))
+    if not (speed_fit <= (speed_mps if not known.any() else fit_speed_mps)
+            and speed_fit * float(np.ptp(t)) <= max_drift_m):
         return None
     heading = boxes.heading[rows]
     forward = np.einsum("rij,rj->ri", world_from_vehicle[:, :3, :3],
@@ -66,5 +74,5 @@ def static_object_centres(scene, rows: np.ndarray, speed_mps: float, fit_speed_m
     moved = np.abs(centre_v - boxes.center[rows]).max()
     turned = np.abs(np.angle(np.exp(1j * (heading_v - heading)))).max()
     if moved <= SAME_POSE_M and turned <= SAME_POSE_RAD:      # the labels already hold one pose
-        return None
-    return centre_v, heading_v
+        return boxes.center[rows].copy(), heading.copy(), False
+    return centre_v, heading_v, True

@@ -32,7 +32,7 @@ OUTPUT_MODULES = (
     "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs",
     "drivetrack.refine", "drivetrack.refine.config", "drivetrack.refine.kernel", "drivetrack.refine.motion",
     "drivetrack.refine.poses", "drivetrack.refine.scene", "drivetrack.refine.select",
-    "drivetrack.refine.solver", "drivetrack.refine.terms", "drivetrack.scene", "drivetrack.storage",
+    "drivetrack.refine.solver", "drivetrack.refine.static", "drivetrack.refine.terms", "drivetrack.scene", "drivetrack.storage",
     "drivetrack.tracks", "drivetrack.tracks.config", "drivetrack.tracks.consistency",
     "drivetrack.tracks.context", "drivetrack.tracks.core", "drivetrack.tracks.kernel", "drivetrack.tracks.plan",
     "drivetrack.tracks.stats", "drivetrack.tracks.sweep_motion", "drivetrack.tracks.trajectory", "drivetrack.tidy", "drivetrack.tracks.writers",
