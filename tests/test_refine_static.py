@@ -32,7 +32,8 @@ def _scene(world_centre, world_heading, noise_m=0.0, noise_deg=0.0, speed=None, 
     boxes = Boxes(object_id=np.array(["car"] * FRAMES, dtype=object), frame=np.arange(FRAMES, dtype=np.int32),
                   center=centre, size=np.tile([4.5, 2.0, 1.6], (FRAMES, 1)), heading=heading,
                   type=np.ones(FRAMES, np.int8),
-                  speed=np.full((FRAMES, 3), np.nan) if speed is None else np.tile(speed, (FRAMES, 1)),
+                  speed=np.full((FRAMES, 3), np.nan) if speed is None else
+                  np.broadcast_to(np.asarray(speed, np.float64), (FRAMES, 3)).copy(),
                   num_lidar_points_in_box=np.full(FRAMES, -1))
     return SimpleNamespace(segment="unit", boxes=boxes, world_from_vehicle=world_from_vehicle,
                            timestamps_micros=(t * 1e6).astype(np.int64))
@@ -72,13 +73,18 @@ def test_exact_labels_of_a_parked_car_are_static_and_kept_bit_for_bit():
     assert np.array_equal(centre, scene.boxes.center) and np.array_equal(heading, scene.boxes.heading)
 
 
-@pytest.mark.parametrize("case", ["creeping", "drifting", "labelled_moving", "tilted", "one_frame"])
+@pytest.mark.parametrize("case", ["creeping", "drifting", "labelled_moving", "starting_off", "tilted", "one_frame"])
 def test_objects_that_move_or_cannot_be_judged_keep_their_labels(case):
     if case == "creeping":        # 0.5 m/s: 1 m over the segment, ten times the label noise
         scene = _scene(lambda t: _parked(t) + np.outer(t, [0.5, 0.0, 0.0]), lambda t: np.zeros(t.size), noise_m=0.05)
     elif case == "drifting":      # 0.15 m/s, labelled 0: under the speed bounds, but 0.29 m over the segment
         scene = _scene(lambda t: _parked(t) + np.outer(t, [0.15, 0.0, 0.0]), lambda t: np.zeros(t.size),
                        noise_m=0.005, speed=[0.0, 0.0, 0.0])
+    elif case == "starting_off":  # labelled 0 m/s but for its last two frames: 6 cm over the segment
+        speed = np.zeros((FRAMES, 3))
+        speed[-2:, 0] = 0.3
+        scene = _scene(lambda t: _parked(t) + np.outer(np.clip(t - 1.7, 0, None), [0.3, 0.0, 0.0]),
+                       lambda t: np.zeros(t.size), noise_m=0.005, speed=speed)
     else:
         scene = _scene(_parked, lambda t: np.zeros(t.size), noise_m=0.05,
                        speed=[1.5, 0.0, 0.0] if case == "labelled_moving" else [0.0, 0.0, 0.0])

@@ -66,7 +66,7 @@ class RefineConfig:
             mean of its labels' (:mod:`drivetrack.refine.static`), before registration; its box is
             grown to hold its returns when the registration keeps that pose.
         static_speed_mps, static_fit_speed_mps: an object is static when its labelled speed stays
-            under ``static_speed_mps`` in 90% of its frames and the least-squares line through
+            under ``static_speed_mps`` in every frame and the least-squares line through
             its labels' world centres over time moves slower than ``static_fit_speed_mps``
             (``static_speed_mps`` when the labels carry no speed) and by less than
             ``static_max_drift_m`` over the object's labels. A static object is not registered

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import dataclasses
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -71,8 +70,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         if replaced:
             boxes = Boxes(**{k: v for k, v in boxes.__dict__.items()})
             boxes.center, boxes.heading = center.copy(), heading.copy()
-            scene = dataclasses.replace(scene, boxes=boxes) if dataclasses.is_dataclass(scene) else \
-                _with_boxes(scene, boxes)
+            scene = dataclasses.replace(scene, boxes=boxes)
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
     # move each candidate to where its surface was at the frame time (with the labels' motion)
     # before registering, as the track stage does (drivetrack.tracks.sweep_motion).
@@ -150,7 +148,3 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     refined.pitch, refined.roll = pitch, roll
     return refined, results
 
-
-def _with_boxes(scene, boxes):
-    """A shallow stand-in for ``scene`` (not a dataclass: tests pass namespaces) with ``boxes``."""
-    return SimpleNamespace(**{**vars(scene), "boxes": boxes})

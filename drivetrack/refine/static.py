@@ -8,7 +8,7 @@ gets one world pose, the robust mean of its labels' (:func:`static_object_centre
 refinement then starts from it and keeps it unless its own returns disagree.
 
 An object is static when its labelled speed (``lidar_box`` ``speed``, when given) stays under
-``static_speed_mps`` in most frames and its labels' world centres show no motion either: the
+``static_speed_mps`` in every frame and its labels' world centres show no motion either: the
 least-squares line through them over time moves slower than ``static_fit_speed_mps`` (and by
 less than ``static_max_drift_m`` over the object's labels). A static object is not registered
 frame by frame (:func:`drivetrack.refine.scene.refine_scene_boxes`, reason ``static``): with one
@@ -21,8 +21,6 @@ import numpy as np
 
 __all__ = ["static_object_centres"]
 
-#: Fraction of an object's labels whose labelled speed must be under the static speed.
-STATIC_FRACTION = 0.9
 #: Labels within this of the one pose (metres, radians) already hold it and are kept as they are.
 SAME_POSE_M, SAME_POSE_RAD = 1e-3, 1e-4
 
@@ -47,7 +45,7 @@ def static_object_centres(scene, rows: np.ndarray, speed_mps: float, fit_speed_m
     speed = np.asarray(boxes.speed, np.float64)[rows] if boxes.speed is not None else np.full((rows.size, 3), np.nan)
     horizontal = np.linalg.norm(speed[:, :2], axis=-1)
     known = np.isfinite(horizontal)
-    if known.any() and np.mean(horizontal[known] <= speed_mps) < STATIC_FRACTION:
+    if known.any() and not np.all(horizontal[known] <= speed_mps):    # e.g. a car starting off at the end
         return None
     world_from_vehicle = np.asarray(scene.world_from_vehicle, np.float64)[boxes.frame[rows]]      # [R, 4, 4]
     centre_w = np.einsum("rij,rj->ri", world_from_vehicle[:, :3, :3], boxes.center[rows]) + world_from_vehicle[:, :3, 3]
