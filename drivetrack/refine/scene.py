@@ -54,9 +54,9 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         if rows.size == 0:
             raise ValueError(f"segment {scene.segment!r}: object {oid!r} has no lidar_box row")
         object_rows.append(rows[np.argsort(boxes.frame[rows], kind="stable")])
-    # Objects standing still get one world pose first (refine/static.py); from here on "boxes" are
-    # these labels: the prior, the start, the sweep compensation's motion (a static object's
-    # finite-difference velocity from noisy labels is noise: 0.35 m/s at 5 cm, 1.8 cm over 50 ms).
+    # Objects standing still get one world pose and are not registered (refine/static.py); from
+    # here on "boxes" are these labels, so their returns are also taken into the box frame without
+    # the noisy labels' finite-difference motion (0.35 m/s at 5 cm, 1.8 cm over 50 ms).
     static, replaced = set(), set()
     if config.static_objects:
         for oid, rows in zip(ids, object_rows):

@@ -4,8 +4,7 @@ A parked car, a pole or a sign does not move, so the frame-to-frame differences 
 labels are label noise, and every one of them moves the object's tracks (a constant error cancels
 from a track; a changing one does not). Per-frame registration cannot remove that noise where the
 returns observe a direction weakly (height above all), so an object the labels show standing still
-gets one world pose, the robust mean of its labels' (:func:`static_object_centres`); the pose
-refinement then starts from it and keeps it unless its own returns disagree.
+gets one world pose, the robust mean of its labels' (:func:`static_object_centres`).
 
 An object is static when its labelled speed (``lidar_box`` ``speed``, when given) stays under
 ``static_speed_mps`` in every frame and its labels' world centres show no motion either: the
