@@ -37,7 +37,7 @@ OUTPUT_MODULES = (
     "drivetrack.tracks.context", "drivetrack.tracks.core", "drivetrack.tracks.kernel", "drivetrack.tracks.plan",
     "drivetrack.tracks.stats", "drivetrack.tracks.sweep_motion", "drivetrack.tracks.trajectory", "drivetrack.tidy", "drivetrack.tracks.writers",
     "drivetrack.visibility", "drivetrack.visibility.facing", "drivetrack.visibility.zbuffer", "drivetrack.waymo", "drivetrack.waymo.capture_time", "drivetrack.waymo.checks", "drivetrack.waymo.columns",
-    "drivetrack.waymo.components", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
+    "drivetrack.waymo.components", "drivetrack.waymo.kernel", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
     "drivetrack.waymo.schema", "drivetrack.waymo.writer",
 )
 """Modules whose code can change a segment's outputs (clip files, its stats rows): the code part
