@@ -81,7 +81,7 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
         if frame_index.size == 0:
             continue
         points = lidar.points_vehicle[frame_index]
-        order = np.argsort(points[:, 0], kind="stable")
+        order = np.argsort(points[:, 0])     # any order of ties: the slab is a set, sorted below
         xs = points[order, 0]
         dt = None if offsets_s is None else offsets_s[frame_index]
         max_dt = 0.0 if dt is None else float(np.max(np.abs(dt)))
