@@ -211,8 +211,8 @@ def complete_depth(sparse: np.ndarray, config: TrackConfig) -> np.ndarray:
     if sparse.ndim != 3:
         raise ValueError(f"complete_depth expects sparse maps [B, H, W], got shape {sparse.shape}")
     completer = get_completer(config.depth_completer, **config.depth_completer_options)
-    dense = np.asarray(completer(np.maximum(sparse, 0.0)), dtype=np.float32)
-    return apply_depth_bounds(dense, sparse)
+    dense = np.require(completer(np.maximum(sparse, 0.0)), dtype=np.float32, requirements=("C", "W"))
+    return apply_depth_bounds(dense, sparse, in_place=True)
 
 
 @dataclass
