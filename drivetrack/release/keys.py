@@ -29,7 +29,7 @@ OUTPUT_MODULES = (
     "drivetrack.camera.rolling_shutter", "drivetrack.depth", "drivetrack.depth.completers",
     "drivetrack.depth.config", "drivetrack.depth.kernel", "drivetrack.depth.lookup", "drivetrack.depth.registry",
     "drivetrack.depth.sparse", "drivetrack.depth.stage", "drivetrack.depth.torch_nearest", "drivetrack.faults",
-    "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs",
+    "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs", "drivetrack.parallel",
     "drivetrack.refine", "drivetrack.refine.config", "drivetrack.refine.kernel", "drivetrack.refine.motion",
     "drivetrack.refine.poses", "drivetrack.refine.scene", "drivetrack.refine.select",
     "drivetrack.refine.solver", "drivetrack.refine.static", "drivetrack.refine.terms", "drivetrack.scene", "drivetrack.storage",
