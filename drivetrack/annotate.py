@@ -313,7 +313,8 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
 
     ``threads``: with 2 or more, the depth maps (sparse and completed) of the cameras' batches and,
     unless ``map_fn`` is given, the object jobs run in a pool of that many threads (their kernels
-    release the GIL); the results are the same and in the same order as with one.
+    release the GIL), and so do the core's per-frame and per-clip loops that use
+    :func:`drivetrack.parallel.pool_map`; the results are the same and in the same order as with one.
 
     ``hash_sources``: record the sha256 of each source file (``run.json``). ``write_segment_stats``:
     also write this segment's ``stats/*.parquet`` into ``out_url`` (a per-segment folder).
@@ -640,7 +641,7 @@ def annotate(source: str, split: str, segments: list[str], out_url: str, config:
              threads: int | None = None) -> list[SegmentResult]:
     """Annotate ``segments`` (in ``workers`` processes), then write the tables and ``run.json``.
 
-    Each segment runs its depth maps and object jobs in ``threads`` threads (default: the
+    Each segment runs its depth maps, object jobs and per-frame loops in ``threads`` threads (default: the
     available cores divided among the workers, at least 1).
 
     A failed segment is reported through its result and ``on_result`` and does not stop the
