@@ -33,6 +33,7 @@ import tempfile
 import time
 import traceback
 from collections import deque
+from contextlib import ExitStack
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Iterator
@@ -41,7 +42,7 @@ import fsspec
 import numpy as np
 import pandas as pd
 
-from drivetrack import faults
+from drivetrack import faults, parallel
 from drivetrack.outputs import (LABEL_SPEED_ERR_COLUMNS, SPEED_ERR_COLUMNS, SPEED_PERCENTILES, TABLES,
                                 SegmentStatus, Stage)
 from drivetrack.names import check_name
@@ -73,6 +74,11 @@ MAX_ATTEMPTS = 2
 #: Pose refinement (drivetrack.refine) runs unless the configuration turns it off; per object it
 #: keeps the labels wherever registration does not clearly improve on them (docs/refinement.md).
 REFINE_BY_DEFAULT = True
+
+#: Frames per depth batch when annotate computes the maps in its own process (``depth_fn`` not
+#: given): at most this many, however large ``depth_batch`` (the GPU queue's unit) is. Four keeps
+#: two threads busy to the end of a segment's ~50 maps and holds fewer 1920x1280 maps at once.
+IN_PROCESS_DEPTH_BATCH = 4
 
 
 @dataclass(frozen=True)
@@ -307,7 +313,8 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
 
     ``threads``: with 2 or more, the depth maps (sparse and completed) of the cameras' batches and,
     unless ``map_fn`` is given, the object jobs run in a pool of that many threads (their kernels
-    release the GIL); the results are the same and in the same order as with one.
+    release the GIL), and so do the core's per-frame and per-clip loops that use
+    :func:`drivetrack.parallel.pool_map`; the results are the same and in the same order as with one.
 
     ``hash_sources``: record the sha256 of each source file (``run.json``). ``write_segment_stats``:
     also write this segment's ``stats/*.parquet`` into ``out_url`` (a per-segment folder).
@@ -317,6 +324,7 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
     result = SegmentResult(split=split, segment=segment, status=SegmentStatus.RUNNING)
     pool = ThreadPoolExecutor(max_workers=threads) if threads >= 2 else None
     in_threads = pool.map if pool is not None else map
+    stack = ExitStack()     # the pool also serves the core's per-frame loops (drivetrack.parallel)
     plan = None
     tracks: list[ObjectTracks] = []
     stage, start = Stage.INGEST, time.perf_counter()
@@ -328,11 +336,13 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
             on_stage(name, "running", {})
 
     def end(info: dict) -> None:
+        release_free_heap()     # each stage frees its temporaries; give the pages back before the next
         result.timings_s[stage] = time.perf_counter() - start
         if on_stage:
             on_stage(stage, "done", info)
 
     try:
+        stack.enter_context(parallel.using(in_threads if pool is not None else None))
         begin(Stage.INGEST)
         scene = load_scene_for(source, split, segment, config, storage_options, refine=False)
         result.source_files = dict(scene.source_files)
@@ -352,8 +362,11 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
 
         begin(Stage.DEPTH)
         if depth_fn is None:     # each batch completed as soon as it is projected: one sparse batch per thread
+            # in process there is no queue to feed: small batches balance the threads and hold
+            # fewer full-size maps at once (the maps do not depend on the batching)
+            jobs = depth_jobs(scene, config.track, plan, batch=min(config.track.depth_batch, IN_PROCESS_DEPTH_BATCH))
             dense, info = list(in_threads(lambda job: complete_depth_batch(sparse_depth_batch(scene, config, job, plan), config),
-                                          depth_jobs(scene, config.track, plan))), {}
+                                          jobs)), {}
         else:
             batches = sparse_depth_batches(scene, config, plan, map_fn=in_threads)
             dense, info = depth_fn(batches)
@@ -385,11 +398,44 @@ def run_segment_stages(source: str, split: str, segment: str, out_url: str, conf
         if raise_errors:
             raise
     finally:
+        stack.close()
         if pool is not None:
             pool.shutdown(wait=True)
     if keep_tracks:
         result.tracks = tracks
     return result
+
+
+def release_free_heap() -> None:
+    """Return the C heap's free pages to the system (glibc ``malloc_trim(0)``; elsewhere a no-op).
+
+    numpy's and pyarrow's temporaries of a stage (range-image batches, [M, 3] point copies, depth
+    maps) are freed into glibc's heap, which keeps most of them mapped: after the ingest of a
+    full-size segment about 0.35 GiB of the process's RSS is such free memory. Trimming between
+    stages keeps the peak to what the next stage really holds (docs/benchmarks.md, issue 18).
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+def _malloc_trim():
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        _MALLOC_TRIM = False
+        try:
+            import ctypes
+            import ctypes.util
+
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            _MALLOC_TRIM = libc.malloc_trim
+            _MALLOC_TRIM.argtypes, _MALLOC_TRIM.restype = [ctypes.c_size_t], ctypes.c_int
+        except (OSError, AttributeError):   # not glibc (macOS, musl without it): nothing to trim
+            _MALLOC_TRIM = False
+    return _MALLOC_TRIM or None
+
+
+_MALLOC_TRIM = None
 
 
 def _handed_over(items: list) -> Iterator:
@@ -444,15 +490,17 @@ def _with_label_consistency(objects: pd.DataFrame, scene: Scene, tracks: list[Ob
         return objects.assign(**{c: objects[s] for c, s in zip(columns, SPEED_ERR_COLUMNS)})
     # refined poses, or the trajectory (which levels yaw-only labels' ego tilt, docs/time.md)
     labels = scene.box_labels if scene.box_labels is not None else scene.boxes
-    rows = {}
     keys = sorted_return_keys(scene.lidar, f"segment {scene.segment!r}")     # one table for every clip
-    for t in tracks:
-        if t.rejection is not None:
-            continue
+
+    def percentiles(t: ObjectTracks) -> np.ndarray:
         errors = label_speed_errors(scene, labels, t, keys)
         errors = errors[np.isfinite(errors)]
-        rows[(t.camera_name, t.object_id)] = (np.percentile(errors, SPEED_PERCENTILES) if errors.size
-                                              else np.full(len(SPEED_PERCENTILES), np.nan))
+        return (np.percentile(errors, SPEED_PERCENTILES) if errors.size
+                else np.full(len(SPEED_PERCENTILES), np.nan))
+
+    accepted = [t for t in tracks if t.rejection is None]
+    rows = {(t.camera_name, t.object_id): p
+            for t, p in zip(accepted, parallel.pool_map(percentiles, accepted))}   # clips on the segment's pool
     values = np.array([rows.get((c, o), np.full(len(SPEED_PERCENTILES), np.nan))
                        for c, o in zip(objects["camera"], objects["object_id"])], dtype=float)
     return objects.assign(**{c: values[:, i] for i, c in enumerate(columns)})
@@ -593,7 +641,7 @@ def annotate(source: str, split: str, segments: list[str], out_url: str, config:
              threads: int | None = None) -> list[SegmentResult]:
     """Annotate ``segments`` (in ``workers`` processes), then write the tables and ``run.json``.
 
-    Each segment runs its depth maps and object jobs in ``threads`` threads (default: the
+    Each segment runs its depth maps, object jobs and per-frame loops in ``threads`` threads (default: the
     available cores divided among the workers, at least 1).
 
     A failed segment is reported through its result and ``on_result`` and does not stop the

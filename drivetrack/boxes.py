@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.parallel import pool_map
 
 __all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates"]
 
@@ -70,21 +71,22 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
     k = len(boxes)
     selected = return_mask(lidar.laser, lidar.return_index, lasers, returns)
     rows = np.unique(np.asarray(rows, dtype=np.int64))
-    per_row: dict[int, np.ndarray] = {}
     grow = max(margin, 0.0)
     offsets_s = lidar.capture_offset_s if compensate_sweep_motion else None
     if offsets_s is not None:   # boxes moved to each return's capture time (tracks/sweep_motion.py)
         velocity, yaw_rate = scene_box_motion(scene)
-    for t in np.unique(boxes.frame[rows]):
+
+    def frame_members(t: int) -> list[tuple[int, np.ndarray]]:
         part = lidar.of_frame(int(t))
         frame_index = np.arange(part.start, part.stop)[selected[part]]
         if frame_index.size == 0:
-            continue
+            return []
         points = lidar.points_vehicle[frame_index]
-        order = np.argsort(points[:, 0], kind="stable")
+        order = np.argsort(points[:, 0])     # any order of ties: the slab is a set, sorted below
         xs = points[order, 0]
         dt = None if offsets_s is None else offsets_s[frame_index]
         max_dt = 0.0 if dt is None else float(np.max(np.abs(dt)))
+        members = []
         for row in rows[boxes.frame[rows] == t]:
             center, size = boxes.center[row], boxes.size[row]
             radius = 0.5 * float(np.hypot(size[0], size[1]) if boxes.pitch is None and boxes.roll is None
@@ -104,7 +106,12 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
                 local = points_box_at_capture(points[candidates], row_dt, center, boxes.heading[row],
                                               velocity[row], yaw_rate[row], *boxes.tilt(row))
             inside = inside_box(local, size, margin, clearance)
-            per_row[int(row)] = np.sort(frame_index[candidates[inside]])
+            members.append((int(row), np.sort(frame_index[candidates[inside]])))
+        return members
+
+    # frames are independent: on the segment's pool when annotate installed one (drivetrack.parallel)
+    per_row = {row: index for members in pool_map(frame_members, np.unique(boxes.frame[rows]).tolist())
+               for row, index in members}
     counts = np.zeros(k, dtype=np.int64)
     for row, index in per_row.items():
         counts[row] = index.size

@@ -389,6 +389,57 @@ def test_apply_depth_bounds_after_completion():
         apply_depth_bounds(dense[:, :4], sparse)
 
 
+
+def test_apply_depth_bounds_in_place_matches_the_mask_form():
+    """The one-pass kernel (in place, as the depth stage uses it) equals the mask form of the
+    bound on random maps, bit for bit; a copy is refused as a target when it cannot be written."""
+    from drivetrack.depth import apply_depth_bounds
+
+    rng = np.random.default_rng(5)
+    sparse = np.where(rng.random((3, 40, 60)) < 0.3, -rng.uniform(1, 30, (3, 40, 60)),
+                      np.where(rng.random((3, 40, 60)) < 0.2, rng.uniform(1, 30, (3, 40, 60)), 0)).astype(np.float32)
+    dense = np.where(rng.random(sparse.shape) < 0.7, rng.uniform(0.5, 40, sparse.shape), 0).astype(np.float32)
+    bounded = sparse < 0
+    expected = dense.copy()
+    expected[bounded] = np.where(dense[bounded] > 0, np.minimum(dense[bounded], -sparse[bounded]), -sparse[bounded])
+    assert bounded.sum() > 1000 and (dense[bounded] > -sparse[bounded]).sum() > 100
+    target = dense.copy()
+    assert apply_depth_bounds(target, sparse, in_place=True) is target
+    np.testing.assert_array_equal(target, expected)
+    np.testing.assert_array_equal(apply_depth_bounds(dense, sparse), expected)
+    with pytest.raises(ValueError, match="writeable C-contiguous float32"):
+        apply_depth_bounds(dense[:, :, ::2], sparse[:, :, ::2], in_place=True)
+
+
+def test_nearest_read_out_matches_the_mask_form():
+    """NearestCompleter's one-pass read-out of the labelled distance transform gives the maps
+    of the numpy mask form it replaced (take, reset past reach + margin, exact distance inside
+    the margin), bit for bit, with a reach small enough that many pixels are decided exactly."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    sparse = np.where(rng.random((90, 140)) < 0.01, rng.uniform(2, 60, (90, 140)), 0).astype(np.float32)
+    for reach in (3.0, 7.5, math.inf):
+        known = sparse > 0
+        seed_index = np.flatnonzero(known)
+        distance, labels = cv2.distanceTransformWithLabels(
+            np.logical_not(known).view(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        depth_of_label = np.concatenate([[0.0], sparse.reshape(-1)[seed_index]]).astype(np.float32)
+        expected = np.take(depth_of_label, labels)
+        decided_exactly = 0
+        if math.isfinite(reach):
+            margin = 0.05 * reach + 0.5
+            expected[distance > reach + margin] = 0.0
+            near = np.flatnonzero(cv2.inRange(distance, reach - margin, reach + margin))
+            seed = seed_index[labels.reshape(-1)[near] - 1]
+            w = known.shape[1]
+            too_far = np.hypot(seed // w - near // w, seed % w - near % w) > reach
+            expected.reshape(-1)[near[too_far]] = 0.0
+            decided_exactly = int(too_far.sum())
+        got = get_completer("nearest", max_reach_px=reach)(sparse)
+        np.testing.assert_array_equal(got, expected)
+        assert decided_exactly > 20 or not math.isfinite(reach)
+
 def test_horizontal_depth_scale_gives_z_depth_from_horizontal_distance():
     from drivetrack.depth import horizontal_depth_scale
     from drivetrack.camera.model import CameraModel

@@ -90,6 +90,25 @@ def test_truncated_or_corrupt_parquet(tmp_path, damage):
     _expect(e, "lidar_box", "column", "truncated or corrupt parquet file")
 
 
+def test_corrupt_range_image_pages_name_the_lidar_file(tmp_path):
+    """Range images are decoded on a helper thread while the previous batch is turned into points:
+    a damaged data page (footer intact, so the file opens) still fails the load with the lidar file
+    named, from the caller's thread."""
+    import pyarrow.parquet as pq
+
+    path = tiny_segment(tmp_path)["lidar"]
+    chunk = pq.ParquetFile(path).metadata.row_group(0).column(3)
+    assert chunk.path_in_schema.startswith(R1 + "values")
+    data = bytearray(path.read_bytes())
+    start = chunk.data_page_offset + 20
+    data[start: chunk.data_page_offset + chunk.total_compressed_size - 5] = (
+        b"\xab" * (chunk.total_compressed_size - 25))
+    path.write_bytes(bytes(data))
+    with pytest.raises(WaymoFormatError) as e:
+        _load(tmp_path)
+    _expect(e, "lidar", R1 + "values", "truncated or corrupt parquet file", "readable column chunks")
+
+
 def test_nan_in_vehicle_pose(tmp_path):
     tiny_segment(tmp_path, skip=("vehicle_pose",))
     poses = [flat(np.eye(4)) for _ in TIMESTAMPS]

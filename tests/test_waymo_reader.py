@@ -87,6 +87,27 @@ def test_top_point_matches_method_formulas_with_per_pixel_pose(scene):
     np.testing.assert_allclose(_point(scene, 1, 1, 1, 0, 1), expected, atol=1e-5)
 
 
+def test_pixel_pose_kernel_matches_rotation_matrices():
+    """The reader's one-pass pixel-pose kernel equals the matrix form (rotation_from_rpy, then the
+    frame's inverse pose) to float64 rounding, at kilometre-scale world positions."""
+    from drivetrack.geometry import invert_rigid, rigid_from_rotation_translation, rotation_from_rpy, transform_points
+
+    rng = np.random.default_rng(3)
+    m = 5000
+    points = rng.normal(size=(m, 3)) * 40.0
+    pose = np.concatenate([rng.normal(size=(m, 3)) * 0.2, rng.normal(size=(m, 3)) * 900.0], 1)
+    pose = pose.astype(np.float32)  # lidar_pose stores float32 values
+    world_from_vehicle = rigid_from_rotation_translation(rotation_from_rpy(0.02, -0.01, 2.5),
+                                                         np.array([812.0, -1933.0, 41.0]))
+    p64 = pose.astype(np.float64)
+    rotation = rotation_from_rpy(p64[:, 0], p64[:, 1], p64[:, 2])
+    world = np.einsum("mij,mj->mi", rotation, points) + p64[:, 3:6]
+    expected = transform_points(invert_rigid(world_from_vehicle), world)
+    got = lidar.apply_pixel_pose(points, pose, world_from_vehicle)
+    assert got.dtype == np.float64 and got.shape == (m, 3)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+
+
 def test_short_lidar_point_uses_explicit_inclinations_and_extrinsic_yaw(scene):
     # FRONT, frame 0, row 0, column 3: range 3 + 3 = 6; inclinations [-0.5, -0.1, 0.3] reversed.
     incl, yaw, w = 0.3, 0.3, 5

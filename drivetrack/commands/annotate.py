@@ -27,7 +27,7 @@ def add_parser(sub) -> None:
                    help="segments annotated in parallel, each in its own process (default 1: in "
                         "this process, no retry)")
     p.add_argument("--threads", type=int, default=None,
-                   help="threads per segment for its depth maps and object jobs (default: the "
+                   help="threads per segment for its depth maps, object jobs and per-frame loops (default: the "
                         "available cores divided among the workers, at least 1; output is the same)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="YAML/JSON annotation config ({track: {...}, refine_poses: bool, refine_options: {...}})")

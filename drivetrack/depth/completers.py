@@ -12,6 +12,8 @@ import math
 import cv2
 import numpy as np
 
+from drivetrack.depth.kernel import nearest_from_labels
+
 __all__ = ["DepthCompleter", "NearestCompleter", "IPBasicCompleter", "default_max_reach_px",
            "check_sparse"]
 
@@ -144,17 +146,14 @@ class NearestCompleter(DepthCompleter):
         depth_of_label = np.empty(seed_index.size + 1, dtype=np.float32)
         depth_of_label[0] = 0.0
         np.take(sparse.reshape(-1), seed_index, out=depth_of_label[1:])
-        dense = np.take(depth_of_label, labels)
-        if math.isfinite(reach):
-            # The chamfer distance is within a few % of the Euclidean one: decide the pixels near
-            # the reach with the exact distance to their chosen return, the rest directly.
-            margin = 0.05 * reach + 0.5
-            dense[distance > reach + margin] = 0.0
-            near = np.flatnonzero(cv2.inRange(distance, reach - margin, reach + margin))
-            seed = seed_index[labels.reshape(-1)[near] - 1]
-            width = known.shape[1]
-            too_far = np.hypot(seed // width - near // width, seed % width - near % width) > reach
-            dense.reshape(-1)[near[too_far]] = 0.0
+        # The chamfer distance is within a few % of the Euclidean one: the pixels near the reach
+        # are decided with the exact distance to their chosen return, the rest directly (one
+        # pass, drivetrack.depth.kernel.nearest_from_labels; thresholds in float32 like the
+        # distances).
+        margin = 0.05 * reach + 0.5 if math.isfinite(reach) else 0.0
+        dense = np.empty(known.shape, dtype=np.float32)
+        nearest_from_labels(labels, distance, depth_of_label, seed_index, known.shape[1], float(reach),
+                            np.float32(reach + margin), np.float32(reach - margin), dense)
         return dense
 
     @staticmethod

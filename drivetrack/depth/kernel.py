@@ -7,6 +7,11 @@ transform (both in the float64 operations and order of :func:`drivetrack.geometr
 the Brown-Conrady projection (:func:`drivetrack.camera.kernel.pixel_from_camera_point`), the
 inside-image test and the per-pixel minimum of z-depth. The maps are bit-identical to the
 reference (tests/test_depth.py). It releases the GIL, so cameras can run in threads.
+
+Two more one-pass kernels replace full-image numpy passes of the completion step (each a few
+temporaries of a 1920x1280 map): :func:`bound_in_place` (the blind-zone bounds) and
+:func:`nearest_from_labels` (the nearest completer's read-out of the distance transform); both
+give the numpy forms' maps bit for bit (tests/test_depth.py).
 """
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ import numpy as np
 from drivetrack.camera.kernel import pixel_from_camera_point
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
-__all__ = ["NUMBA_AVAILABLE", "project_nearest"]
+__all__ = ["NUMBA_AVAILABLE", "project_nearest", "bound_in_place", "nearest_from_labels"]
 
 
 @njit(cache=True, nogil=True)
@@ -70,3 +75,53 @@ def project_nearest(points, first, camera_from_vehicle, camera, subset, depth, d
         if with_subset and subset[m]:
             if depth_subset[index] == 0 or depth32 < depth_subset[index]:
                 depth_subset[index] = depth32
+
+
+@njit(cache=True, nogil=True)
+def bound_in_place(dense, sparse):
+    """``drivetrack.depth.apply_depth_bounds`` in one pass, in place: where ``sparse[i] < 0`` (a
+    blind-zone bound ``-b``), ``dense[i] = min(dense[i], b)`` if ``dense[i] > 0`` else ``b``.
+
+    Args:
+        dense: float32 [N], completed z-depth (0 = unknown), written.
+        sparse: float32 [N], the sparse map it was completed from.
+    """
+    for i in range(dense.shape[0]):
+        s = sparse[i]
+        if s < 0:
+            b = -s
+            d = dense[i]
+            dense[i] = (d if d < b else b) if d > 0 else b
+
+
+@njit(cache=True, nogil=True)
+def nearest_from_labels(labels, distance, depth_of_label, seed_index, width, reach_f64, far, low, dense):
+    """The nearest completer's read-out of OpenCV's labelled distance transform, in one pass.
+
+    ``dense[p] = depth_of_label[labels[p]]``, then 0 where the chamfer ``distance[p] > far``; where
+    ``low <= distance[p] <= far`` the exact Euclidean distance from pixel ``p`` to its seed decides
+    (0 when it is more than ``reach_f64``), as ``NearestCompleter._complete_opencv`` did with
+    masks (``far`` / ``low`` float32 like the comparisons there).
+
+    Args:
+        labels: int32 [H, W], 1-based seed labels (raster order); distance: float32 [H, W].
+        depth_of_label: float32 [S + 1] (label 0: 0); seed_index: int64 [S], flat index of each seed.
+        width: W; reach_f64: float64 reach in pixels (inf: no limit, nothing reset).
+        far, low: float32 thresholds (reach +- margin).
+        dense: float32 [H, W], written.
+    """
+    rows, cols = labels.shape
+    limited = reach_f64 < np.inf
+    for r in range(rows):
+        for c in range(cols):
+            label = labels[r, c]
+            value = depth_of_label[label]
+            if limited:
+                dist = distance[r, c]
+                if dist > far:
+                    value = np.float32(0.0)
+                elif dist >= low and label > 0:
+                    seed = seed_index[label - 1]
+                    if np.hypot(float(seed // width - r), float(seed % width - c)) > reach_f64:
+                        value = np.float32(0.0)
+            dense[r, c] = value

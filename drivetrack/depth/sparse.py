@@ -5,7 +5,7 @@ import numpy as np
 
 from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.model import CameraModel
-from drivetrack.depth.kernel import NUMBA_AVAILABLE, project_nearest
+from drivetrack.depth.kernel import NUMBA_AVAILABLE, bound_in_place, project_nearest
 from drivetrack.geometry import transform_points
 
 __all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
@@ -256,7 +256,7 @@ def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ra
     return out
 
 
-def apply_depth_bounds(dense: np.ndarray, sparse: np.ndarray) -> np.ndarray:
+def apply_depth_bounds(dense: np.ndarray, sparse: np.ndarray, in_place: bool = False) -> np.ndarray:
     """float32 [..., H, W]: completed maps with the bounds of :func:`bound_blind_zone` applied.
 
     Args:
@@ -264,18 +264,26 @@ def apply_depth_bounds(dense: np.ndarray, sparse: np.ndarray) -> np.ndarray:
             ``max(sparse, 0)``).
         sparse: float32 [..., H, W] the sparse maps it was completed from; a negative value
             ``-b`` bounds the depth of that pixel to at most ``b`` (and sets it where unknown).
+        in_place: write into ``dense`` (float32, C-contiguous, writeable) in one pass
+            (:func:`drivetrack.depth.kernel.bound_in_place`) and return it.
     Returns:
-        float32 [..., H, W]; ``dense`` itself when ``sparse`` holds no bound.
+        float32 [..., H, W]; without ``in_place``, ``dense`` itself when ``sparse`` holds no bound,
+        else a new array.
     """
     sparse = np.asarray(sparse)
     if np.shape(dense) != sparse.shape:
         raise ValueError(f"apply_depth_bounds: completed maps {np.shape(dense)} and sparse maps {sparse.shape} "
                          f"differ in shape")
+    if in_place:
+        if not (isinstance(dense, np.ndarray) and dense.dtype == np.float32 and dense.flags.c_contiguous
+                and dense.flags.writeable):
+            raise ValueError("apply_depth_bounds(in_place=True): dense must be a writeable C-contiguous "
+                             "float32 array")
+        bound_in_place(dense.reshape(-1), np.ascontiguousarray(sparse, dtype=np.float32).reshape(-1))
+        return dense
     bounded = sparse < 0
     if not bounded.any():
         return dense
-    bound = -sparse[bounded]
-    known = dense[bounded]
     out = np.array(dense, dtype=np.float32, copy=True)
-    out[bounded] = np.where(known > 0, np.minimum(known, bound), bound)
+    bound_in_place(out.reshape(-1), np.ascontiguousarray(sparse, dtype=np.float32).reshape(-1))
     return out

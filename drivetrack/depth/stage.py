@@ -51,15 +51,20 @@ def needed_frames(plan: SegmentPlan) -> dict[int, np.ndarray]:
     return {c: np.array(sorted(f), dtype=np.int64) for c, f in sorted(needed.items())}
 
 
-def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = None) -> list[DepthJob]:
-    """The depth units of a segment: per camera, its needed frames in batches of ``depth_batch``."""
+def depth_jobs(scene: Scene, config: TrackConfig, plan: SegmentPlan | None = None,
+               batch: int | None = None) -> list[DepthJob]:
+    """The depth units of a segment: per camera, its needed frames in batches of ``batch`` frames
+    (default ``config.depth_batch``, the GPU-queue unit; the maps do not depend on it)."""
     from drivetrack.tracks.plan import plan_segment
 
     plan = plan if plan is not None else plan_segment(scene, config)
+    size = int(batch) if batch is not None else config.depth_batch
+    if size < 1:
+        raise ValueError(f"depth_jobs: batch must be >= 1 frame, got {batch}")
     jobs = []
     for camera, frames in needed_frames(plan).items():
-        for start in range(0, frames.size, config.depth_batch):
-            jobs.append(DepthJob(camera, frames[start:start + config.depth_batch]))
+        for start in range(0, frames.size, size):
+            jobs.append(DepthJob(camera, frames[start:start + size]))
     return jobs
 
 
@@ -211,8 +216,8 @@ def complete_depth(sparse: np.ndarray, config: TrackConfig) -> np.ndarray:
     if sparse.ndim != 3:
         raise ValueError(f"complete_depth expects sparse maps [B, H, W], got shape {sparse.shape}")
     completer = get_completer(config.depth_completer, **config.depth_completer_options)
-    dense = np.asarray(completer(np.maximum(sparse, 0.0)), dtype=np.float32)
-    return apply_depth_bounds(dense, sparse)
+    dense = np.require(completer(np.maximum(sparse, 0.0)), dtype=np.float32, requirements=("C", "W"))
+    return apply_depth_bounds(dense, sparse, in_place=True)
 
 
 @dataclass

@@ -29,7 +29,7 @@ OUTPUT_MODULES = (
     "drivetrack.camera.rolling_shutter", "drivetrack.depth", "drivetrack.depth.completers",
     "drivetrack.depth.config", "drivetrack.depth.kernel", "drivetrack.depth.lookup", "drivetrack.depth.registry",
     "drivetrack.depth.sparse", "drivetrack.depth.stage", "drivetrack.depth.torch_nearest", "drivetrack.faults",
-    "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs",
+    "drivetrack.geometry", "drivetrack.names", "drivetrack.numba_compat", "drivetrack.outputs", "drivetrack.parallel",
     "drivetrack.refine", "drivetrack.refine.config", "drivetrack.refine.kernel", "drivetrack.refine.motion",
     "drivetrack.refine.poses", "drivetrack.refine.scene", "drivetrack.refine.select",
     "drivetrack.refine.solver", "drivetrack.refine.static", "drivetrack.refine.terms", "drivetrack.scene", "drivetrack.storage",
@@ -37,7 +37,7 @@ OUTPUT_MODULES = (
     "drivetrack.tracks.context", "drivetrack.tracks.core", "drivetrack.tracks.kernel", "drivetrack.tracks.plan",
     "drivetrack.tracks.stats", "drivetrack.tracks.sweep_motion", "drivetrack.tracks.trajectory", "drivetrack.tidy", "drivetrack.tracks.writers",
     "drivetrack.visibility", "drivetrack.visibility.facing", "drivetrack.visibility.zbuffer", "drivetrack.waymo", "drivetrack.waymo.capture_time", "drivetrack.waymo.checks", "drivetrack.waymo.columns",
-    "drivetrack.waymo.components", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
+    "drivetrack.waymo.components", "drivetrack.waymo.kernel", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
     "drivetrack.waymo.schema", "drivetrack.waymo.writer",
 )
 """Modules whose code can change a segment's outputs (clip files, its stats rows): the code part

@@ -9,6 +9,7 @@ duplicate keys and checks the content (:mod:`drivetrack.waymo.checks`). Every pr
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Iterator, Sequence
 
 import pyarrow as pa
@@ -208,15 +209,33 @@ class ComponentFile:
                              found=f"{dup['count_all'][0].as_py()} rows with {first}")
 
     def iter_batches(self, columns: list[str], batch_rows: int) -> Iterator[pa.Table]:
-        """Validated tables of at most ``batch_rows`` rows of this segment (columns checked)."""
-        try:
-            for batch in self.parquet.iter_batches(batch_size=batch_rows, columns=columns):
+        """Validated tables of at most ``batch_rows`` rows of this segment (columns checked).
+
+        The next batch is decoded and checked on a helper thread while the caller works on the
+        current one (pyarrow decodes without holding the GIL), so at most two batches are held at
+        once. Errors of either thread are raised here, in the caller's thread.
+        """
+        batches = self.parquet.iter_batches(batch_size=batch_rows, columns=columns)
+
+        def next_table() -> pa.Table | None:
+            for batch in batches:
                 table = self._filter(pa.Table.from_batches([batch]))
                 if table.num_rows:
                     check_content(self, table)
-                    yield table
-        except (pa.ArrowException, OSError) as exc:
-            raise self._read_error(exc, columns) from None
+                    return table
+            return None
+
+        with ThreadPoolExecutor(1, thread_name_prefix=f"read-{self.comp.name}") as pool:
+            pending = pool.submit(next_table)
+            while True:
+                try:
+                    table = pending.result()
+                except (pa.ArrowException, OSError) as exc:
+                    raise self._read_error(exc, columns) from None
+                if table is None:
+                    return
+                pending = pool.submit(next_table)
+                yield table
 
     def read(self, columns: list[str]) -> pa.Table:
         table = self._filter(self._read(columns))

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import invert_rigid, rotation_from_rpy, transform_points
+from drivetrack.geometry import invert_rigid
+from drivetrack.waymo.kernel import vehicle_from_pixel_pose
 
 __all__ = ["beam_inclinations", "beam_azimuths", "sensor_directions", "lidar_points",
            "points_from_directions", "apply_pixel_pose", "camera_projection_at",
@@ -103,11 +104,17 @@ def points_from_directions(range_image, directions_vehicle, origin_vehicle, pixe
 
 def apply_pixel_pose(points_vehicle_at_pixel: np.ndarray, pose: np.ndarray,
                       world_from_vehicle: np.ndarray) -> np.ndarray:
-    """inv(world_from_vehicle) @ pixel_pose @ p for points [M, 3] and poses [M, 6]."""
+    """float64 [M, 3] ``inv(world_from_vehicle) @ pixel_pose @ p`` for points [M, 3] and poses
+    [M, 6] (roll, pitch, yaw radians, x, y, z metres: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` as
+    :func:`drivetrack.geometry.rotation_from_rpy`), in one numba pass
+    (:func:`drivetrack.waymo.kernel.vehicle_from_pixel_pose`)."""
     pose = np.asarray(pose, np.float64)
-    rotation = rotation_from_rpy(pose[:, 0], pose[:, 1], pose[:, 2])
-    world = np.einsum("mij,mj->mi", rotation, points_vehicle_at_pixel) + pose[:, 3:6]
-    return transform_points(invert_rigid(world_from_vehicle), world)
+    points = np.ascontiguousarray(points_vehicle_at_pixel, np.float64)
+    angles = pose[:, :3]
+    out = np.empty_like(points)
+    vehicle_from_pixel_pose(points, np.cos(angles), np.sin(angles), np.ascontiguousarray(pose[:, 3:6]),
+                            invert_rigid(world_from_vehicle), out)
+    return out
 
 
 def camera_projection_at(projection: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:

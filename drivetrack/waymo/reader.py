@@ -232,17 +232,18 @@ def _range_images(f: ComponentFile, timestamps: np.ndarray, returns: Sequence[in
                 yield table, i, int(frame_col[i]), int(laser_col[i]), r, image
 
 
-def _range_image_block(key_all: np.ndarray, frame: int, laser: int, return_index: int) -> slice:
-    """The returns of one range image in ``key_all`` (sorted :func:`lidar.return_keys` of a
-    :class:`LidarReturns`): a (frame, laser, return) image spans ``[key(.., 0, 0), key(.., r+1, 0, 0))``."""
-    lo = beam.return_keys(frame, laser, return_index, 0, 0)
-    hi = beam.return_keys(frame, laser, return_index + 1, 0, 0)
-    return slice(int(np.searchsorted(key_all, lo, "left")), int(np.searchsorted(key_all, hi, "left")))
-
-
-def _returns_key(returns: LidarReturns) -> np.ndarray:
-    """int64 [M] :func:`lidar.return_keys` of every return (sorted, as :func:`_read_lidar` orders them)."""
-    return beam.return_keys(returns.frame, returns.laser, returns.return_index, returns.row, returns.col)
+def _image_blocks(returns: LidarReturns) -> dict[tuple[int, int, int], slice]:
+    """``(frame, laser, return) -> slice`` of that range image's returns in ``returns`` (ordered
+    by (frame, laser, return) as :func:`_read_lidar` orders them; each image's returns are one run)."""
+    n = len(returns.frame)
+    if n == 0:
+        return {}
+    image = ((returns.frame.astype(np.int64) << 8) | (returns.laser.astype(np.int64) << 4)
+             | returns.return_index.astype(np.int64))
+    starts = np.concatenate([[0], np.flatnonzero(image[1:] != image[:-1]) + 1])
+    stops = np.append(starts[1:], n)
+    return {(int(returns.frame[a]), int(returns.laser[a]), int(returns.return_index[a])): slice(int(a), int(b))
+            for a, b in zip(starts, stops)}
 
 
 def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], lasers: set[int],
@@ -274,19 +275,21 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
         dirs, origin = geometry_cache[key]
         nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
         pts, rows, cols_, inten = beam.points_from_directions(image, dirs, origin)
-        n = len(rows)
-        chunks.append((pts, rows, cols_, inten, np.full(n, frame, np.int32),
-                       np.full(n, laser, np.int8), np.full(n, r, np.int8)))
+        chunks.append(((frame, laser, r), pts, rows, cols_, inten))
     if not chunks:
         return _empty_returns(len(timestamps)), nonfinite
-    pts, rows, cols_, inten, frame, laser, ret = (np.concatenate(x) for x in zip(*chunks))
+    # Each image's returns are in row-major pixel order already, so ordering the images by
+    # (frame, laser, return) orders every return by its key (images are unique: keys checked).
+    chunks.sort(key=lambda chunk: chunk[0])
+    images = [chunk[0] for chunk in chunks]
+    sizes = [len(chunk[2]) for chunk in chunks]
+    frame, laser, ret = (np.repeat(np.array([image[k] for image in images], dtype), sizes)
+                         for k, dtype in enumerate((np.int32, np.int8, np.int8)))
+    pts, rows, cols_, inten = (np.concatenate([chunk[k] for chunk in chunks]) for k in range(1, 5))
     del chunks
-    order = np.argsort(beam.return_keys(frame, laser, ret, rows, cols_), kind="stable")
-    frame = frame[order]
     offsets = np.searchsorted(frame, np.arange(len(timestamps) + 1)).astype(np.int64)
-    return LidarReturns(points_vehicle=pts[order], frame=frame, laser=laser[order],
-                        return_index=ret[order], row=rows[order], col=cols_[order],
-                        intensity=inten[order], frame_offsets=offsets), nonfinite
+    return LidarReturns(points_vehicle=pts, frame=frame, laser=laser, return_index=ret, row=rows,
+                        col=cols_, intensity=inten, frame_offsets=offsets), nonfinite
 
 
 def _check_keyable(f: ComponentFile, table: pa.Table, i: int, laser: int, height: int, width: int,
@@ -324,7 +327,7 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
     values, shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
     cols = f.columns([values, shape])
     keys = f.read_keys()
-    key_all = _returns_key(returns)
+    blocks = _image_blocks(returns)
     top_frames = np.unique(returns.frame[returns.laser == LaserName.TOP])
     have = _frame_index(timestamps, scalar_numpy(
         keys[KEY_TIMESTAMP].filter(pc.equal(keys[KEY_LASER], int(LaserName.TOP))),
@@ -343,8 +346,8 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
                 continue  # only TOP range images carry a pose (dataset.proto, RangeImage)
             t = int(frame_col[i])
             for r in returns_read:
-                block = _range_image_block(key_all, t, int(LaserName.TOP), r)
-                if block.stop == block.start:
+                block = blocks.get((t, int(LaserName.TOP), r))
+                if block is None:
                     continue
                 if pose is None:
                     raise f.error("null per-pixel pose for a TOP range image", column=values,
@@ -373,13 +376,13 @@ def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.nd
 def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
                             returns_read: Sequence[int]) -> np.ndarray:
     out = np.full((len(returns), 6), -1, np.int16)
-    key_all = _returns_key(returns)
+    blocks = _image_blocks(returns)
     lasers_read = set(np.unique(returns.laser).tolist())
     for table, i, frame, laser, r, proj in _range_images(f, timestamps, returns_read):
         if proj is None or laser not in lasers_read:
             continue
-        block = _range_image_block(key_all, frame, laser, r)
-        if block.stop == block.start:
+        block = blocks.get((frame, laser, r))
+        if block is None:
             continue
         rows, cols_ = returns.row[block], returns.col[block]
         if proj.shape[2] != 6 or rows.max() >= proj.shape[0] or cols_.max() >= proj.shape[1]:
