@@ -235,13 +235,21 @@ def track_segment(scene: Scene, dense_batches: Iterable[DepthBatch], config: Ann
                   map_fn: Callable[[Callable, list], Iterable[ObjectTracks]] | None = None) -> list[ObjectTracks]:
     """Run every object job of a segment against its completed depth maps.
 
-    ``map_fn(function, jobs)`` fans the jobs out (default: the built-in ``map``, in process);
-    the segment context (scene, depth maps) is shared by reference, never copied per job.
+    ``map_fn(function, jobs)`` fans the jobs out (default: the built-in ``map``, in process),
+    largest first; the results are in plan order. The segment context (scene, depth maps) is
+    shared by reference, never copied per job.
     """
     plan = plan if plan is not None else plan_segment(scene, config.track)
     ctx = prepare_segment(scene, config.track, depth=_depth_by_camera(dense_batches), plan=plan)
     job = _ObjectJobRunner(ctx)
-    return list((map_fn or map)(job, list(plan.jobs)))
+    jobs = list(plan.jobs)
+    # largest first (candidate points x frames), so that a pool does not start the largest job
+    # last and wait for it alone; the results come back in plan order
+    order = sorted(range(len(jobs)), key=lambda i: -jobs[i].num_points * len(jobs[i].frames))
+    results: list = [None] * len(jobs)
+    for i, tracks in zip(order, (map_fn or map)(job, [jobs[i] for i in order])):
+        results[i] = tracks
+    return results
 
 
 class _ObjectJobRunner:
