@@ -89,8 +89,10 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
         members = []
         for row in rows[boxes.frame[rows] == t]:
             center, size = boxes.center[row], boxes.size[row]
-            radius = 0.5 * float(np.hypot(size[0], size[1]) if boxes.pitch is None and boxes.roll is None
-                                 else np.linalg.norm(size)) + grow          # a tilted box reaches further
+            # half the diagonal of the grown box (its corners; a tilted box reaches further)
+            grown = size + 2.0 * grow
+            radius = 0.5 * float(np.hypot(grown[0], grown[1]) if boxes.pitch is None and boxes.roll is None
+                                 else np.linalg.norm(grown))
             if dt is not None:
                 lag = 0.0 if label_offset_s is None else abs(float(label_offset_s[row]))
                 radius += (max_dt + lag) * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance

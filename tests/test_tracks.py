@@ -336,6 +336,29 @@ def test_returns_in_boxes_equal_a_brute_force_box_test():
     assert index.size > 0
 
 
+def test_returns_in_boxes_keep_the_grown_corners():
+    """With a positive margin the slab pre-filter reaches the grown box's corners: a return just
+    inside the corner of a box grown by 0.5 m, turned so that its diagonal lies along x, is kept
+    (the radius of the ungrown box plus the margin falls 0.11 m short of that corner)."""
+    from drivetrack.boxes import inside_box, returns_in_boxes
+
+    size, margin = np.array([4.0, 2.0, 1.5]), 0.5
+    corner = np.array([size[0] / 2 + 0.45, size[1] / 2 + 0.45, 0.0])
+    b = SceneBuilder()
+    b.add_object("car", world_center(b, 10.0), size=size, headings=np.full(b.t, -np.arctan2(corner[1], corner[0])),
+                 extra_local=[corner, -corner])
+    scene = b.build()
+    boxes, lidar = scene.boxes, scene.lidar
+    rows = np.arange(len(boxes))
+    offsets, index = returns_in_boxes(scene, rows, None, None, margin, 0.2, compensate_sweep_motion=False)
+    for row in rows:
+        part = lidar.of_frame(int(boxes.frame[row]))
+        local = transform_points(invert_rigid(boxes.vehicle_from_box(row)), lidar.points_vehicle[part])
+        ok = inside_box(local, boxes.size[row], margin, 0.2)
+        assert np.isclose(local[ok], -corner).all(axis=-1).any()      # the corner the lidar sees
+        np.testing.assert_array_equal(index[offsets[row]:offsets[row + 1]], np.arange(part.start, part.stop)[ok])
+
+
 def test_duplicate_box_is_an_error_naming_object_and_frame():
     b = SceneBuilder()
     b.add_object("car", world_center(b, 10.0))
