@@ -242,18 +242,21 @@ def _on_depth_edge(depth: np.ndarray, frame: np.ndarray, pixels: np.ndarray, rea
     return far > jump * near
 
 
-def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="surface", others=None, calls=None):
+def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="surface", others=None, calls=None,
+                     margins=None):
     """(predicted visible of every matched back-face point-frame, of every truly visible one,
     {(camera, object id): visibles bool [N, T]}); ``others`` (a list) receives the predicted
     visible of every point-frame facing the camera but hidden (by another object, in the truth);
     ``calls`` (a list) one DataFrame per clip of its matched point-frames inside the image:
-    camera, truth point, segment frame, predicted visible, truth visible, truth facing."""
+    camera, truth point, segment frame, predicted visible, truth visible, truth facing; ``margins``
+    (a dict) turns ``occlusion_margins`` on and receives {(camera, object id): (occlusion_margin,
+    num_ambiguous_occlusion)}."""
     from drivetrack.evaluation import TruthIndex, clip_from_tracks
 
     config = AnnotateConfig(track=TrackConfig(cameras=CAMERAS, min_frames=8, max_camera_distance_m=75.0,
                                               object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"),
                                               back_face_max_deg=back_face_max_deg, kernel=kernel,
-                                              occlusion=occlusion))
+                                              occlusion=occlusion, occlusion_margins=margins is not None))
     result = annotate_segment(root, "training", segment, out, config, keep_tracks=True)
     assert result.status == "done", result.error
     unreliable, candidates = result.objects["num_unreliable_normals"], result.objects["num_candidates"]
@@ -264,13 +267,15 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
     cells = result.objects["num_tracks"] * result.objects["num_frames"]
     assert (ambiguous <= cells).all()
     assert np.allclose(result.objects["ambiguous_occlusion_fraction"], ambiguous / cells)
-    assert (ambiguous == 0).all() if occlusion == "depth-ratio" else (ambiguous > 0).any()
+    assert (ambiguous > 0).any()                # the depth-map test's close calls count under either method
     index = TruthIndex.load(root, "training", segment)
     back, visible, clips = [], [], {}
     for t in result.tracks:
         if t.rejection is not None or t.num_tracks == 0:
             continue
         clips[(t.camera, t.object_id)] = t.visibles
+        if margins is not None:
+            margins[(t.camera, t.object_id)] = (t.occlusion_margin, t.num_ambiguous_occlusion)
         clip = clip_from_tracks(t)
         frames = index.segment_frames(clip.timestamps_micros, clip.where)
         hit = index.match(frames[clip.query_frames], clip.lidar_sources, clip.where)
@@ -338,7 +343,28 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     # along them are hidden (the footprint rule on both sides keeps the outlines from growing)
     assert new_visible.mean() > old_visible.mean() - 0.002
     # the numpy path (the reference) decides exactly as the numba kernel
-    _, _, numpy_clips = _back_face_calls(root, segment, str(tmp_path / "numpy"), 90.0, "numpy", "surface")
-    assert numpy_clips.keys() == new_clips.keys()
+    numba_margins, numpy_margins = {}, {}
+    _, _, margin_clips = _back_face_calls(root, segment, str(tmp_path / "margins"), 90.0, "numba", "surface",
+                                          margins=numba_margins)
+    _, _, numpy_clips = _back_face_calls(root, segment, str(tmp_path / "numpy"), 90.0, "numpy", "surface",
+                                         margins=numpy_margins)
+    assert numpy_clips.keys() == new_clips.keys() == margin_clips.keys()
     for key, visibles in new_clips.items():
         np.testing.assert_array_equal(numpy_clips[key], visibles, err_msg=str(key))
+        np.testing.assert_array_equal(margin_clips[key], visibles, err_msg=str(key))   # margins change no call
+    # the occlusion margin (issue 15 step 4): its sign is every decision, NaN outside the image, the
+    # ambiguous count is |margin| < 1, and both paths give the same margins
+    close = 0
+    for key, visibles in new_clips.items():
+        margin, ambiguous = numba_margins[key]
+        assert margin.dtype == np.float16 and margin.shape == visibles.shape
+        inside = ~np.isnan(margin)
+        assert not (visibles & ~inside).any()
+        np.testing.assert_array_equal(visibles[inside], ~np.signbit(margin[inside]), err_msg=str(key))
+        near_one = np.abs(np.abs(margin[inside].astype(np.float32)) - 1.0) < 2e-3       # float16 rounding
+        count = int((np.abs(margin[inside]) < 1).sum())
+        assert abs(count - ambiguous) <= near_one.sum(), key
+        np.testing.assert_allclose(numpy_margins[key][0].astype(np.float32), margin.astype(np.float32),
+                                   rtol=1e-3, atol=1e-3, err_msg=str(key))
+        close += ambiguous
+    assert close > 0

@@ -65,9 +65,14 @@ class TrackConfig:
             occluder_tolerance_rel * z)`` at the point's pixel). ``depth-ratio``: the paper's
             method exactly (the depth-map test alone).
         occluder_tolerance_m, occluder_tolerance_rel: that tolerance (metres, fraction of z).
-        ambiguity_m, ambiguity_deg: a surface decision this close to flipping (metres of depth
-            from the z-buffer's threshold, degrees from ``back_face_max_deg``) is counted as
-            ambiguous (``num_ambiguous_occlusion`` in ``stats/objects.parquet``; a gate bounds it).
+        ambiguity_m, ambiguity_deg: an occlusion decision this close to flipping (metres of depth
+            from the depth-map test's or the z-buffer's threshold, degrees from
+            ``back_face_max_deg``) is counted as ambiguous (``num_ambiguous_occlusion`` in
+            ``stats/objects.parquet``; a gate bounds it); the units of ``occlusion_margin``.
+        occlusion_margins: keep each kept point-frame's occlusion margin (how far its decision
+            was from flipping, :class:`drivetrack.tracks.core.ObjectTracks`) as the clip's
+            optional ``occlusion_margin`` array (float16 [N, T]); the per-clip ambiguous count
+            is computed from the margins either way.
         surfel_radius_m, surfel_max_px: each occluder return covers a square of
             ``min(surfel_max_px, round(f * surfel_radius_m / z))`` pixels either side of its own.
             Only objects of ``object_types`` have returns, so only they occlude this way.
@@ -128,6 +133,7 @@ class TrackConfig:
     ambiguity_deg: float = 5.0
     surfel_radius_m: float = 0.05
     surfel_max_px: int = 2
+    occlusion_margins: bool = False
     # The depth knobs (DepthConfig's fields, in its order; defaults from there).
     depth_completer: str = _DEPTH.depth_completer
     depth_completer_options: dict = field(default_factory=dict, hash=False)

@@ -96,9 +96,15 @@ class ObjectTracks:
             back-face test (:mod:`drivetrack.visibility.facing`; the depth test alone decides for
             them); 0 when ``TrackConfig.back_face_max_deg`` is None.
         num_ambiguous_occlusion: (track, frame) pairs of the kept tracks, inside the image, whose
-            surface decision was close to flipping: another object's surface within
-            ``TrackConfig.ambiguity_m`` of the z-buffer's hiding threshold, or a trusted normal
-            within ``ambiguity_deg`` of ``back_face_max_deg``; 0 under ``occlusion="depth-ratio"``.
+            occlusion decision was close to flipping: ``|occlusion_margin| < 1`` (below).
+        occlusion_margin: float16 [N, T] or None (only with ``TrackConfig.occlusion_margins``):
+            how far each decision was from flipping, signed (>= 0 on the visible side), in units
+            of the ambiguity thresholds: the smallest of the depth-map test's margin ``(D - r z) /
+            ambiguity_m`` (D the max-of-4 map depth, r ``occlusion_ratio``; +inf where D is
+            unknown), the z-buffer's ``(farthest occluder depth over the footprint - (z - tol)) /
+            ambiguity_m`` (+inf where no occluder covers the footprint) and the back-face test's
+            ``(back_face_max_deg - angle) / ambiguity_deg`` (+inf for an unreliable normal); the
+            tests a config switches off are left out. NaN where the point is outside the image.
 
     Computed on first access (then kept): ``tracks`` float32 [N, T, 2], pixels, finite
     everywhere for a track with one valid projection; meaningful where visible. Where the point is
@@ -140,6 +146,7 @@ class ObjectTracks:
     time_residual_m: float = float("nan")
     num_unreliable_normals: int = 0
     num_ambiguous_occlusion: int = 0
+    occlusion_margin: np.ndarray | None = field(default=None, repr=False)
     _materialised: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -690,11 +697,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
     # Other objects (drivetrack.visibility.zbuffer): hidden[T, n] where another labelled object's
     # splatted returns lie nearer than the point, beyond the tolerance. The same numpy decision
-    # (global-shutter pixel at the image pose) for the kernel and numpy paths. ``ambiguous[T, n]``:
-    # point-frames inside the image whose surface decision was close to flipping (an occluder
-    # within ``ambiguity_m`` of the hiding threshold, or a reliable normal within
-    # ``ambiguity_deg`` of ``back_face_max_deg``); counted per clip on the kept tracks.
-    hidden_other = ambiguous = None
+    # (global-shutter pixel at the image pose) for the kernel and numpy paths. The margins of
+    # both surface tests, float32 [T, n] (+inf where a test cannot hide the point), go into each
+    # kept point-frame's occlusion margin (:func:`_occlusion_margins`).
+    hidden_other = zbuffer_margin = face_margin = None
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
@@ -703,27 +709,26 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         any_occluder = any(d.size for _, d in occluders)
         if any_occluder:
             hidden_other = np.zeros((t_count, n), dtype=bool)
-        ambiguous = np.zeros((t_count, n), dtype=bool)
+            zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
+        if surfels is not None:
+            from drivetrack.visibility.facing import facing_cosine
+
+            face_margin = np.empty((t_count, n), dtype=np.float32)
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
-            points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
-            pixels, valid = model.pixels_from_camera(points_camera)
-            valid &= points_camera[..., 0] > 0
             if any_occluder:
-                hidden_other[:, start:stop], margin = hidden_by_others(
+                points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
+                pixels, valid = model.pixels_from_camera(points_camera)
+                valid &= points_camera[..., 0] > 0
+                hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
                     points_camera, pixels, valid, occluders, int(model.width), int(model.height),
                     float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
                     float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
-                ambiguous[:, start:stop] |= np.abs(margin) < config.ambiguity_m
             if surfels is not None:
-                from drivetrack.visibility.facing import facing_cosine
-
                 angle = np.degrees(np.arccos(np.clip(
                     facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box), -1.0, 1.0)))
-                ambiguous[:, start:stop] |= ((np.abs(angle - config.back_face_max_deg) < config.ambiguity_deg)
-                                             & surfels.reliable[None, start:stop])
-            inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
-            ambiguous[:, start:stop] &= inside
+                face_margin[:, start:stop] = np.where(surfels.reliable[None, start:stop],
+                                                      config.back_face_max_deg - angle, np.inf)
         del occluders
 
     def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
@@ -805,6 +810,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         final_rows = np.flatnonzero(status == kernel.KEPT)
+
+        def project(chunk: np.ndarray):
+            points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]
+            pixels, valid = model.pixels_from_camera(points_camera)
+            return points_camera, pixels, valid & (points_camera[..., 0] > 0)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
@@ -860,7 +870,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
         final_rows = np.flatnonzero(keep)
+        project = projection.project
 
+    margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin)
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
@@ -884,9 +896,48 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
         time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
         num_unreliable_normals=0 if surfels is None else surfels.num_unreliable,
-        num_ambiguous_occlusion=0 if ambiguous is None else int(ambiguous[:, final_rows].sum()),
+        num_ambiguous_occlusion=int((np.abs(margins) < 1.0).sum()),     # NaN (outside the image) compares False
+        occlusion_margin=margins.astype(np.float16) if config.occlusion_margins else None,
     )
     return result
+
+
+def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
+    """``margin`` in units of ``unit`` (> 0); with ``unit`` 0 only the sign is left (0 stays 0)."""
+    if unit > 0:
+        return margin / np.float32(unit)
+    return np.where(margin == 0, np.float32(0.0), np.sign(margin) * np.float32(np.inf)).astype(np.float32)
+
+
+def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
+                       rows: np.ndarray, zbuffer_margin: np.ndarray | None,
+                       face_margin: np.ndarray | None) -> np.ndarray:
+    """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] of ``p_box``
+    (see :class:`ObjectTracks`' ``occlusion_margin``).
+
+    ``clip_maps`` float32 [T, H, W] the clip's depth maps; ``project(points_box [k, 3])`` returns
+    ``(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k])`` as the track path projected
+    them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
+    candidates, None when that test is off.
+    """
+    from drivetrack.depth import lookup_max4
+
+    out = np.empty((rows.size, clip_maps.shape[0]), dtype=np.float32)
+    for start in range(0, rows.size, config.chunk_points):
+        idx = rows[start:start + config.chunk_points]
+        points_camera, pixels, valid = project(p_box[idx])
+        inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
+        surface = lookup_max4(clip_maps, pixels)                                          # [T, k]
+        margin = np.where(surface > 0, surface - float(config.occlusion_ratio) * points_camera[..., 0],
+                          np.inf).astype(np.float32)
+        margin = _scaled(margin, float(config.ambiguity_m))
+        if zbuffer_margin is not None:
+            margin = np.minimum(margin, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)))
+        if face_margin is not None:
+            margin = np.minimum(margin, _scaled(face_margin[:, idx], float(config.ambiguity_deg)))
+        margin[~inside] = np.nan
+        out[start:start + idx.size] = margin.T
+    return out
 
 
 def _outside_box_m(points_box: np.ndarray, size: np.ndarray) -> float:
