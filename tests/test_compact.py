@@ -210,3 +210,52 @@ def test_truncated_clips_table_is_named(annotated_output, tmp_path, capsys):
     assert rel in capsys.readouterr().err
     assert main(["gates", str(out)]) != 0
     assert rel in capsys.readouterr().err
+
+
+def test_occlusion_margins_travel_from_the_track_stage_to_tables_loaders_and_npz(synth_source, synth_segments,
+                                                                                 annotated_output, tmp_path):
+    """``TrackConfig.occlusion_margins`` (issue 15 step 4): the clips table holds each clip's margins
+    as the track stage computed them, ``read_clip`` / ``load_clip`` return them, the DriveTrack npz
+    export carries them (float16) and the release contents check accepts that member; runs without
+    the option store an empty list (None when read, no npz member), and a table written before the
+    column existed still reads."""
+    import drivetrack
+    from drivetrack.annotate import AnnotateConfig, annotate_segment
+    from drivetrack.compact.export import export_clips
+    from drivetrack.compact.read import iter_clips, read_clip
+    from drivetrack.outputs import DRIVETRACK, clip_stem
+    from drivetrack.release.contents import check_clip_npz
+    from drivetrack.tracks import TrackConfig
+
+    out = tmp_path / "out"
+    result = annotate_segment(synth_source, "training", synth_segments[0], str(out),
+                              AnnotateConfig(track=TrackConfig(occlusion_margins=True)), keep_tracks=True)
+    assert result.status == "done", result.error
+    kept = [t for t in result.tracks if t.rejection is None and t.num_tracks > 0]
+    assert kept
+    export_clips(str(out), ["drivetrack-npz"], str(tmp_path / "npz"))
+    for t in kept:
+        stem = clip_stem(t.segment, t.camera_name, t.object_id)
+        assert t.occlusion_margin.dtype == np.float16 and t.occlusion_margin.shape == t.visibles.shape
+        stored = read_clip(str(out), stem)
+        np.testing.assert_array_equal(stored.occlusion_margin, t.occlusion_margin.astype(np.float32))
+        np.testing.assert_array_equal(drivetrack.load_clip(str(out), stem).occlusion_margin, stored.occlusion_margin)
+        path = tmp_path / "npz" / "tracks" / "training" / f"{stem}.npz"
+        np.testing.assert_array_equal(_npz(path)["occlusion_margin"], t.occlusion_margin)
+        with open(path, "rb") as f:
+            assert "occlusion_margin" in [name for name, _, _ in check_clip_npz(f, str(path), DRIVETRACK)]
+    # the sign is the decision, as written
+    stored = read_clip(str(out), clip_stem(kept[0].segment, kept[0].camera_name, kept[0].object_id))
+    inside = ~np.isnan(stored.occlusion_margin)
+    np.testing.assert_array_equal(stored.visibles[inside], ~np.signbit(stored.occlusion_margin[inside]))
+
+    # the default run: no margins anywhere
+    assert all(clip.occlusion_margin is None for clip in iter_clips(annotated_output))
+    # a clips table written before the column existed reads as no margins
+    old = tmp_path / "old"
+    shutil.copytree(annotated_output, old)
+    table_path = sorted((old / "clips" / "training").glob("*.parquet"))[0]
+    table = pq.read_table(table_path)
+    pq.write_table(table.drop(["occlusion_margin"]), table_path, row_group_size=1)
+    first = next(iter(iter_clips(str(old))))
+    assert first.occlusion_margin is None and first.num_tracks > 0

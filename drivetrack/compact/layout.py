@@ -34,6 +34,12 @@ clip of the camera uses, sorted by ``frame``; each frame once, however many clip
                              pinhole + Brown-Conrady model)
     camera_from_vehicle      float64 [T, 4, 4], Waymo camera frame from each frame's vehicle frame
     world_from_vehicle       float64 [T, 4, 4]
+    occlusion_margin         float32 [N, T] or empty: each decision's distance from flipping,
+                             signed (>= 0 visible), in units of the ambiguity thresholds; NaN
+                             outside the image (docs/visibility.md). Written only by runs with
+                             ``TrackConfig.occlusion_margins`` (an empty list otherwise); tables
+                             written before the column existed lack it and read as empty
+                             (:data:`OPTIONAL_COLUMNS`).
 
 Float lists are written with Parquet's BYTE_STREAM_SPLIT encoding and zstd.
 """
@@ -41,7 +47,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-__all__ = ["FRAMES_SCHEMA", "CLIPS_SCHEMA", "FLOAT_COLUMNS", "INTRINSICS", "CLIPS_FEATURES", "FRAMES_FEATURES",
+__all__ = ["FRAMES_SCHEMA", "CLIPS_SCHEMA", "OPTIONAL_COLUMNS", "FLOAT_COLUMNS", "INTRINSICS", "CLIPS_FEATURES", "FRAMES_FEATURES",
            "COLUMN_DESCRIPTIONS", "ZSTD_LEVEL", "parquet_options"]
 
 #: The ``intrinsics`` list, in order (attributes of :class:`drivetrack.camera.model.CameraModel`).
@@ -65,7 +71,12 @@ CLIPS_SCHEMA = pa.schema([
     ("query_pixels", pa.list_(pa.float32())),
     ("width", pa.int32()), ("height", pa.int32()), ("intrinsics", pa.list_(pa.float64())),
     ("camera_from_vehicle", pa.list_(pa.float64())), ("world_from_vehicle", pa.list_(pa.float64())),
+    ("occlusion_margin", pa.list_(pa.float32())),
 ])
+
+#: Columns of :data:`CLIPS_SCHEMA` a table may lack (added after layout v2's first releases; a
+#: missing one reads as empty).
+OPTIONAL_COLUMNS = ("occlusion_margin",)
 
 #: Float list columns (BYTE_STREAM_SPLIT encoded).
 FLOAT_COLUMNS = tuple(f.name for f in CLIPS_SCHEMA if pa.types.is_list(f.type)
@@ -132,6 +143,9 @@ COLUMN_DESCRIPTIONS = {
     "intrinsics": "float64 [9]: f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3 (pinhole + Brown-Conrady).",
     "camera_from_vehicle": "float64 [T, 4, 4] flattened: Waymo camera frame from each frame's vehicle frame.",
     "world_from_vehicle": "float64 [T, 4, 4] flattened: world frame from each frame's vehicle frame.",
+    "occlusion_margin": ("float32 [N, T] flattened, or empty when the run did not keep it: each visibility "
+                         "decision's signed distance from flipping (>= 0 visible) in units of the ambiguity "
+                         "thresholds (0.1 m of depth, 5 degrees of normal); NaN outside the image."),
     "frame": "Index of the frame in the segment.",
     "timestamp_micros": "Camera image timestamp, microseconds.",
     "image": "The camera image: the source JPEG bytes exactly as Waymo stored them.",

@@ -21,7 +21,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from drivetrack.compact.layout import CLIPS_SCHEMA, FRAMES_SCHEMA, INTRINSICS
+from drivetrack.compact.layout import CLIPS_SCHEMA, FRAMES_SCHEMA, INTRINSICS, OPTIONAL_COLUMNS
 from drivetrack.outputs import CLIPS, TABLE_FOLDERS, frames_table_path, parse_clip_name, parse_table_path
 
 __all__ = ["CompactFormatError", "Intrinsics", "StoredClip", "StoredSource", "ClipData", "LazyVideo", "points3d_from_box",
@@ -124,7 +124,8 @@ class StoredClip:
     ``tracks`` float32 [N, T, 2], ``points_box`` float64 [N, 3], ``vehicle_from_box`` float64
     [T, 4, 4], ``points3d`` float32 [N, T, 3] (computed from those two on first access),
     ``camera_model`` (:class:`Intrinsics`), ``camera_from_vehicle`` / ``world_from_vehicle``
-    float64 [T, 4, 4], ``jpeg`` the T source JPEGs (read from the frames table on first access).
+    float64 [T, 4, 4], ``jpeg`` the T source JPEGs (read from the frames table on first access),
+    ``occlusion_margin`` float32 [N, T] or None (the run did not keep the margins; docs/visibility.md).
     """
     clip: str
     file: str
@@ -145,6 +146,7 @@ class StoredClip:
     camera_model: Intrinsics
     camera_from_vehicle: np.ndarray
     world_from_vehicle: np.ndarray
+    occlusion_margin: np.ndarray | None = field(default=None, repr=False)
     frame_store: FrameStore | None = field(default=None, repr=False)
     _jpeg: list | None = field(default=None, repr=False)
     _points3d: np.ndarray | None = field(default=None, repr=False)
@@ -199,7 +201,7 @@ def open_table(fs, path: str, rel: str, schema: pa.Schema) -> pq.ParquetFile:
         raise CompactFormatError(f"{rel}: no such table") from None
     except (pa.ArrowException, OSError, ValueError) as error:
         raise CompactFormatError(f"{rel}: not a readable Parquet table (truncated or corrupt?): {error}") from error
-    missing = [f.name for f in schema if f.name not in table.schema_arrow.names]
+    missing = [f.name for f in schema if f.name not in table.schema_arrow.names and f.name not in OPTIONAL_COLUMNS]
     if missing:
         raise CompactFormatError(f"{rel}: missing column(s) {missing} of the v2 layout "
                                  f"(docs/formats.md)")
@@ -251,6 +253,10 @@ def _stored_clip(row: pa.Table, rel: str, frame_store: FrameStore | None) -> Sto
         return _array(None if value.is_null().to_numpy(zero_copy_only=False)[0] else value, dtype, shape,
                       rel, clip, name)
 
+    margin = None
+    if "occlusion_margin" in get and not get["occlusion_margin"].is_null().to_numpy(zero_copy_only=False)[0] \
+            and len(get["occlusion_margin"].values):
+        margin = arr("occlusion_margin", np.float32, (n, t))
     intrinsics = arr("intrinsics", np.float64, (len(INTRINSICS),))
     model = Intrinsics(*(float(v) for v in intrinsics), width=int(scalar["width"]), height=int(scalar["height"]))
     return StoredClip(
@@ -262,7 +268,8 @@ def _stored_clip(row: pa.Table, rel: str, frame_store: FrameStore | None) -> Sto
         points_box=arr("points_box", np.float64, (n, 3)),
         vehicle_from_box=arr("vehicle_from_box", np.float64, (t, 4, 4)), query_pixels=arr("query_pixels", np.float32, (n, 2)), camera_model=model,
         camera_from_vehicle=arr("camera_from_vehicle", np.float64, (t, 4, 4)),
-        world_from_vehicle=arr("world_from_vehicle", np.float64, (t, 4, 4)), frame_store=frame_store)
+        world_from_vehicle=arr("world_from_vehicle", np.float64, (t, 4, 4)), occlusion_margin=margin,
+        frame_store=frame_store)
 
 
 def iter_clips(root_url: str, clips: set[str] | None = None, storage_options: dict | None = None,
@@ -356,14 +363,16 @@ class LazyVideo:
 class ClipData:
     """What :func:`load_clip` returns: ``video`` (:class:`LazyVideo`, uint8 [T, H, W, 3] RGB decoded
     a frame at a time), ``tracks`` float32 [N, T, 2] pixels, ``visibles`` bool [N, T],
-    ``query_frames`` int32 [N], ``timestamps_micros`` int64 [T], and ``clip`` (the
-    :class:`StoredClip` with every stored column)."""
+    ``query_frames`` int32 [N], ``timestamps_micros`` int64 [T], ``clip`` (the
+    :class:`StoredClip` with every stored column), and ``occlusion_margin`` float32 [N, T] (None
+    unless the run kept the margins; docs/visibility.md)."""
     video: LazyVideo
     tracks: np.ndarray
     visibles: np.ndarray
     query_frames: np.ndarray
     timestamps_micros: np.ndarray
     clip: StoredClip
+    occlusion_margin: np.ndarray | None = None
 
 
 def load_clip(release_or_out: str, clip: str, storage_options: dict | None = None) -> ClipData:
@@ -373,7 +382,8 @@ def load_clip(release_or_out: str, clip: str, storage_options: dict | None = Non
     stored = read_clip(release_or_out, clip, storage_options)
     stored.frame_store.rows(stored.split, stored.segment, stored.camera_name, stored.frames, stored.where)
     return ClipData(video=LazyVideo(stored), tracks=stored.tracks, visibles=stored.visibles,
-                    query_frames=stored.query_frames, timestamps_micros=stored.timestamps_micros, clip=stored)
+                    query_frames=stored.query_frames, timestamps_micros=stored.timestamps_micros, clip=stored,
+                    occlusion_margin=stored.occlusion_margin)
 
 
 def check_frame_references(fs, root: str, rels: list[str]) -> list[str]:

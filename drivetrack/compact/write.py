@@ -104,6 +104,9 @@ def clip_row(tracks: ObjectTracks, stem: str) -> pa.Table:
         "intrinsics": _flat(np.array([getattr(model, k) for k in INTRINSICS], np.float64), np.float64, pa.float64()),
         "camera_from_vehicle": _flat(tracks.camera_from_vehicle, np.float64, pa.float64()),
         "world_from_vehicle": _flat(tracks.world_from_vehicle, np.float64, pa.float64()),
+        # empty unless the run kept the margins (float16 values, exact in float32)
+        "occlusion_margin": _flat(np.zeros(0) if tracks.occlusion_margin is None else tracks.occlusion_margin,
+                                  np.float32, pa.float32()),
     }
     columns = [lists[f.name] if f.name in lists else pa.array([scalars[f.name]], f.type) for f in CLIPS_SCHEMA]
     return pa.Table.from_arrays(columns, schema=CLIPS_SCHEMA)

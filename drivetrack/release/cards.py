@@ -178,6 +178,7 @@ ARRAY_DOCS = {
     "depths": "depth maps [T, H, W], metres (camera-frame x), 0 = unknown",
     "tracks": "pixel positions [N, T, 2] as (x, y) = (column, row)",
     "visibles": "visibility [N, T]",
+    "occlusion_margin": "signed distance of each visibility decision from flipping [N, T], in ambiguity thresholds",
     "points3d": "3D points of the tracks",
     "images_jpeg_bytes": "JPEG-encoded frames [T]",
     "tracks_XYZ": "3D positions [T, N, 3], metres, OpenCV camera frame (X right, Y down, Z forward)",

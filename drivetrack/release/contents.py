@@ -39,7 +39,7 @@ from drivetrack.outputs import (CLIPS, DRIVETRACK, FRAMES, LAYOUTS, TABLE_FOLDER
 from drivetrack.names import is_valid_name
 from drivetrack.release.errors import InvalidSourceError
 
-__all__ = ["MEMBERS", "CLIP_FORMATS", "ArrayFormat", "member_kind", "list_local_folder", "open_local_nofollow",
+__all__ = ["MEMBERS", "CLIP_FORMATS", "OPTIONAL_MEMBERS", "ArrayFormat", "member_kind", "list_local_folder", "open_local_nofollow",
            "check_clip_npz", "check_stats_table", "clips_of_unfinished_segments", "refuse"]
 
 _SEG = r"[A-Za-z0-9][A-Za-z0-9_.\-]*"          # one path component, never hidden
@@ -203,7 +203,8 @@ class ArrayFormat:
         return dtype == np.dtype(self.dtype)
 
 
-#: The members of each clip layout, as written by drivetrack/tracks/writers.py (docs/formats.md).
+#: The members of each clip layout, as written by drivetrack/tracks/writers.py (docs/formats.md);
+#: those of :data:`OPTIONAL_MEMBERS` may be absent.
 CLIP_FORMATS: dict[str, dict[str, ArrayFormat]] = {
     DRIVETRACK: {
         "video": ArrayFormat("uint8", ("T", "H", "W", 3)),
@@ -213,6 +214,8 @@ CLIP_FORMATS: dict[str, dict[str, ArrayFormat]] = {
         "query_frames": ArrayFormat("int32", ("N",)),
         "lidar_sources": ArrayFormat("int32", ("N", 4)),
         "points3d": ArrayFormat("float32", ("N", "T", 3)),
+        # optional: written when the run kept the occlusion margins (docs/visibility.md)
+        "occlusion_margin": ArrayFormat("float16", ("N", "T")),
     },
     TAPVID3D: {
         "images_jpeg_bytes": ArrayFormat("S", ("T",)),
@@ -225,6 +228,10 @@ CLIP_FORMATS: dict[str, dict[str, ArrayFormat]] = {
         "timestamps_micros": ArrayFormat("int64", ("T",)),
     },
 }
+
+
+#: Members of :data:`CLIP_FORMATS` a clip may leave out.
+OPTIONAL_MEMBERS = frozenset({"occlusion_margin"})
 
 
 def _read_header(member) -> tuple[tuple[int, ...], bool, np.dtype, int]:
@@ -272,7 +279,7 @@ def check_clip_npz(f, where: str, layout: str) -> list[tuple[str, np.dtype, tupl
     except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError) as e:
         raise InvalidSourceError(f"{where}: not a readable .npz file ({type(e).__name__}: {e})") from e
     have = {n for n, _, _ in found}
-    missing, extra = sorted(set(declared) - have), sorted(have - set(declared))
+    missing, extra = sorted(set(declared) - have - OPTIONAL_MEMBERS), sorted(have - set(declared))
     if missing:
         problems.append(f"missing member(s) {missing}")
     if extra:

@@ -93,9 +93,12 @@ def drivetrack_arrays(tracks: ObjectTracks) -> dict[str, np.ndarray | StreamedAr
 
     ``video``, ``tracks`` and ``points3d`` are :class:`StreamedArray` s (decoded / computed a
     frame or a chunk of points at a time while written: :meth:`TrackSource.point_chunks`).
+    ``occlusion_margin`` float16 [N, T] is added when the run kept it (docs/visibility.md).
     """
     n, t = tracks.num_tracks, tracks.num_frames
     source = tracks.source
+    margin = getattr(tracks, "occlusion_margin", None)
+    extra = {} if margin is None else {"occlusion_margin": np.asarray(margin).astype(np.float16, copy=False)}
     return {
         "video": video_stream(tracks),
         "tracks": StreamedArray((n, t, 2), np.float32,
@@ -106,6 +109,7 @@ def drivetrack_arrays(tracks: ObjectTracks) -> dict[str, np.ndarray | StreamedAr
         "lidar_sources": tracks.lidar_sources.astype(np.int32, copy=False),
         "points3d": StreamedArray((n, t, 3), np.float32,
                                   lambda: (c[1] for c in source.point_chunks(what=("points3d",)))),
+        **extra,
     }
 
 
