@@ -138,6 +138,71 @@ def test_zbuffer_does_not_grow_a_near_occluders_outline_over_far_points():
     np.testing.assert_array_equal(hidden, (columns > 90) & (columns < 110))      # the car covers 90..109
 
 
+def test_nearest_depth_equals_splatting_each_footprint():
+    """``nearest_depth`` (one minimum filter per footprint size) equals writing every return's
+    (2r+1)^2 square one by one: buffer and kept footprints, with one radius or one per return,
+    returns outside the image whose footprints reach in, and ties between equal depths."""
+    from drivetrack.visibility import nearest_depth
+
+    rng = np.random.default_rng(3)
+    for trial in range(40):
+        width, height = (int(v) for v in rng.integers(5, 40, 2))
+        m = int(rng.integers(0, 120))
+        pixels = rng.uniform(-10.0, max(width, height) + 10.0, (m, 2))
+        depth = np.round(rng.uniform(1.0, 6.0, m)) if trial % 3 == 0 else rng.uniform(1.0, 60.0, m)
+        radius_m = 0.05 if trial % 2 else rng.uniform(0.01, 0.3, m)
+        focal, max_px = float(rng.uniform(100.0, 2000.0)), int(rng.integers(0, 9))
+        buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
+        want, want_r = np.full((height, width), np.inf, np.float32), np.zeros((height, width), np.int8)
+        r = np.minimum(np.rint(focal * np.asarray(radius_m) / depth), max_px).astype(int) * np.ones(m, int)
+        for i in range(m):
+            col, row = int(np.floor(pixels[i, 0])), int(np.floor(pixels[i, 1]))
+            rows = slice(max(0, row - r[i]), max(0, min(height, row + r[i] + 1)))
+            cols = slice(max(0, col - r[i]), max(0, min(width, col + r[i] + 1)))
+            z = np.float32(depth[i])
+            block, block_r = want[rows, cols], want_r[rows, cols]
+            block_r[(z == block)] = np.maximum(block_r[(z == block)], r[i])
+            block_r[z < block] = r[i]
+            np.minimum(block, z, out=block)
+        np.testing.assert_array_equal(buffer, want, err_msg=str(trial))
+        np.testing.assert_array_equal(footprint, want_r, err_msg=str(trial))
+
+
+def test_zbuffer_footprints_from_the_spacing_close_a_sparse_occluder():
+    """A far occluder sampled every 0.3 m (a car at 40 m seen by a few lidar rings): with the fixed
+    5 cm footprint its returns leave gaps, and points behind it show through them; a footprint
+    from the spacing of the returns (``segment_surface_radius``'s rule) closes the gaps, and
+    points beside its outline stay visible."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.visibility import hidden_by_others
+
+    focal, width, height = 500.0, 200, 100
+    grid = np.stack(np.meshgrid(np.arange(-0.9, 0.91, 0.3), np.arange(-0.6, 0.61, 0.3)), axis=-1).reshape(-1, 2)
+    near = np.column_stack([np.full(len(grid), 40.0), grid])
+    spacing = cKDTree(near).query(near, k=5)[0][:, -1]
+    radius = np.clip(0.6 * spacing, 0.05, 0.3)
+    assert (spacing >= 0.3 - 1e-9).all() and (radius >= 0.18 - 1e-9).all()
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                focal * points[:, 2] / points[:, 0] + height / 2])
+
+    # points 5 m behind, on a finer grid over the occluder and beside it
+    ys, zs = np.meshgrid(np.arange(-1.5, 1.51, 0.05), np.arange(-0.5, 0.51, 0.05))
+    far = np.column_stack([np.full(ys.size, 45.0), ys.ravel(), zs.ravel()])
+    args = (far[None], project(far)[None], np.ones((1, len(far)), bool))
+    fixed = hidden_by_others(*args, [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0][0]
+    spaced = hidden_by_others(*args, [(project(near), near[:, 0], radius)], width, height, focal, 0.05, 4,
+                              0.3, 0.02)[0][0]
+    # behind the occluder (its returns span |y| <= 0.9 m at 40 m, i.e. |y| <= 1.0 m at 45 m)
+    inside = (np.abs(far[:, 1]) < 0.9) & (np.abs(far[:, 2]) < 0.55)
+    beside = np.abs(far[:, 1]) > 1.3
+    assert fixed[inside].mean() < 0.5                        # the gaps show through
+    assert spaced[inside].all()                              # closed
+    assert not spaced[beside].any() and not fixed[beside].any()
+
+
 def test_zbuffer_window_equals_the_full_image_buffer():
     """hidden_by_others splats only into the window of the tracked points' pixels (plus the
     footprints); it decides exactly as the whole image's z-buffer, where a point is hidden when
@@ -207,6 +272,13 @@ def test_config_checks_the_normals():
         TrackConfig(normals_from="frame")
     with pytest.raises(ValueError, match="normal_neighbours"):
         TrackConfig(normal_neighbours=2)
+
+
+def test_config_checks_the_surfel_radius():
+    with pytest.raises(ValueError, match="surfel_radius_from"):
+        TrackConfig(surfel_radius_from="normals")
+    with pytest.raises(ValueError, match="surfel_max_radius_m"):
+        TrackConfig(surfel_radius_from="spacing", surfel_max_radius_m=0.01)
 
 
 def test_config_checks_the_angle():

@@ -24,6 +24,10 @@ TRACK_KERNELS = ("numba", "numpy")
 #: back faces + z-buffer of the other labelled objects; ``depth-ratio`` = the paper's depth test alone.
 OCCLUSION_METHODS = ("surface", "depth-ratio")
 
+#: How an occluder return's splat radius is chosen (``TrackConfig.surfel_radius_from``): one fixed
+#: radius, or from the local spacing of the object's returns.
+SURFEL_RADII = ("fixed", "spacing")
+
 _DEPTH = DepthConfig()
 
 
@@ -74,7 +78,12 @@ class TrackConfig:
             optional ``occlusion_margin`` array (float16 [N, T]); the per-clip ambiguous count
             is computed from the margins either way.
         surfel_radius_m, surfel_max_px: each occluder return covers a square of
-            ``min(surfel_max_px, round(f * surfel_radius_m / z))`` pixels either side of its own.
+            ``min(surfel_max_px, round(f * r / z))`` pixels either side of its own, r its radius:
+            ``surfel_radius_m`` for every return (``surfel_radius_from: fixed``) or, with
+            ``spacing``, ``surfel_spacing_scale`` times the distance to its 4th nearest neighbour
+            on the object's surface, within [``surfel_radius_m``, ``surfel_max_radius_m``]
+            (:func:`drivetrack.tracks.core.segment_surface_radius`; the clip's returns under
+            ``time_model="velocity"`` keep ``surfel_radius_m``).
             Only objects of ``object_types`` have returns, so only they occlude this way.
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
@@ -132,7 +141,10 @@ class TrackConfig:
     ambiguity_m: float = 0.1
     ambiguity_deg: float = 5.0
     surfel_radius_m: float = 0.05
-    surfel_max_px: int = 2
+    surfel_max_px: int = 8
+    surfel_radius_from: str = "fixed"
+    surfel_spacing_scale: float = 0.6
+    surfel_max_radius_m: float = 0.3
     occlusion_margins: bool = False
     # The depth knobs (DepthConfig's fields, in its order; defaults from there).
     depth_completer: str = _DEPTH.depth_completer
@@ -198,6 +210,12 @@ class TrackConfig:
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
+        if self.surfel_radius_from not in SURFEL_RADII:
+            raise ValueError(f"TrackConfig.surfel_radius_from must be one of {SURFEL_RADII}, got "
+                             f"{self.surfel_radius_from!r}")
+        if not (self.surfel_spacing_scale > 0 and self.surfel_max_radius_m >= self.surfel_radius_m):
+            raise ValueError(f"TrackConfig.surfel_spacing_scale must be > 0 and surfel_max_radius_m >= "
+                             f"surfel_radius_m, got {self.surfel_spacing_scale!r}, {self.surfel_max_radius_m!r}")
         from drivetrack.tracks.trajectory import LABEL_TILTS, LABEL_TIMES, TIME_MODELS
 
         if self.time_model not in TIME_MODELS:

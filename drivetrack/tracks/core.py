@@ -559,6 +559,28 @@ def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     return points_box
 
 
+def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m]: the splat radius (metres) of each point of :func:`segment_surface`: from the
+    local spacing, ``surfel_spacing_scale`` x the distance to the 4th nearest neighbour, within
+    [``surfel_radius_m``, ``surfel_max_radius_m``]; cached with the surface."""
+    from scipy.spatial import cKDTree
+
+    key = f"{object_id}#radius"
+    radius = plan.occluder_cache.get(key)
+    if radius is None:
+        config = plan.config
+        points_box = segment_surface(plan, object_id, poses)
+        k = 5                                                   # the point itself and 4 neighbours
+        if points_box.shape[0] >= k:
+            dist, _ = cKDTree(points_box).query(points_box, k=k)
+            spacing = dist[:, -1]
+        else:
+            spacing = np.full(points_box.shape[0], np.inf)
+        radius = np.clip(config.surfel_spacing_scale * spacing, config.surfel_radius_m, config.surfel_max_radius_m)
+        plan.occluder_cache[key] = radius
+    return radius
+
+
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
                target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
@@ -617,7 +639,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
             # camera or the clip: all its returns over the segment, thinned to the first of each
             # surfel cube, computed once per object and segment.
             points_box = segment_surface(plan, object_id, poses)
+            radius_m = (segment_surface_radius(plan, object_id, poses)
+                        if plan.config.surfel_radius_from == "spacing" else None)
         else:
+            radius_m = None
             # the clip's returns (of the frames it has a box in, before the skips above)
             clip_rows = candidates[boxes.object_id[candidates] == object_id]
             clip_rows = clip_rows[np.argsort(boxes.frame[clip_rows], kind="stable")]
@@ -630,11 +655,14 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
         points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
         pixels, valid = model.pixels_from_camera(points_camera)
         valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
+        if radius_m is None:
+            radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
         for k, t in enumerate(obj_frames.tolist()):
             ok = valid[k]
-            per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0]))
-    return [(np.concatenate([p for p, _ in parts]) if parts else np.empty((0, 2)),
-             np.concatenate([d for _, d in parts]) if parts else np.empty(0)) for parts in per_frame]
+            per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
+    return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
+             np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+             np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -706,7 +734,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
         occluders = _occluders(plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
-        any_occluder = any(d.size for _, d in occluders)
+        any_occluder = any(o[1].size for o in occluders)
         if any_occluder:
             hidden_other = np.zeros((t_count, n), dtype=bool)
             zbuffer_margin = np.empty((t_count, n), dtype=np.float32)

@@ -51,41 +51,51 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
 
 
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
-                  radius_m: float, max_px: int, with_radius: bool = False):
+                  radius_m, max_px: int, with_radius: bool = False):
     """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
 
     ``pixels`` float64 [m, 2] (x, y), ``depth`` float64 [m] (> 0; callers drop the rest). A return
-    covers the (2r+1)^2 pixels around its own, ``r = min(max_px, round(focal * radius_m / depth))``.
-    With ``with_radius``, returns ``(buffer, radius int8 [height, width])``: the footprint ``r`` of
-    the return that holds each pixel's depth (the largest among equal depths; 0 where none lands).
+    covers the (2r+1)^2 pixels around its own, ``r = min(max_px, round(focal * radius_m / depth))``
+    (``radius_m`` metres, one for all or float [m], one per return). With ``with_radius``, returns
+    ``(buffer, radius int8 [height, width])``: the footprint ``r`` of the return that holds each
+    pixel's depth (the largest among equal depths; 0 where none lands).
+
+    Each footprint size is one pass: the returns of that size are written at their own pixels
+    (the nearest per pixel) into a buffer padded by ``max_px``, which a separable minimum filter
+    of side 2r+1 then spreads (the cost does not grow with the square of the footprint).
     """
-    buffer = np.full(height * width, np.inf, dtype=np.float32)
-    footprint = np.zeros(height * width, dtype=np.int8)
+    from scipy.ndimage import minimum_filter
+
+    buffer = np.full((height, width), np.inf, dtype=np.float32)
+    footprint = np.zeros((height, width), dtype=np.int8)
     if depth.size == 0:
-        return (buffer.reshape(height, width), footprint.reshape(height, width)) if with_radius \
-            else buffer.reshape(height, width)
-    col = np.floor(pixels[:, 0]).astype(np.int64)
-    row = np.floor(pixels[:, 1]).astype(np.int64)
-    radius = np.minimum(np.rint(focal * radius_m / depth), max_px).astype(np.int64)
+        return (buffer, footprint) if with_radius else buffer
+    pad = int(max_px)
+    col = np.floor(pixels[:, 0]).astype(np.int64) + pad
+    row = np.floor(pixels[:, 1]).astype(np.int64) + pad
+    radius = np.minimum(np.rint(focal * np.asarray(radius_m, dtype=np.float64) / depth), max_px).astype(np.int64)
+    radius = np.broadcast_to(radius, depth.shape)
     z = depth.astype(np.float32)
+    # a return reaches the image only when its pixel lies within its footprint of it
+    ok = (row >= pad - radius) & (row < height + pad + radius) & (col >= pad - radius) & (col < width + pad + radius)
     groups = []
-    for r in np.unique(radius).tolist():
-        sel = radius == r
-        d = np.arange(-r, r + 1)
-        dy, dx = np.meshgrid(d, d, indexing="ij")
-        rows = row[sel, None] + dy.ravel()[None]                                     # [k, (2r+1)^2]
-        cols = col[sel, None] + dx.ravel()[None]
-        ok = (rows >= 0) & (rows < height) & (cols >= 0) & (cols < width)
-        flat, values = (rows * width + cols)[ok], np.broadcast_to(z[sel, None], rows.shape)[ok]
-        np.minimum.at(buffer, flat, values)
+    for r in np.unique(radius[ok]).tolist():
+        sel = ok & (radius == r)
+        centres = np.full((height + 2 * pad) * (width + 2 * pad), np.inf, dtype=np.float32)
+        np.minimum.at(centres, row[sel] * (width + 2 * pad) + col[sel], z[sel])
+        centres = centres.reshape(height + 2 * pad, width + 2 * pad)
+        if r > 0:
+            centres = minimum_filter(centres, size=2 * r + 1, mode="constant", cval=np.inf)
+        spread = centres[pad:pad + height, pad:pad + width]
+        np.minimum(buffer, spread, out=buffer)
         if with_radius:
-            groups.append((r, flat, values))
+            groups.append((r, spread))
     if not with_radius:
-        return buffer.reshape(height, width)
-    for r, flat, values in groups:                   # the footprint of the return each pixel kept
-        won = flat[values == buffer[flat]]
-        np.maximum.at(footprint, won, np.int8(r))
-    return buffer.reshape(height, width), footprint.reshape(height, width)
+        return buffer
+    for r, spread in groups:                         # the footprint of the return each pixel kept
+        won = (spread == buffer) & np.isfinite(buffer)
+        footprint[won] = np.maximum(footprint[won], np.int8(r))
+    return buffer, footprint
 
 
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
@@ -112,7 +122,9 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
     hidden = np.zeros((t_count, n), dtype=bool)
     margin = np.full((t_count, n), np.inf, dtype=np.float32)
     for tau in range(t_count):                       # one image at a time: bounded memory
-        occ_pixels, occ_depth = occluders[tau]
+        occ_pixels, occ_depth = occluders[tau][:2]
+        # a footprint radius per return (metres) when the occluder list gives one
+        occ_radius = occluders[tau][2] if len(occluders[tau]) > 2 else np.float64(radius_m)
         if occ_depth.size == 0 or n == 0:
             continue
         z = points_camera[tau, :, 0]
@@ -132,7 +144,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         if not near.any():
             continue
         buffer, footprint = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0,
-                                          focal, radius_m, max_px, with_radius=True)
+                                          focal, occ_radius[near] if np.ndim(occ_radius) else radius_m, max_px,
+                                          with_radius=True)
         # The same footprint rule on the point's side: it is hidden only when the occluders cover
         # its whole footprint (the farthest buffer value over it is nearer than the point), so the
         # footprints that close the gaps between an occluder's returns do not grow its outline.
