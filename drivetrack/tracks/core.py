@@ -582,8 +582,9 @@ def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
 
 
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
-               target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per clip frame, (pixels float64 [m, 2], depth float64 [m]) of the other labelled objects' returns.
+               target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint radius float64 [m],
+    metres) of the other labelled objects' returns.
 
     Every object but ``job``'s with a box at some clip frame and returns selected by the plan
     (somewhere in the segment) is carried by its own :func:`clip_poses` (the capture time of

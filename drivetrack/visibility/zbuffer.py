@@ -106,8 +106,10 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
     Args:
         points_camera: float64 [T, n, 3], the tracked points in the camera frame.
         pixels: float64 [T, n, 2] their pixels; ``valid`` bool [T, n] where the projection holds.
-        occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t]) of the other objects'
-            returns projected in that frame's image (only valid projections in front of the camera).
+        occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t][, radius_m float64
+            [m_t]]) of the other objects' returns projected in that frame's image (only valid
+            projections in front of the camera); without the third member every return's
+            footprint radius is ``radius_m``.
         width, height, focal: the image and its focal length (pixels).
         radius_m, max_px: the footprint (see :func:`nearest_depth`).
         abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
