@@ -724,6 +724,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         return facing_mask(p_box[idx], SurfelNormals(surfels.normal[idx], surfels.reliable[idx]), centres_box,
                            float(config.back_face_max_deg))
 
+    def project_global(chunk: np.ndarray):
+        """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
+        [k, 3] at the image pose (global shutter), in front of the camera."""
+        points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]
+        pixels, valid = model.pixels_from_camera(points_camera)
+        return points_camera, pixels, valid & (points_camera[..., 0] > 0)
+
     # Other objects (drivetrack.visibility.zbuffer): hidden[T, n] where another labelled object's
     # splatted returns lie nearer than the point, beyond the tolerance. The same numpy decision
     # (global-shutter pixel at the image pose) for the kernel and numpy paths. The margins of
@@ -746,9 +753,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             if any_occluder:
-                points_camera = _carry(camera_from_box, p_box[start:stop]) + shift_camera[:, None]
-                pixels, valid = model.pixels_from_camera(points_camera)
-                valid &= points_camera[..., 0] > 0
+                points_camera, pixels, valid = project_global(p_box[start:stop])
                 hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
                     points_camera, pixels, valid, occluders, int(model.width), int(model.height),
                     float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
@@ -839,11 +844,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         final_rows = np.flatnonzero(status == kernel.KEPT)
-
-        def project(chunk: np.ndarray):
-            points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]
-            pixels, valid = model.pixels_from_camera(points_camera)
-            return points_camera, pixels, valid & (points_camera[..., 0] > 0)
+        project = project_global
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
