@@ -880,9 +880,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
-            if own_box.shape[0] and occluded.any():
-                occluded &= ~(own_surface(chunk, surface / points_camera[..., 0], own_box)
-                              & own_points[None, start:start + chunk.shape[0]])
+            if own_box.shape[0]:
+                occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box,
+                                         where=occluded & own_points[None, start:start + chunk.shape[0]])
             visible = ok & ~occluded
             faces = facing(start, start + chunk.shape[0])
             if faces is not None:
@@ -980,12 +980,16 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
         points_camera, pixels, valid = project(p_box[idx])
         inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
         surface = lookup_max4(clip_maps, pixels)                                          # [T, k]
-        counts = surface > 0
-        if own_box.shape[0]:
-            counts &= ~(own_surface(p_box[idx], surface / points_camera[..., 0], own_box) & own_points[None, idx])
-        margin = np.where(counts, surface - float(config.occlusion_ratio) * points_camera[..., 0],
+        margin = np.where(surface > 0, surface - float(config.occlusion_ratio) * points_camera[..., 0],
                           np.inf).astype(np.float32)
         margin = _scaled(margin, float(config.ambiguity_m))
+        if own_box.shape[0]:
+            # own points have reliable normals, so a finite back-face term: the depth-map term
+            # only matters where it is the smaller (exact, and few point-frames to place)
+            face = _scaled(face_margin[:, idx], float(config.ambiguity_deg))
+            own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box,
+                              where=(margin < face) & own_points[None, idx])
+            margin[own] = np.inf
         if zbuffer_margin is not None:
             margin = np.minimum(margin, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)))
         if face_margin is not None:

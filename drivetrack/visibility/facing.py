@@ -129,20 +129,28 @@ def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: floa
     return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape)], axis=-1))
 
 
-def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray) -> np.ndarray:
+def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray,
+                where: np.ndarray | None = None) -> np.ndarray:
     """bool [T, n]: the depth-map surface in front of each point-frame is the object's own.
 
     ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
     point's pixel over the point's own z-depth (the surface's point on the ray from the camera
     centre ``e`` is ``e + depth_ratio (p - e)``: the pixel is the projection of the point, so they
     share the ray); ``own`` float64 [T, 6] from :func:`own_box_parameters`. True where that
-    surface point lies inside the grown box. NaN ratios give False.
+    surface point lies inside the grown box. NaN ratios give False. ``where`` bool [T, n]: compute
+    only there (False elsewhere; the callers ask about the few point-frames the test decides).
     """
-    centre = own[:, None, :3]                                                        # [T, 1, 3]
-    half = own[:, None, 3:]
+    points_box = np.asarray(points_box, dtype=np.float64)
+    depth_ratio = np.asarray(depth_ratio, dtype=np.float64)
+    if where is None:
+        where = np.ones(depth_ratio.shape, dtype=bool)
+    t_idx, n_idx = np.nonzero(where)
+    out = np.zeros(depth_ratio.shape, dtype=bool)
+    centre, half = own[t_idx, :3], own[t_idx, 3:]                                  # [m, 3]
     with np.errstate(invalid="ignore"):
-        surface = centre + np.asarray(depth_ratio, np.float64)[..., None] * (np.asarray(points_box)[None] - centre)
-        return np.all(np.abs(surface) <= half, axis=-1)
+        surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
+        out[t_idx, n_idx] = np.all(np.abs(surface) <= half, axis=-1)
+    return out
 
 
 def facing_mask(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.ndarray,
