@@ -5,8 +5,9 @@ sliding behind a van, poles and a low sign, pedestrians by cars, cars passing cl
 ego, a turning car, a crossing cyclist; cameras triggered as the TOP sweep passes them), annotates
 it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; with the back-face test of
 ``drivetrack.visibility``; the default ``occlusion="surface"``, which adds the z-buffer of the other
-objects' returns; the default, which also moves labelled objects' returns to the image time in
-the depth maps), each with the default pipeline otherwise
+objects' returns; that with labelled objects' returns moved to the image time in the depth maps;
+the default, which also lets no object's own returns in the depth maps hide its points where the
+back-face test can decide), each with the default pipeline otherwise
 (``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
 clips at all) and scores the tracks against the exact truth:
@@ -149,9 +150,12 @@ VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
-    "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False},
-    "surface: + z-buffer of other objects": {"depth_object_motion": False},
-    "surface + depth maps at image time (default)": {},
+    "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
+                                 "own_surface_margin_m": None},
+    "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None},
+    "surface + depth maps at image time": {"own_surface_margin_m": None},
+    # the object's own returns in the depth maps hide none of its points with reliable normals
+    "surface + own returns left to the back-face test (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 

@@ -42,7 +42,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
     """The shared source annotated as the golden npz were (before the z-buffer of other objects,
     issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds, the labelled
     returns of the depth maps left at their capture time, back-face normals from the clip's
-    returns and yaw-only labels' tilt a straight line in time), exported."""
+    returns, yaw-only labels' tilt a straight line in time and the object's own returns in the
+    depth maps hiding its points like any other surface), exported."""
     from drivetrack.annotate import AnnotateConfig, annotate
     from drivetrack.compact.export import FORMATS, export_clips
     from drivetrack.tracks import TrackConfig
@@ -52,7 +53,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
                        AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9,
                                                                     depth_object_motion=False,
                                                                     normals_from="clip",
-                                                                    label_tilt="linear")), threads=2)
+                                                                    label_tilt="linear",
+                                                                    own_surface_margin_m=None)), threads=2)
     assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
     exported = tmp_path_factory.mktemp("exported_before_zbuffer")
     export_clips(str(out), list(FORMATS), str(exported))

@@ -16,6 +16,9 @@ from test_tracks import (DT, FRONT, H, W, SceneBuilder, camera_model, world_cent
 
 pytestmark = pytest.mark.skipif(not kernel.NUMBA_AVAILABLE, reason="numba is not importable")
 
+#: The track kernel's own-box arguments turned off (TrackConfig.own_surface_margin_m=None).
+OFF = (np.zeros((0, 6)), np.zeros(0, dtype=bool))
+
 
 def _hand_built_clip(seed=3, n=3000, t_count=7):
     """Box-frame points, per-frame transforms and depth maps covering every visibility case."""
@@ -77,7 +80,7 @@ def test_kernel_equals_numpy_reference_in_every_visibility_case():
     status = np.empty(len(p), np.int8)
     speeds = np.empty(len(p))
     world_step = np.ascontiguousarray(world[1:] - world[:-1])
-    kept = kernel.screen_points(p, cam, shift, world_step, kernel.camera_parameters(model), maps, ratio,
+    kept = kernel.screen_points(p, cam, shift, world_step, kernel.camera_parameters(model), maps, ratio, *OFF,
                                 duration, np.nan, np.nan, status, speeds)
     keep = vis_ref.any(axis=1)
     np.testing.assert_array_equal(status == kernel.KEPT, keep)
@@ -89,7 +92,7 @@ def test_kernel_equals_numpy_reference_in_every_visibility_case():
     tracks = np.empty((len(p), len(maps), 2), np.float32)
     visibles = np.empty((len(p), len(maps)), bool)
     points3d = np.empty((len(p), len(maps), 3), np.float32)
-    kernel.fill_tracks(p, np.arange(len(p))[::-1].copy(), cam, shift, veh, kernel.camera_parameters(model), maps, ratio, tracks, visibles,
+    kernel.fill_tracks(p, np.arange(len(p))[::-1].copy(), cam, shift, veh, kernel.camera_parameters(model), maps, ratio, *OFF, tracks, visibles,
                        points3d)
     np.testing.assert_array_equal(visibles, vis_ref)
     np.testing.assert_array_equal(np.isnan(tracks), np.isnan(tracks_ref))     # never-valid tracks stay NaN
@@ -100,7 +103,7 @@ def test_kernel_equals_numpy_reference_in_every_visibility_case():
 def test_speed_filter_status():
     model, p, cam, shift, veh, world, maps = _hand_built_clip(seed=5, n=500)
     world_step = np.ascontiguousarray(world[1:] - world[:-1])
-    args = (p, cam, shift, world_step, kernel.camera_parameters(model), maps, 0.95, 0.6)
+    args = (p, cam, shift, world_step, kernel.camera_parameters(model), maps, 0.95, *OFF, 0.6)
     status0, speeds = np.empty(len(p), np.int8), np.empty(len(p))
     kernel.screen_points(*args, np.nan, np.nan, status0, speeds)
     box_speed = float(np.median(speeds))
@@ -119,16 +122,16 @@ def test_empty_and_single_frame_inputs():
     empty = np.zeros((0, 3))
     status, speeds = np.empty(0, np.int8), np.empty(0)
     assert kernel.screen_points(empty, cam, shift, np.ascontiguousarray(world[1:] - world[:-1]), params, maps,
-                                0.95, 0.6, np.nan, np.nan, status, speeds) == 0
-    kernel.fill_tracks(empty, np.zeros(0, np.int64), cam, shift, veh, params, maps, 0.95, np.empty((0, 7, 2), np.float32),
+                                0.95, *OFF, 0.6, np.nan, np.nan, status, speeds) == 0
+    kernel.fill_tracks(empty, np.zeros(0, np.int64), cam, shift, veh, params, maps, 0.95, *OFF, np.empty((0, 7, 2), np.float32),
                        np.empty((0, 7), bool), np.empty((0, 7, 3), np.float32))
     # one frame: speed NaN, so the speed filter drops every visible point (as the numpy path does)
     status, speeds = np.empty(10, np.int8), np.empty(10)
-    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, 0.0,
+    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, *OFF, 0.0,
                          np.nan, np.nan, status, speeds)
     assert np.isnan(speeds).all()
     status2 = np.empty(10, np.int8)
-    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, 0.0,
+    kernel.screen_points(p, cam[:1], shift[:1], np.zeros((0, 4, 4)), params, maps[:1], 0.95, *OFF, 0.0,
                          1.0, 5.0, status2, speeds)
     np.testing.assert_array_equal(status2 == kernel.DROPPED_SPEED, status == kernel.KEPT)
 
@@ -221,7 +224,7 @@ def test_fill_positions_and_frame_variant_equal_fill_tracks_bit_for_bit():
     params = kernel.camera_parameters(model)
     n, t = p.shape[0], cam.shape[0]
     tracks, visibles, points3d = np.empty((n, t, 2), np.float32), np.empty((n, t), bool), np.empty((n, t, 3), np.float32)
-    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, params, maps, 0.95, tracks, visibles, points3d)
+    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, params, maps, 0.95, *OFF, tracks, visibles, points3d)
     assert np.isnan(tracks).any() and not visibles.all()          # held and never-valid positions occur
     for start, stop in ((0, n), (0, 300), (300, 1001), (1000, 1001)):
         part = np.ascontiguousarray(p[start:stop])
@@ -243,7 +246,7 @@ def test_summarise_tracks_equals_the_numpy_summary():
     model, p, cam, shift, veh, _, maps = _hand_built_clip(n=800)
     n, t = p.shape[0], cam.shape[0]
     tracks, visibles, points3d = np.empty((n, t, 2), np.float32), np.empty((n, t), bool), np.empty((n, t, 3), np.float32)
-    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, kernel.camera_parameters(model), maps, 0.95,
+    kernel.fill_tracks(p, np.arange(n, dtype=np.int64), cam, shift, veh, kernel.camera_parameters(model), maps, 0.95, *OFF,
                        tracks, visibles, points3d)
     # plant the cases the sanity counts exist for: a visible NaN, a visible position outside the image
     visibles[0, :] = True

@@ -57,6 +57,13 @@ class TrackConfig:
             object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
             with the direction to the camera: its face turns away and its own object hides it.
             None: the depth test alone (the paper's method). Used under ``occlusion="surface"``.
+        own_surface_margin_m: with the back-face test on, the depth-map test ignores a surface
+            whose point on the ray to the tracked point lies inside the object's own box grown by
+            this margin (metres): the depth maps are completed by nearest neighbour, which smears
+            an object's nearer returns over its own farther, visible points (a roof above its
+            rear face); whether an object hides its own point is the back-face test's call
+            (:func:`drivetrack.visibility.own_surface`), at points whose normal is reliable (the
+            depth map still decides for the others). None: every surface counts (before).
         normals_from: where the back-face normals' neighbourhoods come from: ``segment`` (default)
             all the object's returns over the segment in its box frame, thinned to cubes of half
             ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
@@ -133,6 +140,7 @@ class TrackConfig:
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
     back_face_max_deg: float | None = 90.0
+    own_surface_margin_m: float | None = 0.2
     normals_from: str = "segment"
     normal_neighbours: int = 12
     occlusion: str = "surface"
@@ -195,6 +203,10 @@ class TrackConfig:
         if self.back_face_max_deg is not None and not 0 < self.back_face_max_deg <= 180:
             raise ValueError(f"TrackConfig.back_face_max_deg must be None or in (0, 180], got "
                              f"{self.back_face_max_deg!r}")
+        if self.own_surface_margin_m is not None and not (isinstance(self.own_surface_margin_m, (int, float))
+                                                          and 0 <= self.own_surface_margin_m < 10):
+            raise ValueError(f"TrackConfig.own_surface_margin_m must be None or a number of metres in [0, 10), "
+                             f"got {self.own_surface_margin_m!r}")
         if self.normals_from not in ("segment", "clip"):
             raise ValueError(f"TrackConfig.normals_from must be 'segment' or 'clip', got {self.normals_from!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):

@@ -38,6 +38,7 @@ from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture
 from drivetrack.tracks.trajectory import points_box_at, segment_trajectory
+from drivetrack.visibility.facing import own_surface
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "TrackSource", "ClipPoses", "clip_poses", "run_object_job", "track_speeds", "rolling_shutter_projector",
@@ -713,6 +714,19 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                  if poses.trajectory is not None and config.normals_from == "segment" else None)
         surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
         centres_box = camera_centres_box(camera_from_box, shift_camera)
+    # The object's own box for the depth-map test (drivetrack.visibility.own_surface): with the
+    # back-face test on, a depth-map surface inside it hides nothing at a point whose normal is
+    # reliable (``own_points``; where it is not, the back-face test cannot decide and the depth map
+    # still does: measured, docs/visibility.md). Its camera centres are the
+    # global-shutter image pose's; on the rolling-shutter path the surface point is placed with
+    # them too (off by (1 - depth ratio) x the camera's motion relative to the object between the
+    # image pose and the row's time: centimetres, inside the margin). [0, 6]: off.
+    own_box, own_points = np.zeros((0, 6)), np.zeros(n, dtype=bool)
+    if surfels is not None and config.own_surface_margin_m is not None:
+        from drivetrack.visibility import own_box_parameters
+
+        own_box = own_box_parameters(centres_box, boxes.size[rows], float(config.own_surface_margin_m))
+        own_points = np.ascontiguousarray(surfels.reliable, dtype=bool)
 
     def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
         """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them)."""
@@ -807,7 +821,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
         params = kernel.camera_parameters(model)
         kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
-                             params, clip_maps, float(config.occlusion_ratio), float(duration_s),
+                             params, clip_maps, float(config.occlusion_ratio), own_box, own_points, float(duration_s),
                              box_speed_mean, max_deviation, status, speeds)
         keep = status == kernel.KEPT
         kept = int(keep.sum())
@@ -827,7 +841,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             tracks = scratch_tracks[:stop - start]
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
-                               float(config.occlusion_ratio), tracks, visibles[start:stop], no_points3d, False)
+                               float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[kept_rows[start:stop]]),
+                               tracks, visibles[start:stop], no_points3d, False)
             faces = facing(0, 0, kept_rows[start:stop])
             if faces is not None:
                 visibles[start:stop] &= faces.T
@@ -865,6 +880,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
+            if own_box.shape[0]:
+                occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box,
+                                         where=occluded & own_points[None, start:start + chunk.shape[0]])
             visible = ok & ~occluded
             faces = facing(start, start + chunk.shape[0])
             if faces is not None:
@@ -902,7 +920,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         final_rows = np.flatnonzero(keep)
         project = projection.project
 
-    margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin)
+    margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
+                                 own_box, own_points)
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
@@ -941,14 +960,17 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
                        rows: np.ndarray, zbuffer_margin: np.ndarray | None,
-                       face_margin: np.ndarray | None) -> np.ndarray:
+                       face_margin: np.ndarray | None, own_box: np.ndarray, own_points: np.ndarray) -> np.ndarray:
     """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] of ``p_box``
     (see :class:`ObjectTracks`' ``occlusion_margin``).
 
     ``clip_maps`` float32 [T, H, W] the clip's depth maps; ``project(points_box [k, 3])`` returns
     ``(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k])`` as the track path projected
     them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
-    candidates, None when that test is off.
+    candidates, None when that test is off; ``own_box`` float64 [T, 6] or [0, 6] (off) and
+    ``own_points`` bool [n]: where the depth map's surface is the object's own
+    (:func:`drivetrack.visibility.own_surface`) at a point it applies to, the depth-map test
+    cannot hide the point (+inf).
     """
     from drivetrack.depth import lookup_max4
 
@@ -961,6 +983,13 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
         margin = np.where(surface > 0, surface - float(config.occlusion_ratio) * points_camera[..., 0],
                           np.inf).astype(np.float32)
         margin = _scaled(margin, float(config.ambiguity_m))
+        if own_box.shape[0]:
+            # own points have reliable normals, so a finite back-face term: the depth-map term
+            # only matters where it is the smaller (exact, and few point-frames to place)
+            face = _scaled(face_margin[:, idx], float(config.ambiguity_deg))
+            own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box,
+                              where=(margin < face) & own_points[None, idx])
+            margin[own] = np.inf
         if zbuffer_margin is not None:
             margin = np.minimum(margin, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)))
         if face_margin is not None:

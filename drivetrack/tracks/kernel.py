@@ -39,8 +39,14 @@ KEPT, DROPPED_INVISIBLE, DROPPED_SPEED = 0, 1, 2
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio):
-    """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W])."""
+def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own, own_point, px, py, pz):
+    """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
+
+    ``own`` float64 [T, 6] (or [0, 6]: off): per frame the camera centre in the box frame and the
+    half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``; when
+    ``own_point`` (the point has a reliable normal), a surface whose point on the ray to the
+    box-frame point (px, py, pz) lies in that box does not hide it
+    (:func:`drivetrack.visibility.own_surface`)."""
     if not valid:
         return False
     if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
@@ -65,12 +71,22 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
             best = max(best, depth_maps[tau, r1, c0])
         if c1_ok:
             best = max(best, depth_maps[tau, r1, c1])
-    return not (best > 0 and best < occlusion_ratio * x)
+    if not (best > 0 and best < occlusion_ratio * x):
+        return True
+    if own.shape[0] == 0 or not own_point:
+        return False
+    # the surface's point on the ray from the camera centre e through p: e + (best / x) (p - e)
+    scale = best / x
+    e = own[tau]
+    qx = e[0] + scale * (px - e[0])
+    qy = e[1] + scale * (py - e[1])
+    qz = e[2] + scale * (pz - e[2])
+    return abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]
 
 
 @njit(cache=True, nogil=True)
 def screen_points(points_box, camera_from_box, shift_camera, world_step, camera, depth_maps,
-                  occlusion_ratio, duration_s, box_speed_mps, max_speed_deviation_mps,
+                  occlusion_ratio, own, own_points, duration_s, box_speed_mps, max_speed_deviation_mps,
                   status, speeds):
     """Which candidates survive, and their speeds; returns the number kept.
 
@@ -82,6 +98,9 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         camera: float64 [11], :func:`camera_parameters`.
         depth_maps: float32 [T, H, W], z-depth, metres, 0 = unknown.
         occlusion_ratio: occluded iff ``0 < surface < occlusion_ratio * z``.
+        own: float64 [T, 6] or [0, 6]: the object's own box for the depth test (:func:`_visible`),
+            ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
+            ``own`` is [0, 6]), the points it applies to (reliable normals).
         duration_s: clip duration; the speed is NaN when T < 2 or this is <= 0.
         box_speed_mps, max_speed_deviation_mps: the speed filter drops a visible point whose
             ``|speed - box_speed_mps|`` is not <= the deviation; a NaN of either disables it.
@@ -115,7 +134,8 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
             y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] + shift_camera[tau, 1]
             z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
             pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
-            if _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio):
+            if _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own,
+                        own.shape[0] > 0 and own_points[i], px, py, pz):
                 seen = True
                 break
         if not seen:
@@ -135,7 +155,7 @@ _BLOCK = 256
 
 @njit(cache=True, nogil=True)
 def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
-                occlusion_ratio, tracks, visibles, points3d, with_points3d=True):
+                occlusion_ratio, own, own_points, tracks, visibles, points3d, with_points3d=True):
     """Tracks of the points ``points_box`` float64 [K, 3] (box frame), written in [K, T] order.
 
     Outputs (filled in place): ``tracks`` float32 [K, T, 2] pixels (invalid projections hold the
@@ -182,8 +202,11 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
             # the depth look-ups in a loop of their own: little else to do, many loads in flight
             for j in range(block, stop):
                 x = scratch[j - block, 2]
-                visibles[order[j], tau] = _visible(depth_maps, tau, height, width, scratch[j - block, 0],
-                                                   scratch[j - block, 1], x, not np.isnan(x), occlusion_ratio)
+                i = order[j]
+                visibles[i, tau] = _visible(depth_maps, tau, height, width, scratch[j - block, 0],
+                                            scratch[j - block, 1], x, not np.isnan(x), occlusion_ratio, own,
+                                            own.shape[0] > 0 and own_points[i],
+                                            points_box[i, 0], points_box[i, 1], points_box[i, 2])
         for j in range(block, stop):
             _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)
     # points3d in point order: streaming writes (scattered ones cost more than the arithmetic)

@@ -2,13 +2,15 @@
 
 :mod:`drivetrack.visibility.facing`: surfel normals of an object from its own LiDAR returns in its
 box frame, and the back-face test (a point whose surface turns away from the camera is hidden by
-its own object, whatever the depth map says there).
+its own object, whatever the depth map says there); :func:`~drivetrack.visibility.facing.own_surface`:
+whether the depth map's surface in front of a point is the object's own (then the back-face test,
+not the depth map, decides).
 :mod:`drivetrack.visibility.zbuffer`: the nearest-depth buffer of the other labelled objects'
 returns in each image, and the test hiding a point behind another object's surface.
 """
 from drivetrack.visibility.facing import (SENSOR_VEHICLE_M, SurfelNormals, camera_centres_box, facing_mask,
-                                          sensor_positions, surfel_normals)
+                                          own_box_parameters, own_surface, sensor_positions, surfel_normals)
 from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "camera_centres_box", "facing_mask", "hidden_by_others",
-           "nearest_depth", "sensor_positions", "surfel_normals"]
+           "nearest_depth", "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals"]

@@ -19,6 +19,15 @@ its neighbourhood is too thin to fix a plane: fewer than ``k`` returns, the ``k`
 farther than ``max_neighbour_m``, or planarity below ``min_planarity``; unreliable points are
 never called back faces (the depth test alone decides for them).
 
+Own surface in the depth map (:func:`own_surface`): the depth maps are completed from sparse
+returns by nearest neighbour in the image, so near an object's own depth edges (a roof seen at a
+grazing angle above its rear face, the far end of a side) its own nearer returns are smeared over
+its farther, visible points, and the depth-ratio test hid them. A depth-map surface whose point on
+the ray to the tracked point lies inside the object's own box (grown by
+``TrackConfig.own_surface_margin_m``) is the object itself: whether the object hides its own
+point is the back-face test's question, so that surface hides nothing at a point whose normal is
+reliable (where it is not, the back-face test cannot decide and the depth map still does).
+
 Shapes: n points, T frames; metres, box frame unless named otherwise.
 """
 from __future__ import annotations
@@ -28,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask"]
+           "facing_cosine", "facing_mask", "own_box_parameters", "own_surface"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -108,6 +117,40 @@ def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) ->
     """
     rotation, translation = camera_from_box[:, :3, :3], camera_from_box[:, :3, 3] + shift_camera
     return -np.einsum("tji,tj->ti", rotation, translation)
+
+
+def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float) -> np.ndarray:
+    """float64 [T, 6]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
+    :func:`camera_centres_box`) and the half extents of the box of ``size`` float [T, 3] (metres)
+    grown by ``margin_m`` on every side: what :func:`own_surface` and the track kernel's depth test
+    (``drivetrack.tracks.kernel``) take."""
+    centres_box = np.asarray(centres_box, dtype=np.float64)
+    half = 0.5 * np.asarray(size, dtype=np.float64) + float(margin_m)
+    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape)], axis=-1))
+
+
+def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray,
+                where: np.ndarray | None = None) -> np.ndarray:
+    """bool [T, n]: the depth-map surface in front of each point-frame is the object's own.
+
+    ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
+    point's pixel over the point's own z-depth (the surface's point on the ray from the camera
+    centre ``e`` is ``e + depth_ratio (p - e)``: the pixel is the projection of the point, so they
+    share the ray); ``own`` float64 [T, 6] from :func:`own_box_parameters`. True where that
+    surface point lies inside the grown box. NaN ratios give False. ``where`` bool [T, n]: compute
+    only there (False elsewhere; the callers ask about the few point-frames the test decides).
+    """
+    points_box = np.asarray(points_box, dtype=np.float64)
+    depth_ratio = np.asarray(depth_ratio, dtype=np.float64)
+    if where is None:
+        where = np.ones(depth_ratio.shape, dtype=bool)
+    t_idx, n_idx = np.nonzero(where)
+    out = np.zeros(depth_ratio.shape, dtype=bool)
+    centre, half = own[t_idx, :3], own[t_idx, 3:]                                  # [m, 3]
+    with np.errstate(invalid="ignore"):
+        surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
+        out[t_idx, n_idx] = np.all(np.abs(surface) <= half, axis=-1)
+    return out
 
 
 def facing_mask(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.ndarray,
