@@ -6,8 +6,9 @@ ego, a turning car, a crossing cyclist; cameras triggered as the TOP sweep passe
 it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; with the back-face test of
 ``drivetrack.visibility``; the default ``occlusion="surface"``, which adds the z-buffer of the other
 objects' returns; that with labelled objects' returns moved to the image time in the depth maps;
-the default, which also lets no object's own returns in the depth maps hide its points where the
-back-face test can decide), each with the default pipeline otherwise
+that which also lets no object's own returns in the depth maps hide its points where the
+back-face test can decide; the default, which also narrows the z-buffer's tolerance to 0.15 m),
+each with the default pipeline otherwise
 (``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
 clips at all) and scores the tracks against the exact truth:
@@ -145,6 +146,9 @@ def _f(x, digits=3):
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
 
 
+#: The z-buffer's tolerance before 2026-11-26 (0.3 m + 2% of the depth).
+_OLD_TOLERANCE = {"occluder_tolerance_m": 0.3, "occluder_tolerance_rel": 0.02}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
@@ -152,10 +156,13 @@ VARIANTS = {
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
                                  "own_surface_margin_m": None},
-    "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None},
-    "surface + depth maps at image time": {"own_surface_margin_m": None},
+    "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
+                                             **_OLD_TOLERANCE},
+    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "surface + own returns left to the back-face test (default)": {},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE},
+    # the z-buffer's tolerance without the relative term: 0.15 m at any distance
+    "+ z-buffer tolerance 0.15 m (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 
