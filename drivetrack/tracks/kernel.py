@@ -4,7 +4,9 @@ One pass over (point, frame) computes what :func:`drivetrack.tracks.core.run_obj
 path computes with [T, n] temporaries: the camera-frame point ``camera_from_box[tau] @ p +
 shift_camera[tau]``, its Brown-Conrady projection (``CameraModel.pixels_from_camera``: valid iff
 x > 1e-6 and the distortion factor lies in [0.8, 1.2]), the inside-image test, occlusion against
-the clip's depth maps with the max-of-4 look-up (``drivetrack.depth.lookup_max4``), the
+the clip's depth maps with the max-of-4 look-up (``drivetrack.depth.lookup_max4``; a surface
+inside the object's own grown box hides no point with a reliable normal,
+``drivetrack.visibility.own_surface``), the
 vehicle-frame point ``vehicle_from_box[tau] @ p`` and the world-path speed. Math is float64; the
 outputs are written directly in [N, T] order.
 
