@@ -983,17 +983,17 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
         margin = np.where(surface > 0, surface - float(config.occlusion_ratio) * points_camera[..., 0],
                           np.inf).astype(np.float32)
         margin = _scaled(margin, float(config.ambiguity_m))
+        face = None if face_margin is None else _scaled(face_margin[:, idx], float(config.ambiguity_deg))
         if own_box.shape[0]:
             # own points have reliable normals, so a finite back-face term: the depth-map term
             # only matters where it is the smaller (exact, and few point-frames to place)
-            face = _scaled(face_margin[:, idx], float(config.ambiguity_deg))
             own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box,
                               where=(margin < face) & own_points[None, idx])
             margin[own] = np.inf
         if zbuffer_margin is not None:
             margin = np.minimum(margin, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)))
-        if face_margin is not None:
-            margin = np.minimum(margin, _scaled(face_margin[:, idx], float(config.ambiguity_deg)))
+        if face is not None:
+            margin = np.minimum(margin, face)
         margin[~inside] = np.nan
         out[start:start + idx.size] = margin.T
     return out
