@@ -198,7 +198,8 @@ def load_scene_for(source: str, split: str, segment: str, config: AnnotateConfig
 
 
 def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
-    """The scene with the boxes of the annotated object types refined from their own LiDAR.
+    """The scene with the boxes of the annotated objects, and of the objects that may hide part of
+    them (``RefineConfig.occluders``), refined from their own LiDAR.
 
     Objects whose registration is not trustworthy keep their labels (the reason is recorded);
     ``scene.box_refinement`` holds one summary per refined-or-kept object for the tables.
@@ -208,10 +209,19 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
     from drivetrack.refine import refine_scene_boxes
 
     # Only objects that pass the planning filters with their labels (type, camera, frames in view,
-    # distance) are worth refining: the rest are never annotated. Label noise of centimetres does
-    # not move an object across these coarse filters.
+    # distance) are annotated; label noise of centimetres does not move an object across these
+    # coarse filters.
     # (Which clips pass needs no point selection: the costly part of planning a full segment.)
-    object_ids = sorted({job.object_id for job in plan_segment(scene, config.track, select_points=False).jobs})
+    rough = plan_segment(scene, config.track, select_points=False)
+    object_ids = {job.object_id for job in rough.jobs}
+    refine_config = config.refine_config()
+    if object_ids and refine_config.occluders:
+        # and the objects that may hide part of them: the occlusion z-buffer draws those by their
+        # boxes, and a noisy box blurs an occluder's surface as it would a tracked object's
+        from drivetrack.tracks.core import occluding_objects
+
+        object_ids |= occluding_objects(rough)
+    object_ids = sorted(object_ids)
     if not object_ids:
         return scene
     label_offset_s = None
@@ -219,7 +229,7 @@ def refine_scene(scene: Scene, config: AnnotateConfig) -> Scene:
         from drivetrack.tracks.trajectory import carry_label_times, scene_label_times
 
         label_offset_s = scene_label_times(scene, config.track)[0]
-    boxes, results = refine_scene_boxes(scene, config.refine_config(), object_ids,
+    boxes, results = refine_scene_boxes(scene, refine_config, object_ids,
                                         lasers=config.track.laser_values, returns=config.track.returns,
                                         compensate_sweep_motion=config.track.compensate_sweep_motion,
                                         label_offset_s=label_offset_s)

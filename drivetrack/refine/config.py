@@ -91,6 +91,11 @@ class RefineConfig:
             all frames plus ``extent_margin_m``, by at most ``max_extent_growth_m`` per face.
             Relative poses, hence carried tracks, are unchanged; what changes is which returns
             the track stage selects (see docs/refinement.md, "Box extent").
+        occluders: (``drivetrack.annotate.refine_scene``) refine, besides the objects that are
+            annotated, the labelled objects that may hide part of an annotated clip
+            (:func:`drivetrack.tracks.core.occluding_objects`): the occlusion z-buffer draws their
+            returns carried by their boxes, so noisy labels blur their surface as they would a
+            tracked object's (docs/refinement.md, "Occluders").
         kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
             kernels of ``drivetrack.refine.kernel``) or ``numpy`` (the scipy/numpy reference,
             same results up to floating-point rounding and ties).
@@ -126,6 +131,7 @@ class RefineConfig:
     tolerance_m: float = 1e-3
     tolerance_deg: float = 0.02
     static_objects: bool = True
+    occluders: bool = True
     static_speed_mps: float = 0.1
     static_fit_speed_mps: float = 0.25
     static_max_drift_m: float = 0.2

@@ -1,4 +1,5 @@
-"""Refinement of every object of a scene: candidate returns per box, then one object at a time."""
+"""Refinement of every object of a scene: candidate returns per box, then each object on its own
+(on the segment's thread pool when one is installed, :mod:`drivetrack.parallel`)."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,6 +8,7 @@ import numpy as np
 
 from drivetrack.boxes import gather_candidates, inside_box
 from drivetrack.geometry import vectors_from_box
+from drivetrack.parallel import pool_map
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
 from drivetrack.refine.select import _body_points
@@ -90,8 +92,10 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                                   lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
     row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
     bounds = np.searchsorted(owner_all, row_start)
-    results = {}
-    for k, (oid, rows) in enumerate(zip(ids, object_rows)):
+    def refine_one(k: int):
+        """(result, {field: values at the object's rows}) of object ``k``; writes nothing shared."""
+        oid, rows = ids[k], object_rows[k]
+        update = {}
         frames = boxes.frame[rows].astype(np.int64)
         vehicle_from_box = boxes.vehicle_from_box(rows)
         row_tilt = None if pitch_all is None and roll_all is None else np.stack(boxes.tilt(rows), axis=-1)  # [R, 2]
@@ -125,13 +129,10 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                          p[inside], owner[inside], timestamps_s[frames], config,
                                          name=f"{scene.segment}/{oid}")
-        results[oid] = result
         if result.refined:
-            center[rows] = result.center_vehicle
-            heading[rows] = result.heading
-            size[rows] = result.size
+            update = {"center": result.center_vehicle, "heading": result.heading, "size": result.size}
             if tilted:
-                pitch[rows], roll[rows] = result.pitch, result.roll
+                update.update(pitch=result.pitch, roll=result.roll)
         elif oid in replaced and config.fit_extent:
             # the one world pose is the labels' mean: a label error of a centimetre or two puts a
             # face's returns just outside the box, as after registration (poses.py), so the box
@@ -141,8 +142,22 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                 grow_lo, grow_hi = grown_extent(local[near], 0.5 * boxes.size[rows][owner[near]], config)
                 if np.any(grow_hi > 0) or np.any(grow_lo > 0):
                     offset = np.broadcast_to((grow_hi - grow_lo) / 2.0, (rows.size, 3))
-                    center[rows] = center[rows] + vectors_from_box(offset, heading[rows])
-                    size[rows] = boxes.size[rows] + (grow_hi + grow_lo)
+                    update = {"center": center[rows] + vectors_from_box(offset, heading[rows]),
+                              "size": boxes.size[rows] + (grow_hi + grow_lo)}
+        return result, update
+
+    # objects on the segment's pool (drivetrack.parallel; the registration kernels release the
+    # GIL), largest candidate sets first so the threads finish together; results in object order
+    work = np.diff(bounds)
+    order = sorted(range(len(ids)), key=lambda k: (-int(work[k]), k))
+    done = dict(zip(order, pool_map(refine_one, order)))
+    results = {}
+    fields = {"center": center, "heading": heading, "size": size, "pitch": pitch, "roll": roll}
+    for k, oid in enumerate(ids):
+        result, update = done[k]
+        results[oid] = result
+        for name, values in update.items():
+            fields[name][object_rows[k]] = values
     refined = Boxes(**{k: v for k, v in boxes.__dict__.items()})
     refined.center, refined.heading, refined.size = center, heading, size
     refined.pitch, refined.roll = pitch, roll

@@ -42,7 +42,8 @@ from drivetrack.visibility.facing import own_surface
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "TrackSource", "ClipPoses", "clip_poses", "run_object_job", "track_speeds", "rolling_shutter_projector",
-           "image_time_offsets", "fill_invalid_positions", "points_per_chunk", "frames_per_chunk"]
+           "image_time_offsets", "fill_invalid_positions", "points_per_chunk", "frames_per_chunk",
+           "occluding_objects"]
 
 #: Point-frames per chunk of the streamed outputs: a chunk's [k, T, 2 + 3] float32 (and the
 #: job's scratch) is 5 MiB; the time-major [F, N, 3] float32 + float64 temporaries of the
@@ -582,6 +583,61 @@ def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
     return radius
 
 
+def _can_occlude(boxes, camera_from_vehicle: np.ndarray, rows: np.ndarray, at: np.ndarray,
+                 target_camera: np.ndarray, target_radius_m: np.ndarray) -> np.ndarray:
+    """bool [r]: which box rows ``rows`` (int [r]) may hide part of a target object in their
+    frame's image: not when the row's bounding sphere lies entirely farther from the camera than
+    the target's far side, nor when it is seen at an angle from the target's that their angular
+    radii (plus :data:`_OCCLUDER_ANGLE_MARGIN_RAD`) cannot bridge.
+
+    ``camera_from_vehicle`` float64 [F, 4, 4] per segment frame; ``at`` int [r], each row's index
+    into the target's ``target_camera`` float64 [T, 3] (its centre, camera frame, metres) and
+    ``target_radius_m`` float64 [T].
+    """
+    frame = boxes.frame[rows]
+    # distance from the camera centre to each candidate box's centre, minus its half diagonal
+    centre_camera = (np.einsum("nij,nj->ni", camera_from_vehicle[frame, :3, :3], boxes.center[rows])
+                     + camera_from_vehicle[frame, :3, 3])
+    radius = 0.5 * np.linalg.norm(boxes.size[rows], axis=-1)
+    distance = np.linalg.norm(centre_camera, axis=-1)
+    target_distance = np.linalg.norm(target_camera, axis=-1)[at]
+    near = distance - radius < target_distance + target_radius_m[at]
+    # ... and whose angular disc can overlap the target's in the image
+    cosine = np.einsum("ni,ni->n", centre_camera, target_camera[at]) / np.maximum(distance * target_distance, 1e-9)
+    apart = np.arccos(np.clip(cosine, -1.0, 1.0))
+    reach = (np.arcsin(np.clip(radius / np.maximum(distance, 1e-9), 0.0, 1.0))
+             + np.arcsin(np.clip(target_radius_m[at] / np.maximum(target_distance, 1e-9), 0.0, 1.0)))
+    return near & (apart <= reach + _OCCLUDER_ANGLE_MARGIN_RAD)
+
+
+def occluding_objects(plan) -> set[str]:
+    """Object ids of the labelled objects of the annotated types (``TrackConfig.object_types``:
+    only they have returns) that may hide part of some job's object in some clip image
+    (:func:`_can_occlude`, from the labels at frame time: no returns needed), the jobs' own
+    objects excluded unless they occlude another. These are the other objects the
+    occlusion z-buffer (:func:`_occluders`) carries; the pose refinement refines them too
+    (``drivetrack.annotate.refine_scene``), so that a noisily labelled occluder's surface is as
+    sharp as a tracked object's."""
+    scene = plan.scene
+    boxes = scene.boxes
+    found: set[str] = set()
+    typed = np.isin(boxes.type, plan.config.object_type_values)     # only these have returns
+    slot = np.full(scene.num_frames, -1, dtype=np.int64)
+    for job in plan.jobs:
+        frames, rows = job.frames, job.box_rows
+        slot[frames] = np.arange(frames.size)
+        geometry = plan.cameras[job.camera]
+        others = np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id != job.object_id) & typed)
+        if others.size:
+            target = (np.einsum("tij,tj->ti", geometry.camera_from_vehicle[frames, :3, :3], boxes.center[rows])
+                      + geometry.camera_from_vehicle[frames, :3, 3])
+            hit = _can_occlude(boxes, geometry.camera_from_vehicle, others, slot[boxes.frame[others]],
+                               target, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
+            found.update(np.unique(boxes.object_id[others[hit]]).astype(str).tolist())
+        slot[frames] = -1
+    return found
+
+
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
                target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint radius float64 [m],
@@ -617,20 +673,8 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
     candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     if in_clip.size:
-        # distance from the camera centre to each candidate box's centre, minus its half diagonal
-        centre_camera = (np.einsum("nij,nj->ni", geometry.camera_from_vehicle[boxes.frame[in_clip], :3, :3],
-                                   boxes.center[in_clip]) + geometry.camera_from_vehicle[boxes.frame[in_clip], :3, 3])
-        radius = 0.5 * np.linalg.norm(boxes.size[in_clip], axis=-1)
-        distance = np.linalg.norm(centre_camera, axis=-1)
-        at = slot[boxes.frame[in_clip]]
-        target_distance = np.linalg.norm(target_camera, axis=-1)[at]
-        near = distance - radius < target_distance + target_radius_m[at]
-        # ... and whose angular disc can overlap the target's in the image
-        cosine = np.einsum("ni,ni->n", centre_camera, target_camera[at]) / np.maximum(distance * target_distance, 1e-9)
-        apart = np.arccos(np.clip(cosine, -1.0, 1.0))
-        reach = (np.arcsin(np.clip(radius / np.maximum(distance, 1e-9), 0.0, 1.0))
-                 + np.arcsin(np.clip(target_radius_m[at] / np.maximum(target_distance, 1e-9), 0.0, 1.0)))
-        in_clip = in_clip[near & (apart <= reach + _OCCLUDER_ANGLE_MARGIN_RAD)]
+        in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
+                                       target_camera, target_radius_m)]
     for object_id in np.unique(boxes.object_id[in_clip]).tolist():
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
