@@ -91,6 +91,12 @@ class RefineConfig:
             all frames plus ``extent_margin_m``, by at most ``max_extent_growth_m`` per face.
             Relative poses, hence carried tracks, are unchanged; what changes is which returns
             the track stage selects (see docs/refinement.md, "Box extent").
+        motion_passes: (``refine_scene_boxes``, with per-return capture times) how many times the
+            objects are registered: the first pass moves each candidate return to its box's time
+            with the labels' finite-difference motion, each further pass with the motion of the
+            boxes registered so far (objects whose registration was applied); 1 = labels only.
+        motion_window: that motion is the least-squares slope of each box's centre and yaw over
+            its object's boxes up to this many either side in time (1: central differences).
         occluders: (``drivetrack.annotate.refine_scene``) refine, besides the objects that are
             annotated, the labelled objects that may hide part of an annotated clip
             (:func:`drivetrack.tracks.core.occluding_objects`): the occlusion z-buffer draws their
@@ -132,6 +138,8 @@ class RefineConfig:
     tolerance_deg: float = 0.02
     static_objects: bool = True
     occluders: bool = True
+    motion_passes: int = 2
+    motion_window: int = 2
     static_speed_mps: float = 0.1
     static_fit_speed_mps: float = 0.25
     static_max_drift_m: float = 0.2
@@ -147,6 +155,10 @@ class RefineConfig:
                     "max_residual_m", "max_correction_m",
                     "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg", "static_speed_mps",
                     "static_fit_speed_mps", "static_max_drift_m")
+        for name in ("motion_passes", "motion_window"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"RefineConfig.{name} must be an integer >= 1, got {value!r}")
         for name in positive:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):

@@ -37,7 +37,7 @@ def _yaw_of(rotation: np.ndarray) -> np.ndarray:
 
 
 def box_motion_world(world_from_box: np.ndarray, time_s: np.ndarray,
-                     group: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     group: np.ndarray | None = None, half: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite-difference velocity and yaw rate of box tracks, in the world frame.
 
     Args:
@@ -48,7 +48,9 @@ def box_motion_world(world_from_box: np.ndarray, time_s: np.ndarray,
     Returns:
         ``(velocity_world float64 [K, 3] m/s, yaw_rate float64 [K] rad/s, has_neighbour bool [K])``
         by central differences between a row's previous and next box of the same object in time
-        (one-sided at the ends; 0 and ``has_neighbour`` False for a single box).
+        (one-sided at the ends; 0 and ``has_neighbour`` False for a single box). With ``half`` > 1:
+        the least-squares slope over the row's box and up to ``half`` boxes of the object on each
+        side (centred on the row: unbiased by a constant acceleration away from the track's ends).
     """
     world_from_box = np.asarray(world_from_box, dtype=np.float64)
     time_s = np.asarray(time_s, dtype=np.float64)
@@ -76,10 +78,37 @@ def box_motion_world(world_from_box: np.ndarray, time_s: np.ndarray,
     yaw_rate[order[ok]] = turned[ok] / span[ok]
     has_neighbour = np.zeros(k, dtype=bool)
     has_neighbour[order] = ok
+    if half > 1:
+        # least-squares slope over the window of each row (its object's boxes up to ``half``
+        # either side in time): sum (t_j - t_mean)(x_j - x_row) / sum (t_j - t_mean)^2
+        sorted_keys = keys[order]
+        sums = {name: np.zeros(shape) for name, shape in
+                (("n", k), ("t", k), ("tt", k), ("x", (k, 3)), ("tx", (k, 3)), ("w", k), ("tw", k))}
+        for step in range(-half, half + 1):
+            other = position + step
+            inside = (other >= 0) & (other < k)
+            inside[inside] = sorted_keys[other[inside]] == sorted_keys[inside]
+            j = order[np.clip(other, 0, k - 1)]
+            dt = np.where(inside, time_s[j] - time_s[order], 0.0)
+            dx = np.where(inside[:, None], centre[j] - centre[order], 0.0)
+            dw = np.where(inside, np.angle(np.exp(1j * (yaw[j] - yaw[order]))), 0.0)
+            sums["n"] += inside
+            sums["t"] += dt
+            sums["tt"] += dt * dt
+            sums["x"] += dx
+            sums["tx"] += dt[:, None] * dx
+            sums["w"] += dw
+            sums["tw"] += dt * dw
+        n = np.maximum(sums["n"], 1.0)
+        var = sums["tt"] - sums["t"] * sums["t"] / n
+        fit = ok & (var > 1e-12)
+        safe = np.where(fit, var, 1.0)
+        velocity[order[fit]] = ((sums["tx"] - sums["t"][:, None] * sums["x"] / n[:, None]) / safe[:, None])[fit]
+        yaw_rate[order[fit]] = ((sums["tw"] - sums["t"] * sums["w"] / n) / safe)[fit]
     return velocity, yaw_rate, has_neighbour
 
 
-def scene_box_motion(scene) -> tuple[np.ndarray, np.ndarray]:
+def scene_box_motion(scene, half: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """``(velocity_vehicle float64 [K, 3] m/s, yaw_rate float64 [K] rad/s)`` of every box row.
 
     Velocity of each box in the vehicle frame of its own frame (the world velocity rotated by
@@ -93,7 +122,7 @@ def scene_box_motion(scene) -> tuple[np.ndarray, np.ndarray]:
     world_from_box = world_from_vehicle @ boxes.vehicle_from_box()
     time_s = np.asarray(scene.timestamps_micros, dtype=np.float64)[boxes.frame] * 1e-6
     velocity_world, yaw_rate, has_neighbour = box_motion_world(world_from_box, time_s,
-                                                               boxes.object_id.astype(str))
+                                                               boxes.object_id.astype(str), half=half)
     velocity = np.einsum("kji,kj->ki", world_from_vehicle[:, :3, :3], velocity_world)   # R^T v
     speed = np.asarray(boxes.speed, dtype=np.float64)
     fallback = ~has_neighbour & np.isfinite(speed).all(axis=1)
