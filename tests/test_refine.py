@@ -609,3 +609,16 @@ def test_exact_yaw_only_labels_are_kept_or_improved_with_six_dof():
         np.testing.assert_array_equal(kept.vehicle_from_box, labels)
     with pytest.raises(ValueError, match="pitch_roll_sigma_deg"):
         RefineConfig(pitch_roll_sigma_deg=0.0)
+
+
+def test_frame_priority_order_equals_lexsort():
+    from drivetrack.refine.select import _frame_priority_order
+
+    rng = np.random.default_rng(5)
+    frame = np.sort(rng.integers(0, 7, 5000))
+    priority = rng.random(5000)
+    priority[::50] = priority[1::50]                                    # ties keep index order
+    np.testing.assert_array_equal(_frame_priority_order(frame, priority), np.lexsort((priority, frame)))
+    shuffled = rng.permutation(frame)                                  # unsorted frames: lexsort itself
+    np.testing.assert_array_equal(_frame_priority_order(shuffled, priority), np.lexsort((priority, shuffled)))
+    assert _frame_priority_order(np.zeros(0, np.int64), np.zeros(0)).size == 0

@@ -210,8 +210,9 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
 
     if not config.enabled:
         return labels(RefineReason.DISABLED, "refinement disabled by configuration")
-    order = np.argsort(frame, kind="stable")
-    points, frame = points[order], frame[order]
+    if frame.size > 1 and not np.all(frame[1:] >= frame[:-1]):       # (callers usually pass them sorted)
+        order = np.argsort(frame, kind="stable")
+        points, frame = points[order], frame[order]
     # fixed per-point priority for the per-frame cap: a hash of the point's coordinates, so the
     # result does not depend on the order of the input rows
     priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]

@@ -22,6 +22,18 @@ def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) ->
     return inside & (q[:, 2] <= half[:, 2] + margin) & (q[:, 2] >= -half[:, 2] + clearance)
 
 
+def _frame_priority_order(frame: np.ndarray, priority: np.ndarray) -> np.ndarray:
+    """int64 [M]: ``np.lexsort((priority, frame))`` (by frame, then priority, ties by index); when
+    ``frame`` is already non-decreasing (the caller's order), each frame's run is sorted on its own,
+    the same permutation at about half the cost on a near object's ~10^5 candidates."""
+    n = frame.size
+    if n > 1 and np.all(frame[1:] >= frame[:-1]):
+        cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
+        starts, stops = np.concatenate([[0], cuts]), np.append(cuts, n)
+        return np.concatenate([a + np.argsort(priority[a:b], kind="stable") for a, b in zip(starts, stops)])
+    return np.lexsort((priority, frame))
+
+
 class _Selection:
     """The returns that may take part, ordered by (frame, priority), with per-frame ranks.
 
@@ -35,7 +47,7 @@ class _Selection:
 
     def __init__(self, points: np.ndarray, frame: np.ndarray, priority: np.ndarray, half: np.ndarray,
                  cap: int, t_count: int, kernel: bool = False):
-        order = np.lexsort((priority, frame))
+        order = _frame_priority_order(frame, priority)
         self.points, self.frame = points[order], frame[order]
         self.half_frame = np.ascontiguousarray(half, dtype=np.float64)        # [T, 3]
         self.half = half[self.frame]
