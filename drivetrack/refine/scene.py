@@ -92,6 +92,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                                   lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
     row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
     bounds = np.searchsorted(owner_all, row_start)
+
     def refine_one(k: int, motion):
         """(result, {field: values at the object's rows}) of object ``k``, its candidates moved to
         the frame (label) time with ``motion`` = (velocity [K, 3], yaw rate [K]) of every box row;
