@@ -29,7 +29,10 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     ``compensate_sweep_motion`` holds, candidates are first moved to the frame time with the
     labels' motion, as the track stage does; to each box's label time when ``label_offset_s``
     (float [K], label time minus frame time, s; :func:`drivetrack.tracks.trajectory.scene_label_times`)
-    is given, else to the frame time.
+    is given, else to the frame time. With ``config.motion_passes`` > 1 the objects whose
+    registration was applied are registered again, their candidates moved with the registered
+    boxes' motion (``config.motion_window``); the objects run on the segment's thread pool
+    (:func:`drivetrack.parallel.pool_map`) when one is installed, with the same results.
 
     Returns:
         ``(boxes, results)``: a :class:`drivetrack.scene.Boxes` equal to ``scene.boxes`` except for
@@ -74,8 +77,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             boxes.center, boxes.heading = center.copy(), heading.copy()
             scene = dataclasses.replace(scene, boxes=boxes)
     # Returns of moving objects are captured during the sweep, boxes describe the frame time:
-    # move each candidate to where its surface was at the frame time (with the labels' motion)
-    # before registering, as the track stage does (drivetrack.tracks.sweep_motion).
+    # move each candidate to where its surface was at the frame time (with the labels' motion in
+    # the first pass) before registering, as the track stage does (drivetrack.tracks.sweep_motion).
     offsets = getattr(lidar, "capture_offset_s", None) if compensate_sweep_motion else None
     if offsets is not None:
         from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
