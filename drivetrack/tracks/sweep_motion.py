@@ -79,32 +79,24 @@ def box_motion_world(world_from_box: np.ndarray, time_s: np.ndarray,
     has_neighbour = np.zeros(k, dtype=bool)
     has_neighbour[order] = ok
     if half > 1:
-        # least-squares slope over the window of each row (its object's boxes up to ``half``
-        # either side in time): sum (t_j - t_mean)(x_j - x_row) / sum (t_j - t_mean)^2
-        sorted_keys = keys[order]
-        sums = {name: np.zeros(shape) for name, shape in
-                (("n", k), ("t", k), ("tt", k), ("x", (k, 3)), ("tx", (k, 3)), ("w", k), ("tw", k))}
-        for step in range(-half, half + 1):
-            other = position + step
-            inside = (other >= 0) & (other < k)
-            inside[inside] = sorted_keys[other[inside]] == sorted_keys[inside]
-            j = order[np.clip(other, 0, k - 1)]
-            dt = np.where(inside, time_s[j] - time_s[order], 0.0)
-            dx = np.where(inside[:, None], centre[j] - centre[order], 0.0)
-            dw = np.where(inside, np.angle(np.exp(1j * (yaw[j] - yaw[order]))), 0.0)
-            sums["n"] += inside
-            sums["t"] += dt
-            sums["tt"] += dt * dt
-            sums["x"] += dx
-            sums["tx"] += dt[:, None] * dx
-            sums["w"] += dw
-            sums["tw"] += dt * dw
-        n = np.maximum(sums["n"], 1.0)
-        var = sums["tt"] - sums["t"] * sums["t"] / n
-        fit = ok & (var > 1e-12)
+        # least-squares slope over the row and its object's boxes up to ``half`` either side in
+        # time (trajectory's window): sum (t_j - t_mean)(x_j - x_row) / sum (t_j - t_mean)^2
+        from drivetrack.tracks.trajectory import _window
+
+        window = _window(keys, time_s, half)                                  # [K, 2 half]
+        valid = window >= 0
+        j = np.where(valid, window, np.arange(k)[:, None])
+        dt = np.where(valid, time_s[j] - time_s[:, None], 0.0)                # the row itself: 0
+        dt = dt - (dt.sum(axis=1) / (valid.sum(axis=1) + 1))[:, None]
+        dt[~valid] = 0.0
+        mean_shift = dt.sum(axis=1, keepdims=True)      # = the mean time: the row itself, centred
+        var = (dt * dt).sum(axis=1) + mean_shift[:, 0] ** 2
+        dx = np.where(valid[..., None], centre[j] - centre[:, None], 0.0)
+        dw = np.where(valid, np.angle(np.exp(1j * (yaw[j] - yaw[:, None]))), 0.0)
+        fit = has_neighbour & (var > 1e-12)
         safe = np.where(fit, var, 1.0)
-        velocity[order[fit]] = ((sums["tx"] - sums["t"][:, None] * sums["x"] / n[:, None]) / safe[:, None])[fit]
-        yaw_rate[order[fit]] = ((sums["tw"] - sums["t"] * sums["w"] / n) / safe)[fit]
+        velocity[fit] = (np.einsum("kw,kwi->ki", dt, dx) / safe[:, None])[fit]
+        yaw_rate[fit] = ((dt * dw).sum(axis=1) / safe)[fit]
     return velocity, yaw_rate, has_neighbour
 
 
