@@ -379,3 +379,17 @@ def test_merge_rows_joins_on_shared_key_columns_not_row_order():
     assert merge_rows({KEY_TIMESTAMP: np.zeros(0)}, {KEY_TIMESTAMP: np.array([1])})[1].tolist() == [False]
     with pytest.raises(ValueError, match="no shared key column"):
         merge_rows({KEY_TIMESTAMP: np.array([1])}, {KEY_LASER: np.array([1])})
+
+
+def test_per_pixel_poses_join_across_batches_in_any_row_order(tmp_path, monkeypatch):
+    """TOP poses are applied while the range images stream (lidar_pose decoded on a helper
+    thread): with one row per batch and both files' rows shuffled differently, every return and
+    capture offset equals the one-batch read."""
+    tiny_segment(tmp_path, shuffle_seed=5)
+    whole = reader.load_scene(str(tmp_path), SPLIT, SEGMENT, cameras=())
+    monkeypatch.setattr(reader, "LIDAR_BATCH_ROWS", 1)
+    streamed = reader.load_scene(str(tmp_path), SPLIT, SEGMENT, cameras=())
+    assert np.any(whole.lidar.laser == 1)
+    np.testing.assert_array_equal(streamed.lidar.points_vehicle, whole.lidar.points_vehicle)
+    np.testing.assert_array_equal(streamed.lidar.capture_offset_s, whole.lidar.capture_offset_s)
+    np.testing.assert_array_equal(streamed.lidar.frame, whole.lidar.frame)
