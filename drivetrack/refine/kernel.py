@@ -17,6 +17,9 @@ tree, each with the numpy/scipy reference it must reproduce:
 - :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
   envelope (reference: ``scipy.linalg.cho_solve``).
 - :func:`gather`: the candidate returns of every box (reference: ``drivetrack.boxes.gather_candidates``).
+- :func:`frame_time_candidates`: an object's candidates moved to the frame (label) time, the
+  grown-box test and the kept returns back in the vehicle frame, in one pass (reference:
+  ``drivetrack.refine.scene._frame_time_candidates``).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -24,7 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve"]
+__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve",
+           "frame_time_candidates"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
@@ -339,6 +343,71 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     index, owner = np.empty(int(counts.sum()), np.int64), np.empty(int(counts.sum()), np.int64)
     _gather_kernel(*args, False, counts, index, owner)
     return index, owner
+
+
+@njit(cache=True, nogil=True)
+def _frame_time_kernel(points, index, owner, row_of, offsets, label_offset, has_label_offset, center, heading,
+                       velocity, yaw_rate, pitch, roll, has_tilt, size, margin, local, vehicle, kept):
+    # the operations of points_box_at_capture / vectors_to_box, inside_box and vectors_from_box,
+    # in their order, one candidate at a time; returns the number kept
+    m = 0
+    for i in range(index.shape[0]):
+        j, o = index[i], owner[i]
+        k = row_of[o]
+        dt = np.float64(offsets[j])
+        if has_label_offset:
+            dt = dt - label_offset[k]
+        vx = points[j, 0] - (center[k, 0] + velocity[k, 0] * dt)
+        vy = points[j, 1] - (center[k, 1] + velocity[k, 1] * dt)
+        vz = points[j, 2] - (center[k, 2] + velocity[k, 2] * dt)
+        yaw = heading[k] + yaw_rate[k] * dt
+        c, s = np.cos(yaw), np.sin(yaw)
+        u0, u1, u2 = c * vx + s * vy, -s * vx + c * vy, vz
+        ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
+        if has_tilt:
+            ct, st, cr, sr = np.cos(pitch[k]), np.sin(pitch[k]), np.cos(roll[k]), np.sin(roll[k])
+            wx, wz = ct * u0 - st * u2, st * u0 + ct * u2
+            q0, q1, q2 = wx, cr * u1 + sr * wz, -sr * u1 + cr * wz
+        else:
+            q0, q1, q2 = u0, u1, u2
+        if abs(q0) <= size[k, 0] / 2.0 + margin and abs(q1) <= size[k, 1] / 2.0 + margin and \
+                abs(q2) <= size[k, 2] / 2.0 + margin:
+            local[m, 0], local[m, 1], local[m, 2] = q0, q1, q2
+            if has_tilt:
+                ry, rz = cr * q1 - sr * q2, sr * q1 + cr * q2
+                b0, b1, b2 = ct * q0 + st * rz, ry, -st * q0 + ct * rz
+            else:
+                b0, b1, b2 = q0, q1, q2
+            ch, sh = np.cos(heading[k]), np.sin(heading[k])
+            vehicle[m, 0] = (ch * b0 - sh * b1) + center[k, 0]
+            vehicle[m, 1] = (sh * b0 + ch * b1) + center[k, 1]
+            vehicle[m, 2] = b2 + center[k, 2]
+            kept[m] = o
+            m += 1
+    return m
+
+
+def frame_time_candidates(points, index, owner, rows, offsets, label_offset_s, center, heading, velocity,
+                          yaw_rate, pitch, roll, size, margin):
+    """(body points float64 [P, 3], vehicle-frame points float64 [P, 3], owner int64 [P]) of the
+    candidates that lie in their grown box once moved to the box's time. The fused twin of
+    ``drivetrack.refine.scene._frame_time_candidates`` (same arguments and results)."""
+    def f64(a):
+        return np.ascontiguousarray(a, dtype=np.float64)
+
+    n = index.shape[0]
+    has_tilt = pitch is not None or roll is not None
+    row_count = center.shape[0]
+    zeros = np.zeros(row_count)
+    local, vehicle, kept = np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64)
+    m = _frame_time_kernel(f64(points), np.ascontiguousarray(index, dtype=np.int64),
+                           np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(rows, dtype=np.int64),
+                           np.ascontiguousarray(offsets),
+                           zeros if label_offset_s is None else f64(label_offset_s), label_offset_s is not None,
+                           f64(center), f64(heading), f64(velocity), f64(yaw_rate),
+                           zeros if pitch is None else f64(pitch), zeros if roll is None else f64(roll), has_tilt,
+                           f64(size), float(margin), local, vehicle, kept)
+    return local[:m].copy(), vehicle[:m].copy(), kept[:m].copy()
 
 
 @njit(cache=True, nogil=True)
