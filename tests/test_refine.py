@@ -323,6 +323,15 @@ def test_capped_selection_equals_the_cap_over_all_candidates():
         np.testing.assert_array_equal(out[1], ref[1])
         np.testing.assert_array_equal(out[2], ref[2])
         np.testing.assert_allclose(out[0], ref[0], atol=1e-12)
+        # and counts the returns each frame's box holds as the numpy test does (no cap)
+        from drivetrack.refine import kernel as refine_kernel
+        from drivetrack.refine.select import _body_points, _inside
+
+        want = np.bincount(frame[_inside(_body_points(center, heading, points, frame, tilt_arg), half[frame], 0.1,
+                                         0.2)], minlength=t_count)
+        got = refine_kernel.inside_counts(points, frame, half, center, heading, tilt_arg, 0.1, 0.2)
+        np.testing.assert_array_equal(got, want)
+        assert got[2] > cap
 
 
 def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
