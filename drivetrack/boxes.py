@@ -35,10 +35,18 @@ def return_mask(laser: np.ndarray, return_index: np.ndarray, lasers=None, return
     """bool [M]: returns whose ``laser`` (int [M], ``LaserName`` values) is in ``lasers`` and whose
     ``return_index`` (int [M], 1 | 2) is in ``returns``; None accepts all."""
     selected = np.ones(np.shape(laser)[0], dtype=bool)
-    if lasers is not None:
-        selected &= np.isin(laser, np.asarray(lasers))
-    if returns is not None:
-        selected &= np.isin(return_index, np.asarray(returns))
+    for values, wanted in ((laser, lasers), (return_index, returns)):
+        if wanted is None:
+            continue
+        values, wanted = np.asarray(values), np.asarray(wanted).reshape(-1)
+        if values.dtype.itemsize == 1 and values.dtype.kind in "iu":   # the reader's int8: a 256-entry table
+            info = np.iinfo(values.dtype)
+            representable = wanted[(wanted >= info.min) & (wanted <= info.max)].astype(values.dtype)
+            table = np.zeros(256, dtype=bool)
+            table[representable.view(np.uint8)] = True
+            selected &= table[values.view(np.uint8)]
+        else:
+            selected &= np.isin(values, wanted)
     return selected
 
 

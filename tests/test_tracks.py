@@ -603,3 +603,19 @@ def test_fill_invalid_positions_holds_nearest_valid_frame():
     np.testing.assert_array_equal(out[1], tracks[1])                 # all finite: unchanged
     assert np.isnan(out[2]).all()                                      # no finite frame: left alone
     assert fill_invalid_positions(np.zeros((0, 4, 2), np.float32)).shape == (0, 4, 2)
+
+
+@pytest.mark.parametrize("dtype", [np.int8, np.uint8, np.int64])
+def test_return_mask_equals_isin_for_every_dtype(dtype):
+    """The reader's int8 columns go through a 256-entry table; values a dtype cannot hold match nothing."""
+    from drivetrack.boxes import return_mask
+
+    rng = np.random.default_rng(1)
+    laser, ret = rng.integers(0, 8, 1000).astype(dtype), rng.integers(1, 3, 1000).astype(dtype)
+    for lasers, returns in ((None, None), ((1, 3), (1,)), ([2], None), ((-1, 200, 300, 5), (2,)), ((), None)):
+        want = np.ones(1000, bool)
+        if lasers is not None:
+            want &= np.isin(laser, lasers)
+        if returns is not None:
+            want &= np.isin(ret, returns)
+        np.testing.assert_array_equal(return_mask(laser, ret, lasers, returns), want)
