@@ -24,6 +24,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
@@ -34,6 +35,7 @@ from drivetrack.waymo.columns import (list_parts, range_images_from_columns, sca
 # drivetrack.waymo.reader (docs/waymo-v2.md): re-exported from their home, waymo/components.py.
 from drivetrack.waymo.components import (LIDAR_BATCH_ROWS, ComponentFile, WaymoFormatError,  # noqa: F401
                                          check_names, filesystem, list_segments, read_component)
+from drivetrack.waymo.kernel import posed_returns, returns_from_range_image
 from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, LaserName,
                                      merge_rows)
 
@@ -285,8 +287,8 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
                 geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
                                        cal.vehicle_from_lidar[:3, 3].copy())
             dirs, origin = geometry_cache[key]
-            nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
-            pts, rows, cols_, inten = beam.points_from_directions(image, dirs, origin)
+            pts, rows, cols_, inten, bad_ranges = returns_from_range_image(image, dirs, origin)
+            nonfinite += bad_ranges
             samples = None
             if laser == LaserName.TOP and rows.size:
                 if poses is None:
@@ -410,17 +412,16 @@ class _TopPoses:
             raise f.error("per-pixel pose does not match the range image", column=self.shape,
                           expected="[H, W, 6] like the TOP range image",
                           found=f"{list(pose.shape)} at {f.row_keys(table, i)}")
-        pixel_pose = pose[rows, cols_]
-        bad = ~np.isfinite(pixel_pose).all(axis=1)
-        if bad.any():
-            j = int(np.flatnonzero(bad)[0])
+        # one pass: the pose at each return checked finite, the return moved, its time sample
+        # (reference: lidar.apply_pixel_pose and capture_time.pixel_time_offsets)
+        moved, samples, j = posed_returns(points, rows, cols_, pose, invert_rigid(self.world_from_vehicle[t]),
+                                          self.world_from_vehicle[t, :3, 3], self.ego_velocity[t],
+                                          capture_time.MIN_EGO_SPEED_MPS, capture_time.MAX_ABS_OFFSET_S)
+        if j >= 0:
             raise f.error("NaN or infinite per-pixel pose at a lidar return", column=self.values,
                           expected="finite roll, pitch, yaw, x, y, z at every pixel with a return",
-                          found=f"{pixel_pose[j].tolist()} at pixel (row {int(rows[j])}, "
+                          found=f"{pose[rows[j], cols_[j]].tolist()} at pixel (row {int(rows[j])}, "
                                 f"col {int(cols_[j])}) of {f.row_keys(table, i)}")
-        moved = beam.apply_pixel_pose(points, pixel_pose, self.world_from_vehicle[t])
-        samples = capture_time.pixel_time_offsets(pixel_pose[:, 3:6], self.world_from_vehicle[t, :3, 3],
-                                                  self.ego_velocity[t]).astype(np.float32)
         return moved, samples
 
     def close(self) -> None:
