@@ -113,3 +113,16 @@ def test_sorted_return_keys_of_returns_in_any_order(tracked):
     t = next(t for t in tracks if t.num_tracks)
     rows = lidar_rows_from_sources(shuffled, t.frames[t.query_frames], t.lidar_sources, "shuffled", (s_order, s_keys))
     np.testing.assert_array_equal(perm[rows], lidar_rows_from_sources(lidar, t.frames[t.query_frames], t.lidar_sources))
+
+
+def test_label_speeds_kernel_equals_the_numpy_path(tracked, monkeypatch):
+    """The path-length kernel gives the numpy chunks' speeds (to float64 rounding)."""
+    from drivetrack.tracks import consistency
+
+    scene, tracks, _ = tracked
+    t = next(t for t in tracks if t.num_tracks)
+    fused = label_speed_errors(scene, scene.boxes, t)
+    monkeypatch.setattr(consistency, "NUMBA_AVAILABLE", False)
+    reference = label_speed_errors(scene, scene.boxes, t)
+    assert np.isfinite(reference).any()
+    np.testing.assert_allclose(fused, reference, rtol=1e-12, atol=1e-12)
