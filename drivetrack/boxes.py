@@ -4,9 +4,10 @@ Two stages ask, with different tolerances, so there are two gathers over the sam
 
 - :func:`returns_in_boxes` (the track stage's per-box selection, ``tracks/plan.py``): the returns
   of the selected lasers / return indices inside each box grown by a margin and above a ground
-  clearance, with the box moved to each return's capture time (``tracks/sweep_motion.py``). Per frame the
-  returns are sorted by x once; a box tests the slab within its horizontal radius, then the exact
-  box test (:func:`inside_box`).
+  clearance, with the box moved to each return's capture time (``tracks/sweep_motion.py``). A box
+  tests the slab of its frame's returns within its horizontal radius (a scan of the frame, or a
+  search in the frame sorted by x once when it has many boxes), then the exact box test
+  (:func:`inside_box`).
 - :func:`gather_candidates` (the pose refinement's candidates, ``refine/scene.py``): the returns
   within each box's bounding *cube*, in (box, row) order; the refinement applies the exact test
   itself (its boxes are grown by ``candidate_margin_m``, with no ground clearance). Its fused twin
@@ -25,15 +26,27 @@ from drivetrack.parallel import pool_map
 
 __all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates"]
 
+SCAN_MAX_BOXES = 24
+""":func:`returns_in_boxes` scans a frame's returns once per box when it has at most this many
+boxes to fill, and sorts the frame by x for more (the slab is the same either way)."""
+
 
 def return_mask(laser: np.ndarray, return_index: np.ndarray, lasers=None, returns=None) -> np.ndarray:
     """bool [M]: returns whose ``laser`` (int [M], ``LaserName`` values) is in ``lasers`` and whose
     ``return_index`` (int [M], 1 | 2) is in ``returns``; None accepts all."""
     selected = np.ones(np.shape(laser)[0], dtype=bool)
-    if lasers is not None:
-        selected &= np.isin(laser, np.asarray(lasers))
-    if returns is not None:
-        selected &= np.isin(return_index, np.asarray(returns))
+    for values, wanted in ((laser, lasers), (return_index, returns)):
+        if wanted is None:
+            continue
+        values, wanted = np.asarray(values), np.asarray(wanted).reshape(-1)
+        if values.dtype.itemsize == 1 and values.dtype.kind in "iu":   # the reader's int8: a 256-entry table
+            info = np.iinfo(values.dtype)
+            representable = wanted[(wanted >= info.min) & (wanted <= info.max)].astype(values.dtype)
+            table = np.zeros(256, dtype=bool)
+            table[representable.view(np.uint8)] = True
+            selected &= table[values.view(np.uint8)]
+        else:
+            selected &= np.isin(values, wanted)
     return selected
 
 
@@ -58,8 +71,9 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
     ``lidar.capture_offset_s``, the box is moved to each return's capture time first
     (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`), from the box's label time:
     ``label_offset_s`` float [K] (label time minus frame time, s; None: 0, boxes at the frame
-    time; :func:`drivetrack.tracks.trajectory.scene_label_times`). Per frame, returns are sorted by x
-    once; each box then tests only the slab of returns whose x is within its horizontal radius.
+    time; :func:`drivetrack.tracks.trajectory.scene_label_times`). Each box tests only the slab of
+    its frame's returns whose x is within its horizontal radius: found by a scan of the frame for
+    up to :data:`SCAN_MAX_BOXES` boxes in the frame, else in the frame's returns sorted by x once.
 
     Returns:
         ``(offsets int64 [K + 1], index int64 [P])``: rows of ``scene.lidar`` of box row k are
@@ -82,12 +96,15 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
         if frame_index.size == 0:
             return []
         points = lidar.points_vehicle[frame_index]
-        order = np.argsort(points[:, 0])     # any order of ties: the slab is a set, sorted below
-        xs = points[order, 0]
+        frame_rows = rows[boxes.frame[rows] == t]
+        # a few boxes: one comparison pass over the frame each costs less than sorting it by x
+        # (the same slab, half-open in x, so the same members)
+        order = None if frame_rows.size <= SCAN_MAX_BOXES else np.argsort(points[:, 0])
+        xs = points[:, 0] if order is None else points[order, 0]   # any order of ties: sorted below
         dt = None if offsets_s is None else offsets_s[frame_index]
         max_dt = 0.0 if dt is None else float(np.max(np.abs(dt)))
         members = []
-        for row in rows[boxes.frame[rows] == t]:
+        for row in frame_rows:
             center, size = boxes.center[row], boxes.size[row]
             # half the diagonal of the grown box (its corners; a tilted box reaches further)
             grown = size + 2.0 * grow
@@ -96,8 +113,11 @@ def returns_in_boxes(scene, rows: np.ndarray, lasers, returns, margin: float, cl
             if dt is not None:
                 lag = 0.0 if label_offset_s is None else abs(float(label_offset_s[row]))
                 radius += (max_dt + lag) * float(np.linalg.norm(velocity[row, :2]))   # rotation keeps distance
-            lo, hi = np.searchsorted(xs, [center[0] - radius, center[0] + radius], side="left")
-            candidates = order[lo:hi]
+            if order is None:
+                candidates = np.flatnonzero((xs >= center[0] - radius) & (xs < center[0] + radius))
+            else:
+                lo, hi = np.searchsorted(xs, [center[0] - radius, center[0] + radius], side="left")
+                candidates = order[lo:hi]
             near = np.abs(points[candidates, 1] - center[1]) <= radius
             candidates = candidates[near]
             if dt is None:

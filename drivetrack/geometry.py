@@ -137,19 +137,26 @@ def wrap_angle(angle: np.ndarray) -> np.ndarray:
 
 
 def vectors_to_box(vectors: np.ndarray, heading: np.ndarray, pitch: np.ndarray | None = None,
-                   roll: np.ndarray | None = None) -> np.ndarray:
+                   roll: np.ndarray | None = None, rows: np.ndarray | None = None) -> np.ndarray:
     """float64 [N, 3] ``R^T v`` of vectors float [N, 3] (e.g. ``x - center``: body points), per row
     ``R = Rz(heading) Ry(pitch) Rx(roll)`` (:func:`box_from_center_heading`'s rotation), angles
     float [N] radians. ``pitch`` and ``roll`` None: yaw only (exactly ``Rz(heading)^T v``); one
-    of them None: 0. Elementwise (no matrices), so cheap on many rows."""
-    c, s = np.cos(heading), np.sin(heading)
+    of them None: 0. Elementwise (no matrices), so cheap on many rows. With ``rows`` (int [N]) the
+    angles are per pose (float [R]) and vector n uses pose ``rows[n]``: the sines and cosines are
+    taken once per pose, the same values as for the angles repeated per vector."""
+    def trig(angle):
+        c, s = np.cos(angle), np.sin(angle)
+        return (c, s) if rows is None else (c[rows], s[rows])
+
+    c, s = trig(heading)
     u = np.stack([c * vectors[:, 0] + s * vectors[:, 1], -s * vectors[:, 0] + c * vectors[:, 1], vectors[:, 2]],
                  axis=-1)
     if pitch is None and roll is None:
         return u
-    pitch = np.zeros(u.shape[0]) if pitch is None else pitch
-    roll = np.zeros(u.shape[0]) if roll is None else roll
-    ct, st, cr, sr = np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    count = np.shape(heading)[0] if rows is not None else u.shape[0]
+    pitch = np.zeros(count) if pitch is None else pitch
+    roll = np.zeros(count) if roll is None else roll
+    (ct, st), (cr, sr) = trig(pitch), trig(roll)
     vx, vz = ct * u[:, 0] - st * u[:, 2], st * u[:, 0] + ct * u[:, 2]                 # Ry^T u
     return np.stack([vx, cr * u[:, 1] + sr * vz, -sr * u[:, 1] + cr * vz], axis=-1)   # Rx^T v
 

@@ -93,3 +93,36 @@ def test_source_rows_with_a_shared_sorted_key_table(tracked):
         np.testing.assert_array_equal(scene.lidar.frame[rows], frames)
         np.testing.assert_array_equal(label_speed_errors(scene, scene.boxes, t, keys),
                                       label_speed_errors(scene, scene.boxes, t))
+
+
+def test_sorted_return_keys_of_returns_in_any_order(tracked):
+    """The reader's returns come in key order (no sort needed); returns in any other order are
+    sorted, and the same sources are found."""
+    from types import SimpleNamespace
+
+    scene, tracks, _ = tracked
+    lidar = scene.lidar
+    order, keys = sorted_return_keys(lidar)
+    np.testing.assert_array_equal(order, np.arange(len(lidar.frame)))          # already in key order
+    perm = np.random.default_rng(2).permutation(len(lidar.frame))
+    names = ("frame", "laser", "return_index", "row", "col")
+    shuffled = SimpleNamespace(**{n: getattr(lidar, n)[perm] for n in names})
+    s_order, s_keys = sorted_return_keys(shuffled)
+    np.testing.assert_array_equal(s_keys, keys)
+    np.testing.assert_array_equal(perm[s_order], order)
+    t = next(t for t in tracks if t.num_tracks)
+    rows = lidar_rows_from_sources(shuffled, t.frames[t.query_frames], t.lidar_sources, "shuffled", (s_order, s_keys))
+    np.testing.assert_array_equal(perm[rows], lidar_rows_from_sources(lidar, t.frames[t.query_frames], t.lidar_sources))
+
+
+def test_label_speeds_kernel_equals_the_numpy_path(tracked, monkeypatch):
+    """The path-length kernel gives the numpy chunks' speeds (to float64 rounding)."""
+    from drivetrack.tracks import consistency
+
+    scene, tracks, _ = tracked
+    t = next(t for t in tracks if t.num_tracks)
+    fused = label_speed_errors(scene, scene.boxes, t)
+    monkeypatch.setattr(consistency, "NUMBA_AVAILABLE", False)
+    reference = label_speed_errors(scene, scene.boxes, t)
+    assert np.isfinite(reference).any()
+    np.testing.assert_allclose(fused, reference, rtol=1e-12, atol=1e-12)

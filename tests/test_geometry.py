@@ -172,3 +172,17 @@ def test_pose_helpers_round_trip_and_wrap_angle():
     np.testing.assert_allclose(g.center_heading_from_poses(tilted)[1], heading, atol=1e-12)
     np.testing.assert_allclose(g.wrap_angle(np.array([0.0, math.pi, -math.pi, 1.5 * math.pi, -4.0])),
                                [0.0, math.pi, math.pi, -0.5 * math.pi, 2 * math.pi - 4.0], atol=1e-12)
+
+
+def test_vectors_to_box_with_per_pose_angles_equals_repeated_angles():
+    """``rows=``: sines and cosines once per pose, the same values as the angles repeated."""
+    vectors_to_box = g.vectors_to_box
+    rng = np.random.default_rng(4)
+    heading, pitch, roll = (rng.uniform(-3.0, 3.0, 5) for _ in range(3))
+    rows = rng.integers(0, 5, 200)
+    v = rng.normal(size=(200, 3))
+    np.testing.assert_array_equal(vectors_to_box(v, heading, rows=rows), vectors_to_box(v, heading[rows]))
+    np.testing.assert_array_equal(vectors_to_box(v, heading, pitch, roll, rows=rows),
+                                  vectors_to_box(v, heading[rows], pitch[rows], roll[rows]))
+    np.testing.assert_array_equal(vectors_to_box(v, heading, None, roll, rows=rows),
+                                  vectors_to_box(v, heading[rows], None, roll[rows]))

@@ -323,6 +323,15 @@ def test_capped_selection_equals_the_cap_over_all_candidates():
         np.testing.assert_array_equal(out[1], ref[1])
         np.testing.assert_array_equal(out[2], ref[2])
         np.testing.assert_allclose(out[0], ref[0], atol=1e-12)
+        # and counts the returns each frame's box holds as the numpy test does (no cap)
+        from drivetrack.refine import kernel as refine_kernel
+        from drivetrack.refine.select import _body_points, _inside
+
+        want = np.bincount(frame[_inside(_body_points(center, heading, points, frame, tilt_arg), half[frame], 0.1,
+                                         0.2)], minlength=t_count)
+        got = refine_kernel.inside_counts(points, frame, half, center, heading, tilt_arg, 0.1, 0.2)
+        np.testing.assert_array_equal(got, want)
+        assert got[2] > cap
 
 
 def test_extent_fit_grows_box_to_hold_the_registered_returns(noisy):
@@ -482,6 +491,48 @@ def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
         np.testing.assert_array_equal(index, np.concatenate(expect_index))
         np.testing.assert_array_equal(owner, np.concatenate(expect_owner))
         assert index.size > 20
+
+@pytest.mark.parametrize("tilted", [False, True], ids=["yaw-only", "tilted"])
+@pytest.mark.parametrize("label_time", [False, True], ids=["frame-time", "label-time"])
+def test_frame_time_candidates_kernel_matches_the_numpy_reference(tilted, label_time):
+    """The fused candidate pass (move to the box's time, grown-box test, back to the vehicle
+    frame) equals the numpy reference bit for bit, and keeps what a direct box test keeps."""
+    from drivetrack.geometry import vectors_to_box
+    from drivetrack.refine import kernel as refine_kernel
+    from drivetrack.refine.scene import _frame_time_candidates
+
+    rng = np.random.default_rng(11)
+    k_rows, m = 9, 20000
+    center = rng.uniform(-15.0, 15.0, (k_rows, 3))
+    heading = rng.uniform(-np.pi, np.pi, k_rows)
+    size = rng.uniform(1.0, 5.0, (k_rows, 3))
+    velocity = rng.uniform(-15.0, 15.0, (k_rows, 3))
+    yaw_rate = rng.uniform(-0.5, 0.5, k_rows)
+    pitch, roll = (rng.uniform(-0.05, 0.05, k_rows), rng.uniform(-0.05, 0.05, k_rows)) if tilted else (None, None)
+    label_offset = rng.uniform(-0.05, 0.05, k_rows) if label_time else None
+    rows = np.array([7, 2, 4, 0])                                     # the object's box rows
+    owner = np.sort(rng.integers(0, rows.size, m))
+    index = rng.permutation(m)
+    points = center[rows[owner[np.argsort(index)]]] + rng.uniform(-3.0, 3.0, (m, 3))
+    offsets = rng.uniform(-0.05, 0.05, m).astype(np.float32)
+    args = (points, index, owner, rows, offsets, label_offset, center, heading, velocity, yaw_rate, pitch, roll,
+            size, 0.2)
+    got, ref = refine_kernel.frame_time_candidates(*args), _frame_time_candidates(*args)
+    for a, b in zip(got, ref):
+        np.testing.assert_array_equal(a, b)
+    local, vehicle, kept = ref
+    assert 0 < kept.size < m
+    # direct check: the box at each return's time, and the box pose at its own time
+    r = rows[owner]
+    dt = offsets[index].astype(np.float64) - (0.0 if label_offset is None else label_offset[r])
+    tilt = (None, None) if pitch is None else (pitch[r], roll[r])
+    q = vectors_to_box(points[index] - (center[r] + velocity[r] * dt[:, None]), heading[r] + yaw_rate[r] * dt, *tilt)
+    ok = np.all(np.abs(q) <= size[r] / 2.0 + 0.2, axis=-1)
+    np.testing.assert_array_equal(kept, owner[ok])
+    np.testing.assert_allclose(local, q[ok], atol=1e-12)
+    back = vectors_to_box(vehicle - center[rows[kept]], heading[rows[kept]],
+                          *((None, None) if pitch is None else (pitch[rows[kept]], roll[rows[kept]])))
+    np.testing.assert_allclose(back, local, atol=1e-9)
 
 
 # ----------------------------------------------------------------------------- 6 DOF (pitch, roll)

@@ -316,10 +316,15 @@ def test_ground_points_are_removed():
     assert np.isclose(z, 0.5).any() and not np.isclose(z, 0.1).any()
 
 
-def test_returns_in_boxes_equal_a_brute_force_box_test():
+@pytest.mark.parametrize("scan_max_boxes", [0, 24], ids=["sorted", "scan"])
+def test_returns_in_boxes_equal_a_brute_force_box_test(monkeypatch, scan_max_boxes):
     """drivetrack.boxes.returns_in_boxes (the plan's per-box selection): its x-slab pre-filter
-    loses nothing against testing every return of the frame against the box."""
+    (found in the frame sorted by x, or by a scan of the frame) loses nothing against testing
+    every return of the frame against the box."""
+    from drivetrack import boxes as boxes_module
     from drivetrack.boxes import returns_in_boxes
+
+    monkeypatch.setattr(boxes_module, "SCAN_MAX_BOXES", scan_max_boxes)
 
     b = SceneBuilder()
     b.add_object("car", world_center(b, 10.0), extra_local=[[-1.0, 0.0, -0.65], [-1.0, 0.0, -0.25]])
@@ -336,11 +341,15 @@ def test_returns_in_boxes_equal_a_brute_force_box_test():
     assert index.size > 0
 
 
-def test_returns_in_boxes_keep_the_grown_corners():
+@pytest.mark.parametrize("scan_max_boxes", [0, 24], ids=["sorted", "scan"])
+def test_returns_in_boxes_keep_the_grown_corners(monkeypatch, scan_max_boxes):
     """With a positive margin the slab pre-filter reaches the grown box's corners: a return just
     inside the corner of a box grown by 0.5 m, turned so that its diagonal lies along x, is kept
     (the radius of the ungrown box plus the margin falls 0.11 m short of that corner)."""
+    from drivetrack import boxes as boxes_module
     from drivetrack.boxes import inside_box, returns_in_boxes
+
+    monkeypatch.setattr(boxes_module, "SCAN_MAX_BOXES", scan_max_boxes)
 
     size, margin = np.array([4.0, 2.0, 1.5]), 0.5
     corner = np.array([size[0] / 2 + 0.45, size[1] / 2 + 0.45, 0.0])
@@ -594,3 +603,19 @@ def test_fill_invalid_positions_holds_nearest_valid_frame():
     np.testing.assert_array_equal(out[1], tracks[1])                 # all finite: unchanged
     assert np.isnan(out[2]).all()                                      # no finite frame: left alone
     assert fill_invalid_positions(np.zeros((0, 4, 2), np.float32)).shape == (0, 4, 2)
+
+
+@pytest.mark.parametrize("dtype", [np.int8, np.uint8, np.int64])
+def test_return_mask_equals_isin_for_every_dtype(dtype):
+    """The reader's int8 columns go through a 256-entry table; values a dtype cannot hold match nothing."""
+    from drivetrack.boxes import return_mask
+
+    rng = np.random.default_rng(1)
+    laser, ret = rng.integers(0, 8, 1000).astype(dtype), rng.integers(1, 3, 1000).astype(dtype)
+    for lasers, returns in ((None, None), ((1, 3), (1,)), ([2], None), ((-1, 200, 300, 5), (2,)), ((), None)):
+        want = np.ones(1000, bool)
+        if lasers is not None:
+            want &= np.isin(laser, lasers)
+        if returns is not None:
+            want &= np.isin(ret, returns)
+        np.testing.assert_array_equal(return_mask(laser, ret, lasers, returns), want)

@@ -379,3 +379,70 @@ def test_merge_rows_joins_on_shared_key_columns_not_row_order():
     assert merge_rows({KEY_TIMESTAMP: np.zeros(0)}, {KEY_TIMESTAMP: np.array([1])})[1].tolist() == [False]
     with pytest.raises(ValueError, match="no shared key column"):
         merge_rows({KEY_TIMESTAMP: np.array([1])}, {KEY_LASER: np.array([1])})
+
+
+def test_per_pixel_poses_join_across_batches_in_any_row_order(tmp_path, monkeypatch):
+    """TOP poses are applied while the range images stream (lidar_pose decoded on a helper
+    thread): with one row per batch and both files' rows shuffled differently, every return and
+    capture offset equals the one-batch read."""
+    tiny_segment(tmp_path, shuffle_seed=5)
+    whole = reader.load_scene(str(tmp_path), SPLIT, SEGMENT, cameras=())
+    monkeypatch.setattr(reader, "LIDAR_BATCH_ROWS", 1)
+    streamed = reader.load_scene(str(tmp_path), SPLIT, SEGMENT, cameras=())
+    assert np.any(whole.lidar.laser == 1)
+    np.testing.assert_array_equal(streamed.lidar.points_vehicle, whole.lidar.points_vehicle)
+    np.testing.assert_array_equal(streamed.lidar.capture_offset_s, whole.lidar.capture_offset_s)
+    np.testing.assert_array_equal(streamed.lidar.frame, whole.lidar.frame)
+
+
+@pytest.mark.parametrize("channels", [1, 4])
+def test_range_image_kernel_equals_the_numpy_reference(channels):
+    """The reader's one-pass range-image kernel gives points_from_directions' returns bit for bit
+    (NaN, inf, -inf, 0 and negative ranges are no return; NaN / inf counted)."""
+    from drivetrack.waymo.kernel import returns_from_range_image
+
+    rng = np.random.default_rng(8)
+    h, w = 16, 40
+    image = rng.uniform(-5.0, 80.0, (h, w, channels)).astype(np.float32)
+    flat = image[..., 0].reshape(-1)
+    flat[rng.choice(flat.size, 60, replace=False)] = rng.choice([np.nan, np.inf, -np.inf, 0.0, -1.0], 60)
+    directions = rng.normal(size=(h, w, 3))
+    origin = np.array([1.4, -0.1, 2.2])
+    want = lidar.points_from_directions(image, directions, origin)
+    got = returns_from_range_image(image, directions, origin)
+    for a, b in zip(got[:4], want):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    assert got[4] == int(np.count_nonzero(~np.isfinite(image[..., 0]))) > 0
+
+
+def test_posed_returns_kernel_equals_pose_and_time_references():
+    """The TOP returns' one-pass pose kernel: apply_pixel_pose's points and pixel_time_offsets'
+    samples (float32), and the first return whose pose is not finite."""
+    from drivetrack.geometry import invert_rigid, rigid_from_rotation_translation, rotation_from_rpy
+    from drivetrack.waymo import capture_time
+    from drivetrack.waymo.kernel import posed_returns
+
+    rng = np.random.default_rng(9)
+    h, w, m = 8, 50, 300
+    position = np.array([812.0, -1933.0, 41.0])
+    pose = np.concatenate([rng.normal(size=(h, w, 3)) * 0.1, position + rng.normal(size=(h, w, 3)) * 8.0],
+                          -1).astype(np.float32)
+    rows, cols = rng.integers(0, h, m).astype(np.int32), rng.integers(0, w, m).astype(np.int32)
+    points = rng.normal(size=(m, 3)) * 30.0
+    world_from_vehicle = rigid_from_rotation_translation(rotation_from_rpy(0.01, 0.02, 1.0), position)
+    args = (capture_time.MIN_EGO_SPEED_MPS, capture_time.MAX_ABS_OFFSET_S)
+    finite = []
+    for velocity in (np.array([30.0, -25.0, 0.4]), np.array([0.5, 0.0, 0.0])):   # moving; standing still
+        out, dt, bad = posed_returns(points, rows, cols, pose, invert_rigid(world_from_vehicle), position, velocity,
+                                     *args)
+        pixel = pose[rows, cols]
+        assert bad == -1
+        np.testing.assert_array_equal(out, lidar.apply_pixel_pose(points, pixel, world_from_vehicle))
+        want = capture_time.pixel_time_offsets(pixel[:, 3:6], position, velocity, args[0]).astype(np.float32)
+        np.testing.assert_array_equal(dt, want)
+        finite.append(int(np.isfinite(dt).sum()))
+    assert 0 < finite[0] < m and finite[1] == 0        # beyond MAX_ABS_OFFSET_S: NaN; standing still: NaN
+    pose[rows[17], cols[17], 4] = np.nan
+    first = int(np.flatnonzero(~np.isfinite(pose[rows, cols]).all(axis=1))[0])
+    assert posed_returns(points, rows, cols, pose, invert_rigid(world_from_vehicle), position, velocity, *args)[2] == first

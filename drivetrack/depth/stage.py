@@ -164,6 +164,7 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
     the image's pose time (:func:`points_at_image_time`; ``plan``: the segment's, or one made once
     per scene and configuration).
     """
+    from drivetrack.boxes import return_mask
     from drivetrack.depth import (bound_blind_zone, horizontal_depth_scale, see_through_returns,
                                   sparse_depth_from_points)
     from drivetrack.waymo.schema import LaserName
@@ -179,7 +180,7 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
         part = lidar.of_frame(t)
         points = lidar.points_vehicle[part]
         lasers, returns = lidar.laser[part], lidar.return_index[part]
-        keep = np.isin(lasers, config.depth_laser_values) & np.isin(returns, config.depth_returns)
+        keep = return_mask(lasers, returns, config.depth_laser_values, config.depth_returns)
         if not keep.all():
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
         if motion is not None:

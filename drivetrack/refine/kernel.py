@@ -13,10 +13,14 @@ tree, each with the numpy/scipy reference it must reproduce:
   point-to-plane pairs (2 x D Jacobian non-zeros per pair; D = 4: centre and heading, D = 6: and
   pitch, roll), as ``drivetrack.refine.terms._pair_terms`` assembles them with ``np.bincount``.
 - :func:`select`: the capped per-frame point selection with the body points, in one pass per
-  frame (reference: ``drivetrack.refine.select._Selection.select``).
+  frame (reference: ``drivetrack.refine.select._Selection.select``); :func:`inside_counts`: how
+  many returns each frame's box holds (reference: ``_inside`` of ``_body_points``).
 - :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
   envelope (reference: ``scipy.linalg.cho_solve``).
 - :func:`gather`: the candidate returns of every box (reference: ``drivetrack.boxes.gather_candidates``).
+- :func:`frame_time_candidates`: an object's candidates moved to the frame (label) time, the
+  grown-box test and the kept returns back in the vehicle frame, in one pass (reference:
+  ``drivetrack.refine.scene._frame_time_candidates``).
 
 numba compiles on first use and caches the machine code on disk (``cache=True``).
 """
@@ -24,7 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve"]
+__all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve",
+           "frame_time_candidates", "inside_counts"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
@@ -342,24 +347,102 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
 
 
 @njit(cache=True, nogil=True)
+def _frame_time_kernel(points, index, owner, row_of, offsets, label_offset, has_label_offset, center, heading,
+                       velocity, yaw_rate, pitch, roll, has_tilt, size, margin, local, vehicle, kept):
+    # the operations of points_box_at_capture / vectors_to_box, inside_box and vectors_from_box,
+    # in their order, one candidate at a time; returns the number kept
+    m = 0
+    for i in range(index.shape[0]):
+        j, o = index[i], owner[i]
+        k = row_of[o]
+        dt = np.float64(offsets[j])
+        if has_label_offset:
+            dt = dt - label_offset[k]
+        vx = points[j, 0] - (center[k, 0] + velocity[k, 0] * dt)
+        vy = points[j, 1] - (center[k, 1] + velocity[k, 1] * dt)
+        vz = points[j, 2] - (center[k, 2] + velocity[k, 2] * dt)
+        yaw = heading[k] + yaw_rate[k] * dt
+        c, s = np.cos(yaw), np.sin(yaw)
+        u0, u1, u2 = c * vx + s * vy, -s * vx + c * vy, vz
+        ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
+        if has_tilt:
+            ct, st, cr, sr = np.cos(pitch[k]), np.sin(pitch[k]), np.cos(roll[k]), np.sin(roll[k])
+            wx, wz = ct * u0 - st * u2, st * u0 + ct * u2
+            q0, q1, q2 = wx, cr * u1 + sr * wz, -sr * u1 + cr * wz
+        else:
+            q0, q1, q2 = u0, u1, u2
+        if abs(q0) <= size[k, 0] / 2.0 + margin and abs(q1) <= size[k, 1] / 2.0 + margin and \
+                abs(q2) <= size[k, 2] / 2.0 + margin:
+            local[m, 0], local[m, 1], local[m, 2] = q0, q1, q2
+            if has_tilt:
+                ry, rz = cr * q1 - sr * q2, sr * q1 + cr * q2
+                b0, b1, b2 = ct * q0 + st * rz, ry, -st * q0 + ct * rz
+            else:
+                b0, b1, b2 = q0, q1, q2
+            ch, sh = np.cos(heading[k]), np.sin(heading[k])
+            vehicle[m, 0] = (ch * b0 - sh * b1) + center[k, 0]
+            vehicle[m, 1] = (sh * b0 + ch * b1) + center[k, 1]
+            vehicle[m, 2] = b2 + center[k, 2]
+            kept[m] = o
+            m += 1
+    return m
+
+
+def frame_time_candidates(points, index, owner, rows, offsets, label_offset_s, center, heading, velocity,
+                          yaw_rate, pitch, roll, size, margin):
+    """(body points float64 [P, 3], vehicle-frame points float64 [P, 3], owner int64 [P]) of the
+    candidates that lie in their grown box once moved to the box's time. The fused twin of
+    ``drivetrack.refine.scene._frame_time_candidates`` (same arguments and results)."""
+    def f64(a):
+        return np.ascontiguousarray(a, dtype=np.float64)
+
+    n = index.shape[0]
+    has_tilt = pitch is not None or roll is not None
+    row_count = center.shape[0]
+    zeros = np.zeros(row_count)
+    local, vehicle, kept = np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64)
+    m = _frame_time_kernel(f64(points), np.ascontiguousarray(index, dtype=np.int64),
+                           np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(rows, dtype=np.int64),
+                           np.ascontiguousarray(offsets),
+                           zeros if label_offset_s is None else f64(label_offset_s), label_offset_s is not None,
+                           f64(center), f64(heading), f64(velocity), f64(yaw_rate),
+                           zeros if pitch is None else f64(pitch), zeros if roll is None else f64(roll), has_tilt,
+                           f64(size), float(margin), local, vehicle, kept)
+    return local[:m].copy(), vehicle[:m].copy(), kept[:m].copy()
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _trig(heading, tilt, has_tilt, t):
+    c, s = np.cos(heading[t]), np.sin(heading[t])
+    ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
+    if has_tilt:
+        ct, st, cr, sr = np.cos(tilt[t, 0]), np.sin(tilt[t, 0]), np.cos(tilt[t, 1]), np.sin(tilt[t, 1])
+    return c, s, ct, st, cr, sr
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _body(points, i, center, t, c, s, ct, st, cr, sr, has_tilt):
+    """Body point of row i in frame t's box: ``vectors_to_box`` operation for operation."""
+    x, y, z = points[i, 0] - center[t, 0], points[i, 1] - center[t, 1], points[i, 2] - center[t, 2]
+    ux, uy, uz = c * x + s * y, -s * x + c * y, z                 # Rz^T
+    if has_tilt:
+        vx, vz = ct * ux - st * uz, st * ux + ct * uz             # Ry^T
+        ux, uy, uz = vx, cr * uy + sr * vz, -sr * uy + cr * vz    # Rx^T
+    return ux, uy, uz
+
+
+@njit(cache=True, nogil=True)
 def _select_kernel(points, start, counts, half, cap, center, heading, tilt, has_tilt, margin, clearance,
                    q, frame, rows):
     m = 0
     for t in range(start.shape[0]):
-        c, s = np.cos(heading[t]), np.sin(heading[t])
-        ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
-        if has_tilt:
-            ct, st, cr, sr = np.cos(tilt[t, 0]), np.sin(tilt[t, 0]), np.cos(tilt[t, 1]), np.sin(tilt[t, 1])
+        c, s, ct, st, cr, sr = _trig(heading, tilt, has_tilt, t)
         hx, hy, hz = half[t, 0] + margin, half[t, 1] + margin, half[t, 2]
         kept = 0
         for i in range(start[t], start[t] + counts[t]):
             if kept == cap:
                 break
-            x, y, z = points[i, 0] - center[t, 0], points[i, 1] - center[t, 1], points[i, 2] - center[t, 2]
-            ux, uy, uz = c * x + s * y, -s * x + c * y, z                 # Rz^T
-            if has_tilt:
-                vx, vz = ct * ux - st * uz, st * ux + ct * uz             # Ry^T
-                ux, uy, uz = vx, cr * uy + sr * vz, -sr * uy + cr * vz    # Rx^T
+            ux, uy, uz = _body(points, i, center, t, c, s, ct, st, cr, sr, has_tilt)
             if abs(ux) <= hx and abs(uy) <= hy and uz <= hz + margin and uz >= -hz + clearance:
                 q[m, 0], q[m, 1], q[m, 2] = ux, uy, uz
                 frame[m] = t
@@ -367,6 +450,36 @@ def _select_kernel(points, start, counts, half, cap, center, heading, tilt, has_
                 m += 1
                 kept += 1
     return m
+
+
+@njit(cache=True, nogil=True)
+def _inside_counts_kernel(points, start, counts, half, center, heading, tilt, has_tilt, margin, clearance, out):
+    for t in range(start.shape[0]):
+        c, s, ct, st, cr, sr = _trig(heading, tilt, has_tilt, t)
+        hx, hy, hz = half[t, 0] + margin, half[t, 1] + margin, half[t, 2]
+        n = 0
+        for i in range(start[t], start[t] + counts[t]):
+            ux, uy, uz = _body(points, i, center, t, c, s, ct, st, cr, sr, has_tilt)
+            if abs(ux) <= hx and abs(uy) <= hy and uz <= hz + margin and uz >= -hz + clearance:
+                n += 1
+        out[t] = n
+
+
+def inside_counts(points: np.ndarray, frame: np.ndarray, half: np.ndarray, center: np.ndarray,
+                  heading: np.ndarray, tilt: np.ndarray | None, margin: float, clearance: float) -> np.ndarray:
+    """int64 [T]: per frame, how many of ``points`` [N, 3] (vehicle frame, metres; ``frame`` int [N]
+    non-decreasing, 0..T-1) lie inside the frame's box (centre [T, 3], heading [T], tilt [T, 2] or
+    None, half-size [T, 3]) grown by ``margin`` and at least ``clearance`` above its bottom.
+    Reference: ``np.bincount(frame[_inside(_body_points(...), ...)])`` (``drivetrack.refine.select``)."""
+    t_count = center.shape[0]
+    counts = np.bincount(frame, minlength=t_count).astype(np.int64)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    out = np.zeros(t_count, np.int64)
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)   # noqa: E731
+    _inside_counts_kernel(f64(points), start, counts, f64(half), f64(center), f64(heading),
+                          np.zeros((0, 2)) if tilt is None else f64(tilt), tilt is not None, float(margin),
+                          float(clearance), out)
+    return out
 
 
 def select(points: np.ndarray, start: np.ndarray, counts: np.ndarray, half: np.ndarray, cap: int,

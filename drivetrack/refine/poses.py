@@ -218,9 +218,16 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
 
     # Selection at the labels decides whether there is enough to register at all.
-    q0 = _body_points(label_center, label_heading, points, frame, label_tilt if six else None)
-    at_label = _inside(q0, half[frame], config.inlier_margin_m, config.ground_clearance_m)
-    per_frame = np.bincount(frame[at_label], minlength=t_count).astype(np.int64)
+    use_kernel = _use_kernel(config)
+    if use_kernel:
+        from drivetrack.refine.kernel import inside_counts
+
+        per_frame = inside_counts(points, frame, half, label_center, label_heading, label_tilt if six else None,
+                                  config.inlier_margin_m, config.ground_clearance_m)
+    else:
+        q0 = _body_points(label_center, label_heading, points, frame, label_tilt if six else None)
+        at_label = _inside(q0, half[frame], config.inlier_margin_m, config.ground_clearance_m)
+        per_frame = np.bincount(frame[at_label], minlength=t_count).astype(np.int64)
     frames_ok = int((per_frame >= config.min_points_per_frame).sum())
     if per_frame.sum() < config.min_points_total or frames_ok < config.min_frames_with_points:
         return labels(RefineReason.TOO_FEW_POINTS, f"{int(per_frame.sum())} returns in the label boxes "
@@ -239,7 +246,6 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     if S is not None:
         H_fixed += (S.T @ S).toarray()
         motion_g0 = S.T @ e0
-    use_kernel = _use_kernel(config)
     label_state = np.concatenate([label_center, label_heading[:, None]] + ([label_tilt] if six else []),
                                  axis=1).reshape(-1)
     selection = _Selection(points, frame, priority, half, config.max_points_per_frame, t_count, kernel=use_kernel)

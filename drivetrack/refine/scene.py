@@ -81,16 +81,16 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     # the first pass) before registering, as the track stage does (drivetrack.tracks.sweep_motion).
     offsets = getattr(lidar, "capture_offset_s", None) if compensate_sweep_motion else None
     if offsets is not None:
-        from drivetrack.tracks.sweep_motion import points_box_at_capture, scene_box_motion
+        from drivetrack.tracks.sweep_motion import scene_box_motion
 
         label_motion = scene_box_motion(scene)
     # Candidates of every box of every object at once: the returns of the box's frame within its
     # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
     all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
     radius_all = 0.5 * np.linalg.norm(boxes.size[all_rows], axis=-1) + config.candidate_margin_m
-    gather = gather_candidates
+    gather, frame_time_candidates = gather_candidates, _frame_time_candidates
     if _use_kernel(config):
-        from drivetrack.refine.kernel import gather
+        from drivetrack.refine.kernel import frame_time_candidates, gather
     index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
                                   lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
     row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
@@ -107,20 +107,14 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         row_tilt = None if pitch_all is None and roll_all is None else np.stack(boxes.tilt(rows), axis=-1)  # [R, 2]
         index = index_all[bounds[k]:bounds[k + 1]]
         owner = owner_all[bounds[k]:bounds[k + 1]] - row_start[k]               # [N] index into rows
-        p = lidar.points_vehicle[index]
         if offsets is None:
+            p = lidar.points_vehicle[index]
             local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner, row_tilt)
-        else:
-            r = rows[owner]
-            dt = offsets[index] if label_offset_s is None else offsets[index] - label_offset_s[r]
-            local = points_box_at_capture(p, dt, boxes.center[r], boxes.heading[r], motion[0][r],
-                                          motion[1][r], *(boxes.tilt(r)))
-        inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
-        if offsets is not None:        # the compensated return in the vehicle frame: box pose at frame time
-            local, owner = local[inside], owner[inside]
-            tilt_o = (None, None) if row_tilt is None else (row_tilt[owner, 0], row_tilt[owner, 1])
-            p = vectors_from_box(local, boxes.heading[rows][owner], *tilt_o) \
-                + boxes.center[rows][owner]
+            inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
+        else:                          # the compensated returns, back in the vehicle frame at the box's time
+            local, p, owner = frame_time_candidates(
+                lidar.points_vehicle, index, owner, rows, offsets, label_offset_s, boxes.center, boxes.heading,
+                motion[0], motion[1], pitch_all, roll_all, boxes.size, config.candidate_margin_m)
             inside = np.ones(owner.size, dtype=bool)
         if oid in static:              # one pose: nothing frame to frame to register (refine/static.py)
             result = dataclasses.replace(
@@ -188,3 +182,36 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     results = {oid: done[k][0] for k, oid in enumerate(ids)}
     return with_updates(done), results
 
+
+
+def _frame_time_candidates(points: np.ndarray, index: np.ndarray, owner: np.ndarray, rows: np.ndarray,
+                           offsets: np.ndarray, label_offset_s: np.ndarray | None, center: np.ndarray,
+                           heading: np.ndarray, velocity: np.ndarray, yaw_rate: np.ndarray,
+                           pitch: np.ndarray | None, roll: np.ndarray | None, size: np.ndarray, margin: float):
+    """An object's candidate returns moved to its boxes' time, those inside the grown boxes kept.
+
+    Candidate c is return ``index[c]`` (rows of ``points`` float [M, 3], vehicle frame of its frame;
+    ``offsets`` float [M] capture time minus frame time, s) of the object's box ``rows[owner[c]]``
+    (rows of the scene's box arrays ``center`` [K, 3], ``heading`` [K], ``velocity`` [K, 3] m/s,
+    ``yaw_rate`` [K] rad/s, ``pitch`` / ``roll`` [K] or None, ``size`` [K, 3]; ``label_offset_s``
+    [K] the box's time minus the frame time, None: 0). The box is moved to the capture time
+    (:func:`drivetrack.tracks.sweep_motion.points_box_at_capture`), the body point tested against
+    the box grown by ``margin`` (:func:`drivetrack.boxes.inside_box`), and a kept one taken back
+    into the vehicle frame with the box's pose at its own time.
+
+    Returns:
+        ``(local float64 [P, 3], vehicle float64 [P, 3], owner int64 [P])`` of the kept candidates,
+        in candidate order. ``drivetrack.refine.kernel.frame_time_candidates`` is the fused twin.
+    """
+    from drivetrack.tracks.sweep_motion import points_box_at_capture
+
+    r = rows[owner]
+    dt = offsets[index] if label_offset_s is None else offsets[index] - label_offset_s[r]
+    tilt = (None, None) if pitch is None and roll is None else \
+        tuple(np.zeros(r.size) if a is None else a[r] for a in (pitch, roll))
+    local = points_box_at_capture(points[index], dt, center[r], heading[r], velocity[r], yaw_rate[r], *tilt)
+    inside = inside_box(local, size[r], margin)
+    local, owner, r = local[inside], np.asarray(owner, np.int64)[inside], r[inside]
+    tilt = (None, None) if tilt[0] is None else (tilt[0][inside], tilt[1][inside])
+    vehicle = vectors_from_box(local, heading[r], *tilt) + center[r]
+    return local, vehicle, owner

@@ -11,8 +11,8 @@ def _body_points(center: np.ndarray, heading: np.ndarray, points: np.ndarray, fr
     """float64 [M, 3]: ``box_from_vehicle(s_frame) x`` for points x [M, 3] of frames ``frame``
     (tilt [T, 2] = per-frame (pitch, roll), None: yaw-only boxes)."""
     if tilt is None:
-        return vectors_to_box(points - center[frame], heading[frame])
-    return vectors_to_box(points - center[frame], heading[frame], tilt[frame, 0], tilt[frame, 1])
+        return vectors_to_box(points - center[frame], heading, rows=frame)
+    return vectors_to_box(points - center[frame], heading, tilt[:, 0], tilt[:, 1], rows=frame)
 
 
 def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) -> np.ndarray:

@@ -9,7 +9,8 @@ tracks with the labels' poses: a track's source return ``X`` (vehicle frame of i
 clip's duration. The error is ``|speed - annotated box speed|``, the box speed being the same
 annotated ``speed`` field the track stage uses.
 
-Pure numpy; nothing here imports Prefect. Used by :mod:`drivetrack.annotate` to fill the
+numpy, and the track stage's numba path-length kernel for the speeds
+(:func:`drivetrack.tracks.kernel.path_speeds`); nothing here imports Prefect. Used by :mod:`drivetrack.annotate` to fill the
 ``label_speed_err_p*`` columns of ``stats/objects.parquet`` (gate ``object.refine_speed_err_not_worse``).
 """
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.geometry import box_from_center_heading, invert_rigid
+from drivetrack.tracks.kernel import NUMBA_AVAILABLE, path_speeds
 from drivetrack.waymo.lidar import return_keys
 
 __all__ = ["lidar_rows_from_sources", "label_speed_errors", "sorted_return_keys", "CHUNK_POINTS"]
@@ -29,8 +31,11 @@ def sorted_return_keys(lidar, where: str = "") -> tuple[np.ndarray, np.ndarray]:
     """(order int64 [M], keys int64 [M] ascending): the return keys of ``lidar``
     (:func:`drivetrack.waymo.lidar.return_keys`) sorted, and the rows that give them. Build it once
     per segment and pass it to :func:`lidar_rows_from_sources` / :func:`label_speed_errors` for
-    every clip: rebuilding it per clip was a fifth of a medium segment's annotation time."""
+    every clip: rebuilding it per clip was a fifth of a medium segment's annotation time. The
+    reader returns them in key order already (``drivetrack.waymo.reader``): then no sort."""
     table = return_keys(lidar.frame, lidar.laser, lidar.return_index, lidar.row, lidar.col, where)
+    if table.size < 2 or bool(np.all(table[1:] >= table[:-1])):
+        return np.arange(table.size), table
     order = np.argsort(table, kind="stable")
     return order, table[order]
 
@@ -102,8 +107,11 @@ def label_speed_errors(scene, labels, tracks, keys: tuple[np.ndarray, np.ndarray
     x = scene.lidar.points_vehicle[lidar_rows]                                                  # [N,3]
     q = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], x) + box_from_vehicle[source_clip, :3, 3]
     speeds = np.empty(n)
-    for start in range(0, n, CHUNK_POINTS):
-        chunk = q[start:start + CHUNK_POINTS]
-        steps = np.einsum("tij,nj->tni", world_step[:, :3, :3], chunk) + world_step[:, None, :3, 3]
-        speeds[start:start + chunk.shape[0]] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
+    if NUMBA_AVAILABLE:          # one pass, no [T, chunk, 3] temporaries (the track stage's own speed)
+        path_speeds(np.ascontiguousarray(q), np.ascontiguousarray(world_step), duration_s, speeds)
+    else:
+        for start in range(0, n, CHUNK_POINTS):
+            chunk = q[start:start + CHUNK_POINTS]
+            steps = np.einsum("tij,nj->tni", world_step[:, :3, :3], chunk) + world_step[:, None, :3, 3]
+            speeds[start:start + chunk.shape[0]] = np.linalg.norm(steps, axis=-1).sum(axis=0) / duration_s
     return np.abs(speeds - float(tracks.box_speed_mps))

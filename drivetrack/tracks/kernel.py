@@ -32,7 +32,7 @@ from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 
 __all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
-           "fill_points3d_frames", "summarise_tracks"]
+           "fill_points3d_frames", "summarise_tracks", "path_speeds"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
@@ -86,6 +86,28 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     return abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _path_length(world_step, px, py, pz):
+    """Length (metres) of a box point's world path: the sum over tau of ``|world_step[tau] @ p|``."""
+    path = 0.0
+    for tau in range(world_step.shape[0]):
+        m = world_step[tau]
+        sx = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
+        sy = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
+        sz = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+        path += np.sqrt(sx * sx + sy * sy + sz * sz)
+    return path
+
+
+@njit(cache=True, nogil=True)
+def path_speeds(points_box, world_step, duration_s, speeds):
+    """``speeds[i]`` (float64 [N], m/s): the world path length of box point ``points_box[i]``
+    (float64 [N, 3]) under ``world_step`` (float64 [T-1, 4, 4], ``world_from_box[tau+1] -
+    world_from_box[tau]``) over ``duration_s``; the speed :func:`screen_points` computes."""
+    for i in range(points_box.shape[0]):
+        speeds[i] = _path_length(world_step, points_box[i, 0], points_box[i, 1], points_box[i, 2]) / duration_s
+
+
 @njit(cache=True, nogil=True)
 def screen_points(points_box, camera_from_box, shift_camera, world_step, camera, depth_maps,
                   occlusion_ratio, own, own_points, duration_s, box_speed_mps, max_speed_deviation_mps,
@@ -119,14 +141,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
     for i in range(n):
         px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
         if t_count > 1 and duration_s > 0:
-            path = 0.0
-            for tau in range(t_count - 1):
-                m = world_step[tau]
-                sx = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
-                sy = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
-                sz = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
-                path += np.sqrt(sx * sx + sy * sy + sz * sz)
-            speeds[i] = path / duration_s
+            speeds[i] = _path_length(world_step, px, py, pz) / duration_s
         else:
             speeds[i] = np.nan
         seen = False

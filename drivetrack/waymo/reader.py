@@ -17,13 +17,14 @@ Column names come from :mod:`drivetrack.waymo.schema` only.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from drivetrack.camera.model import CameraModel
+from drivetrack.geometry import invert_rigid
 from drivetrack.names import InvalidNameError, check_name
 from drivetrack.scene import Boxes, CameraFrames, LidarReturns, Scene
 from drivetrack.waymo import lidar as beam
@@ -34,6 +35,7 @@ from drivetrack.waymo.columns import (list_parts, range_images_from_columns, sca
 # drivetrack.waymo.reader (docs/waymo-v2.md): re-exported from their home, waymo/components.py.
 from drivetrack.waymo.components import (LIDAR_BATCH_ROWS, ComponentFile, WaymoFormatError,  # noqa: F401
                                          check_names, filesystem, list_segments, read_component)
+from drivetrack.waymo.kernel import posed_returns, returns_from_range_image
 from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, LaserName,
                                      merge_rows)
 
@@ -247,37 +249,58 @@ def _image_blocks(returns: LidarReturns) -> dict[tuple[int, int, int], slice]:
 
 
 def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], lasers: set[int],
-                returns: Sequence[int], timestamps: np.ndarray, cal_file: ComponentFile):
-    """Phase 1: stream range images, keep valid returns (vehicle frame of the pixel's pose).
+                returns: Sequence[int], timestamps: np.ndarray, cal_file: ComponentFile,
+                world_from_vehicle: np.ndarray, open_poses: Callable[[], ComponentFile]):
+    """Stream range images, keep valid returns in the vehicle frame of their frame.
 
-    Returns ``(returns, nonfinite)``: the :class:`LidarReturns` and the number of NaN / inf
-    ranges of the lasers and returns read (dropped: such a pixel is no return).
+    TOP returns are moved with their pixel's pose (``lidar_pose``, opened with ``open_poses`` at
+    the first TOP image with returns and decoded on a helper thread, :class:`_TopPoses`) as each
+    image is read, so that applying the poses overlaps decoding the range images.
+
+    Returns ``(returns, nonfinite, samples)``: the :class:`LidarReturns`, the number of NaN / inf
+    ranges of the lasers and returns read (dropped: such a pixel is no return) and float32 [M]
+    capture-time samples (s, :func:`drivetrack.waymo.capture_time.pixel_time_offsets` of each TOP
+    return's pixel pose; NaN for other lasers and where the ego stands still), None without TOP
+    returns.
     """
     geometry_cache: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
     chunks = []
     nonfinite = 0
-    for table, i, frame, laser, r, image in _range_images(f, timestamps, returns):
-        if image is None or laser not in lasers:
-            continue
-        if laser not in calibrations:
-            raise cal_file.error("laser has range images but no calibration",
-                                 column=KEY_LASER, expected=sorted(calibrations),
-                                 found=laser)
-        h, w, _ = image.shape
-        _check_keyable(f, table, i, laser, h, w, f.comp.col(f"range_image_return{r}.shape"))
-        key = (laser, h, w)
-        if key not in geometry_cache:
-            cal = calibrations[laser]
-            incl = cal.inclinations(h, cal_file, laser)
-            dirs = beam.sensor_directions(incl, beam.beam_azimuths(w, cal.vehicle_from_lidar))
-            geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
-                                   cal.vehicle_from_lidar[:3, 3].copy())
-        dirs, origin = geometry_cache[key]
-        nonfinite += int(np.count_nonzero(~np.isfinite(image[..., 0])))
-        pts, rows, cols_, inten = beam.points_from_directions(image, dirs, origin)
-        chunks.append(((frame, laser, r), pts, rows, cols_, inten))
+    poses: _TopPoses | None = None
+    try:
+        for table, i, frame, laser, r, image in _range_images(f, timestamps, returns):
+            if poses is not None:
+                poses.batch(table)
+            if image is None or laser not in lasers:
+                continue
+            if laser not in calibrations:
+                raise cal_file.error("laser has range images but no calibration",
+                                     column=KEY_LASER, expected=sorted(calibrations),
+                                     found=laser)
+            h, w, _ = image.shape
+            _check_keyable(f, table, i, laser, h, w, f.comp.col(f"range_image_return{r}.shape"))
+            key = (laser, h, w)
+            if key not in geometry_cache:
+                cal = calibrations[laser]
+                incl = cal.inclinations(h, cal_file, laser)
+                dirs = beam.sensor_directions(incl, beam.beam_azimuths(w, cal.vehicle_from_lidar))
+                geometry_cache[key] = (dirs @ cal.vehicle_from_lidar[:3, :3].T,
+                                       cal.vehicle_from_lidar[:3, 3].copy())
+            dirs, origin = geometry_cache[key]
+            pts, rows, cols_, inten, bad_ranges = returns_from_range_image(image, dirs, origin)
+            nonfinite += bad_ranges
+            samples = None
+            if laser == LaserName.TOP and rows.size:
+                if poses is None:
+                    poses = _TopPoses(open_poses(), timestamps, world_from_vehicle)
+                    poses.batch(table)
+                pts, samples = poses.apply(frame, pts, rows, cols_)
+            chunks.append(((frame, laser, r), pts, rows, cols_, inten, samples))
+    finally:
+        if poses is not None:
+            poses.close()
     if not chunks:
-        return _empty_returns(len(timestamps)), nonfinite
+        return _empty_returns(len(timestamps)), nonfinite, None
     # Each image's returns are in row-major pixel order already, so ordering the images by
     # (frame, laser, return) orders every return by its key (images are unique: keys checked).
     chunks.sort(key=lambda chunk: chunk[0])
@@ -286,10 +309,126 @@ def _read_lidar(f: ComponentFile, calibrations: dict[int, _LidarCalibration], la
     frame, laser, ret = (np.repeat(np.array([image[k] for image in images], dtype), sizes)
                          for k, dtype in enumerate((np.int32, np.int8, np.int8)))
     pts, rows, cols_, inten = (np.concatenate([chunk[k] for chunk in chunks]) for k in range(1, 5))
+    samples = None
+    if poses is not None:
+        samples = np.concatenate([np.full(n, np.nan, np.float32) if chunk[5] is None else chunk[5]
+                                  for chunk, n in zip(chunks, sizes)])
     del chunks
     offsets = np.searchsorted(frame, np.arange(len(timestamps) + 1)).astype(np.int64)
     return LidarReturns(points_vehicle=pts, frame=frame, laser=laser, return_index=ret, row=rows,
-                        col=cols_, intensity=inten, frame_offsets=offsets), nonfinite
+                        col=cols_, intensity=inten, frame_offsets=offsets), nonfinite, samples
+
+
+class _TopPoses:
+    """The TOP per-pixel poses of a ``lidar_pose`` file, decoded on a helper thread.
+
+    The constructor checks the columns and keys in the caller's thread; the helper then decodes
+    the file batch by batch (joined on each row's timestamp, never on row order) while the caller
+    reads range images. :meth:`apply` waits for one frame's pose image, checks it where returns
+    use it and moves the returns; a frame's pose image is dropped after the lidar batch that used
+    it (:meth:`batch`). Errors of the helper are raised in the caller.
+    """
+
+    def __init__(self, f: ComponentFile, timestamps: np.ndarray, world_from_vehicle: np.ndarray):
+        import threading
+
+        self.f, self.timestamps, self.world_from_vehicle = f, timestamps, world_from_vehicle
+        self.ego_velocity = capture_time.ego_velocity_world(world_from_vehicle, timestamps)
+        c = f.comp
+        self.values, self.shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
+        self.cols = f.columns([self.values, self.shape])
+        keys = f.read_keys()
+        self.have = set(_frame_index(timestamps, scalar_numpy(
+            keys[KEY_TIMESTAMP].filter(pc.equal(keys[KEY_LASER], int(LaserName.TOP))),
+            np.int64, 0), f).tolist())
+        self.images: dict[int, tuple[np.ndarray | None, pa.Table, int]] = {}
+        self.used: set[int] = set()
+        self.table = None
+        self.done, self.error, self.stop = False, None, False
+        self.cond = threading.Condition()
+        self.thread = threading.Thread(target=self._decode, name=f"read-{c.name}", daemon=True)
+        self.thread.start()
+
+    def _decode(self) -> None:
+        try:
+            for table in self.f.iter_batches(self.cols, LIDAR_BATCH_ROWS):
+                laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
+                frame_col = _frame_index(self.timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), self.f)
+                poses = range_images_from_columns(table[self.values], table[self.shape])
+                with self.cond:
+                    if self.stop:
+                        return
+                    for i, pose in enumerate(poses):
+                        if laser_col[i] == LaserName.TOP:   # only TOP range images carry a pose
+                            self.images[int(frame_col[i])] = (pose, table, i)
+                    self.cond.notify_all()
+        except BaseException as exc:      # raised in the caller's thread by apply()
+            with self.cond:
+                self.error = exc
+        finally:
+            with self.cond:
+                self.done = True
+                self.cond.notify_all()
+
+    def batch(self, table: pa.Table) -> None:
+        """The caller moved on to lidar batch ``table``: drop the pose images the previous one used."""
+        if table is not self.table:
+            self.table = table
+            with self.cond:
+                for t in self.used:
+                    self.images.pop(t, None)
+            self.used = set()
+
+    def _pose(self, t: int):
+        f = self.f
+        if t not in self.have:
+            raise f.error("no per-pixel pose for a TOP range image", column=self.values,
+                          expected="a lidar_pose row for every TOP lidar row",
+                          found=f"none at {KEY_TIMESTAMP}={int(self.timestamps[t])}")
+        with self.cond:
+            while t not in self.images and not self.done:
+                self.cond.wait()
+            if t in self.images:
+                return self.images[t]
+            error = self.error
+        if error is not None:
+            raise error
+        raise f.error("no per-pixel pose for a TOP range image", column=self.values,
+                      expected="a lidar_pose row for every TOP lidar row",
+                      found=f"none at {KEY_TIMESTAMP}={int(self.timestamps[t])}")
+
+    def apply(self, t: int, points: np.ndarray, rows: np.ndarray, cols_: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """(float64 [N, 3] returns ``points`` of frame ``t``'s TOP image at pixels (``rows``,
+        ``cols_``) moved with their pixel's pose into the frame's vehicle frame, float32 [N]
+        capture-time samples)."""
+        f = self.f
+        pose, table, i = self._pose(t)
+        self.used.add(t)
+        if pose is None:
+            raise f.error("null per-pixel pose for a TOP range image", column=self.values,
+                          expected="[H, W, 6] values", found=f"null at {f.row_keys(table, i)}")
+        if pose.shape[2] != 6 or rows.max() >= pose.shape[0] or cols_.max() >= pose.shape[1]:
+            raise f.error("per-pixel pose does not match the range image", column=self.shape,
+                          expected="[H, W, 6] like the TOP range image",
+                          found=f"{list(pose.shape)} at {f.row_keys(table, i)}")
+        # one pass: the pose at each return checked finite, the return moved, its time sample
+        # (reference: lidar.apply_pixel_pose and capture_time.pixel_time_offsets)
+        moved, samples, j = posed_returns(points, rows, cols_, pose, invert_rigid(self.world_from_vehicle[t]),
+                                          self.world_from_vehicle[t, :3, 3], self.ego_velocity[t],
+                                          capture_time.MIN_EGO_SPEED_MPS, capture_time.MAX_ABS_OFFSET_S)
+        if j >= 0:
+            raise f.error("NaN or infinite per-pixel pose at a lidar return", column=self.values,
+                          expected="finite roll, pitch, yaw, x, y, z at every pixel with a return",
+                          found=f"{pose[rows[j], cols_[j]].tolist()} at pixel (row {int(rows[j])}, "
+                                f"col {int(cols_[j])}) of {f.row_keys(table, i)}")
+        return moved, samples
+
+    def close(self) -> None:
+        """Stop the helper after its current batch and wait for it."""
+        with self.cond:
+            self.stop = True
+        self.thread.join()
 
 
 def _check_keyable(f: ComponentFile, table: pa.Table, i: int, laser: int, height: int, width: int,
@@ -312,65 +451,6 @@ def _empty_returns(n_frames: int) -> LidarReturns:
                         row=np.zeros(0, np.int32), col=np.zeros(0, np.int32),
                         intensity=np.zeros(0, np.float32),
                         frame_offsets=np.zeros(n_frames + 1, np.int64))
-
-
-def _apply_lidar_pose(f: ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
-                      world_from_vehicle: np.ndarray, returns_read: Sequence[int]) -> np.ndarray:
-    """Phase 2: move TOP returns into their frame's vehicle frame with the per-pixel pose.
-
-    Returns float32 [M] capture-time samples (s, :func:`drivetrack.waymo.capture_time.pixel_time_offsets`
-    of each TOP return's pixel pose; NaN for other lasers and where the ego stands still).
-    """
-    c = f.comp
-    ego_velocity = capture_time.ego_velocity_world(world_from_vehicle, timestamps)
-    time_samples = np.full(len(returns), np.nan, np.float32)
-    values, shape = c.col("range_image_return1.values"), c.col("range_image_return1.shape")
-    cols = f.columns([values, shape])
-    keys = f.read_keys()
-    blocks = _image_blocks(returns)
-    top_frames = np.unique(returns.frame[returns.laser == LaserName.TOP])
-    have = _frame_index(timestamps, scalar_numpy(
-        keys[KEY_TIMESTAMP].filter(pc.equal(keys[KEY_LASER], int(LaserName.TOP))),
-        np.int64, 0), f)
-    missing = np.setdiff1d(top_frames, have)
-    if missing.size:
-        raise f.error("no per-pixel pose for a TOP range image", column=values,
-                      expected="a lidar_pose row for every TOP lidar row",
-                      found=f"none at {KEY_TIMESTAMP}={int(timestamps[missing[0]])}")
-    for table in f.iter_batches(cols, LIDAR_BATCH_ROWS):
-        laser_col = scalar_numpy(table[KEY_LASER], np.int64, 0)
-        frame_col = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
-        poses = range_images_from_columns(table[values], table[shape])
-        for i, pose in enumerate(poses):
-            if laser_col[i] != LaserName.TOP:
-                continue  # only TOP range images carry a pose (dataset.proto, RangeImage)
-            t = int(frame_col[i])
-            for r in returns_read:
-                block = blocks.get((t, int(LaserName.TOP), r))
-                if block is None:
-                    continue
-                if pose is None:
-                    raise f.error("null per-pixel pose for a TOP range image", column=values,
-                                  expected="[H, W, 6] values", found=f"null at {f.row_keys(table, i)}")
-                rows, cols_ = returns.row[block], returns.col[block]
-                if pose.shape[2] != 6 or rows.max() >= pose.shape[0] or cols_.max() >= pose.shape[1]:
-                    raise f.error("per-pixel pose does not match the range image", column=shape,
-                                  expected="[H, W, 6] like the TOP range image",
-                                  found=f"{list(pose.shape)} at {f.row_keys(table, i)}")
-                pixel_pose = pose[rows, cols_]
-                bad = ~np.isfinite(pixel_pose).all(axis=1)
-                if bad.any():
-                    j = int(np.flatnonzero(bad)[0])
-                    raise f.error("NaN or infinite per-pixel pose at a lidar return", column=values,
-                                  expected="finite roll, pitch, yaw, x, y, z at every pixel with a "
-                                           "return",
-                                  found=f"{pixel_pose[j].tolist()} at pixel (row {int(rows[j])}, "
-                                        f"col {int(cols_[j])}) of {f.row_keys(table, i)}")
-                returns.points_vehicle[block] = beam.apply_pixel_pose(
-                    returns.points_vehicle[block], pixel_pose, world_from_vehicle[t])
-                time_samples[block] = capture_time.pixel_time_offsets(
-                    pixel_pose[:, 3:6], world_from_vehicle[t, :3, 3], ego_velocity[t])
-    return time_samples
 
 
 def _read_camera_projection(f: ComponentFile, returns: LidarReturns, timestamps: np.ndarray,
@@ -476,12 +556,11 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
             if missing:
                 raise cal_file.error("requested laser has no calibration", column=KEY_LASER,
                                      expected=sorted(missing), found=sorted(calibrations))
-            lidar_returns, source_stats["lidar_nonfinite_ranges"] = _read_lidar(
-                open_component("lidar"), calibrations, wanted, returns, timestamps, cal_file)
+            lidar_returns, source_stats["lidar_nonfinite_ranges"], samples = _read_lidar(
+                open_component("lidar"), calibrations, wanted, returns, timestamps, cal_file,
+                world_from_vehicle, lambda: open_component("lidar_pose"))
             timing = capture_time.SweepTiming()
-            if np.any(lidar_returns.laser == LaserName.TOP):
-                samples = _apply_lidar_pose(open_component("lidar_pose"), lidar_returns,
-                                            timestamps, world_from_vehicle, returns)
+            if samples is not None:
                 timing = capture_time.fit_sweep_timing(lidar_returns.col, samples)
             lidar_returns.capture_offset_s = capture_time.capture_offsets(lidar_returns.laser,
                                                                    lidar_returns.col, timing)
