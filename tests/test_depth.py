@@ -373,6 +373,26 @@ def test_bound_blind_zone_bounds_below_the_reference_lidars_lowest_scan_line():
     assert out[58, 1] == -2.5 and out[60, 0] == -2.5 and out[56, 0] == 2.5
 
 
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_bound_blind_zone_kernel_equals_the_numpy_form(with_scale):
+    """The one-kernel blind-zone bound gives the numpy form's map bit for bit."""
+    from drivetrack.depth import bound_blind_zone
+    from drivetrack.depth.sparse import _bound_blind_zone_numpy
+
+    rng = np.random.default_rng(6)
+    h, w = 120, 203
+    sparse = np.where(rng.uniform(size=(h, w)) < 0.15, rng.uniform(0.5, 60.0, (h, w)), 0.0).astype(np.float32)
+    reference = np.where((rng.uniform(size=(h, w)) < 0.5) & (np.arange(h)[:, None] < rng.integers(20, h, w)),
+                         sparse, 0.0).astype(np.float32)
+    reference[5, 7] = 99.0                               # behind the map's own return: does not count
+    scale = rng.uniform(0.7, 1.3, (h, w)).astype(np.float32) if with_scale else None
+    for cell, ratio in ((4, 0.95), (7, 0.8), (1, 1.0)):
+        got = bound_blind_zone(sparse, reference, cell, ratio, scale)
+        want = _bound_blind_zone_numpy(sparse, reference, cell, ratio, scale)
+        np.testing.assert_array_equal(got, want)
+        assert (got < 0).any()
+
+
 def test_apply_depth_bounds_after_completion():
     from drivetrack.depth import apply_depth_bounds
 
@@ -458,6 +478,11 @@ def test_horizontal_depth_scale_gives_z_depth_from_horizontal_distance():
     z = points_camera[:, 0]
     at = scale[np.floor(pixels[:, 1]).astype(int), np.floor(pixels[:, 0]).astype(int)]
     np.testing.assert_allclose(horizontal * at, z, rtol=2e-3)
+    # kept per calibration (read-only): the same camera again gets the same map, another camera its own
+    assert horizontal_depth_scale(camera) is scale and not scale.flags.writeable
+    import dataclasses
+    other = horizontal_depth_scale(dataclasses.replace(camera, c_v=150.0))
+    assert other is not scale and not np.array_equal(other, scale)
 
 
 def test_bound_blind_zone_on_analytic_scene_never_brings_surfaces_nearer():

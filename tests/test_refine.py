@@ -474,12 +474,20 @@ def test_gather_kernel_matches_the_numpy_reference_and_brute_force():
     box_frame = np.array([2, 0, 2, 3, 0])                          # unsorted, two boxes per frame
     box_center = rng.uniform(-10.0, 10.0, (5, 3))
     box_radius = np.array([3.0, 5.0, 2.0, 4.0, 6.0])
+    from concurrent.futures import ThreadPoolExecutor
+
+    from drivetrack import parallel
+
     for lasers, returns in ((None, None), ((1, 3), (1,))):
         args = (points, laser, return_index, lasers, returns, offsets, box_frame, box_center, box_radius)
         index, owner = refine_kernel.gather(*args)
         ref_index, ref_owner = gather_candidates(*args)
         np.testing.assert_array_equal(index, ref_index)
         np.testing.assert_array_equal(owner, ref_owner)
+        with ThreadPoolExecutor(2) as pool, parallel.using(pool.map):     # the frames' two halves in threads
+            pooled = refine_kernel.gather(*args)
+        np.testing.assert_array_equal(pooled[0], ref_index)
+        np.testing.assert_array_equal(pooled[1], ref_owner)
         expect_index, expect_owner = [], []
         for b in range(5):
             rows = np.arange(offsets[box_frame[b]], offsets[box_frame[b] + 1])

@@ -567,3 +567,19 @@ def test_occluders_of_annotated_clips_are_refined_too(tmp_path):
         return pd.DataFrame(sc.box_refinement).T.drop(columns="refine_cpu_seconds").sort_index()
 
     pd.testing.assert_frame_equal(summaries(pooled), summaries(refined))
+
+
+def test_square_filters_equal_scipys():
+    """The z-buffer's OpenCV min / max squares equal scipy.ndimage's filters (inf and edges included)."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    from drivetrack.visibility.zbuffer import _square_max, _square_min
+
+    rng = np.random.default_rng(12)
+    image = np.where(rng.uniform(size=(37, 53)) < 0.3, rng.uniform(1.0, 50.0, (37, 53)), np.inf).astype(np.float32)
+    for r in (1, 2, 5, 8):
+        np.testing.assert_array_equal(_square_min(image, r),
+                                      minimum_filter(image, size=2 * r + 1, mode="constant", cval=np.inf))
+        finite = np.where(np.isfinite(image), image, np.float32(7.0))
+        for img in (image, finite):
+            np.testing.assert_array_equal(_square_max(img, r), maximum_filter(img, size=2 * r + 1, mode="nearest"))

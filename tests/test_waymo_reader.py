@@ -361,6 +361,16 @@ def test_return_keys_sort_like_tuples_and_bound_each_range_image():
         return_keys(0, 1, 1, [3, 16384], 0, "clip x")
     with pytest.raises(ValueError, match=r"LiDAR laser value -1"):
         return_keys(0, -1, 1, 0, 0)
+    # equal columns go through one numba pass: the same packing and the same first error
+    expected = (((((fields[0] << 3) | fields[1]) << 2 | fields[2]) << 14 | fields[3]) << 16) | fields[4]
+    np.testing.assert_array_equal(keys, expected)
+    small = [f.astype(t) for f, t in zip(fields, (np.int32, np.int8, np.int8, np.int32, np.int32))]
+    np.testing.assert_array_equal(return_keys(*small), keys)
+    bad = [f.copy() for f in small]
+    bad[3][[7, 9]] = [-2, 16384]
+    bad[4][5] = 70000
+    with pytest.raises(ValueError, match=r"clip y: LiDAR row value -2 outside \[0, 16384\)"):
+        return_keys(*bad, "clip y")
 
 
 def test_merge_rows_joins_on_shared_key_columns_not_row_order():

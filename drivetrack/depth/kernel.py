@@ -11,7 +11,8 @@ reference (tests/test_depth.py). It releases the GIL, so cameras can run in thre
 Two more one-pass kernels replace full-image numpy passes of the completion step (each a few
 temporaries of a 1920x1280 map): :func:`bound_in_place` (the blind-zone bounds) and
 :func:`nearest_from_labels` (the nearest completer's read-out of the distance transform); both
-give the numpy forms' maps bit for bit (tests/test_depth.py).
+give the numpy forms' maps bit for bit (tests/test_depth.py). :func:`blind_zone_in_place` does the
+same for the sparse map's blind-zone bounds (:func:`drivetrack.depth.bound_blind_zone`).
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import numpy as np
 from drivetrack.camera.kernel import pixel_from_camera_point
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
-__all__ = ["NUMBA_AVAILABLE", "project_nearest", "bound_in_place", "nearest_from_labels"]
+__all__ = ["NUMBA_AVAILABLE", "project_nearest", "bound_in_place", "nearest_from_labels", "blind_zone_in_place"]
 
 
 @njit(cache=True, nogil=True)
@@ -125,3 +126,47 @@ def nearest_from_labels(labels, distance, depth_of_label, seed_index, width, rea
                     if np.hypot(float(seed // width - r), float(seed % width - c)) > reach_f64:
                         value = np.float32(0.0)
             dense[r, c] = value
+
+
+@njit(cache=True, nogil=True)
+def blind_zone_in_place(out, reference, cell, ratio, scale, has_scale):
+    """:func:`drivetrack.depth.bound_blind_zone` on ``out`` (float32 [H, W], a copy of the sparse
+    map, written in place) in three passes over the image; float32 arithmetic as the numpy form
+    (``ratio``: float32). Returns False when no reference return is visible (``out`` unchanged)."""
+    height, width = out.shape
+    cells = -(-width // cell)
+    lowest = np.full(cells, -1, np.int64)
+    any_seen = False
+    for y in range(height):                      # lowest visible reference row per column cell
+        for x in range(width):
+            d = reference[y, x]
+            if d > 0 and d <= out[y, x]:
+                any_seen = True
+                c = x // cell
+                if y > lowest[c]:
+                    lowest[c] = y
+    if not any_seen:
+        return False
+    top = height
+    for c in range(cells):
+        if lowest[c] >= 0 and lowest[c] < top:
+            top = lowest[c]
+    bound = np.zeros(cells, np.float32)
+    for y in range(max(top - cell, 0), height):   # the farthest return of each cell's lowest scan line
+        for x in range(width):
+            d = reference[y, x]
+            if d > 0 and d <= out[y, x]:
+                c = x // cell
+                if y >= lowest[c] - cell:
+                    horizontal = d / scale[y, x] if has_scale else d / np.float32(1.0)
+                    if horizontal > bound[c]:
+                        bound[c] = horizontal
+    for y in range(top + 1, height):              # below the lowest scan line: bounded
+        for x in range(width):
+            c = x // cell
+            if lowest[c] >= 0 and y > lowest[c]:
+                region = out[y, x]
+                bounded = bound[c] * scale[y, x] if has_scale else bound[c]
+                if region <= 0 or ratio * region > bounded:
+                    out[y, x] = -bounded
+    return True

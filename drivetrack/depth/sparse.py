@@ -5,7 +5,7 @@ import numpy as np
 
 from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.model import CameraModel
-from drivetrack.depth.kernel import NUMBA_AVAILABLE, bound_in_place, project_nearest
+from drivetrack.depth.kernel import NUMBA_AVAILABLE, blind_zone_in_place, bound_in_place, project_nearest
 from drivetrack.geometry import transform_points
 
 __all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
@@ -147,8 +147,14 @@ def see_through_returns(sparse: np.ndarray, window_px: int, ratio: float = 0.95,
     return out.reshape(sparse.shape)
 
 
+#: :func:`horizontal_depth_scale` results by camera parameters (a segment's few cameras; bounded)
+_SCALE_CACHE: dict[tuple, np.ndarray] = {}
+_SCALE_CACHE_SIZE = 32
+
+
 def horizontal_depth_scale(camera: CameraModel, step_px: int = 8) -> np.ndarray:
-    """float32 [H, W]: z-depth per metre of horizontal distance along each pixel's viewing ray.
+    """float32 [H, W]: z-depth per metre of horizontal distance along each pixel's viewing ray
+    (read-only; kept per camera calibration, since every depth map of a camera needs it).
 
     A point seen at pixel p at horizontal distance ``d`` (metres in the vehicle's x-y plane, from
     the camera centre) has z-depth ``d * scale[p]``. For a level camera ``scale`` is the cosine of
@@ -156,6 +162,20 @@ def horizontal_depth_scale(camera: CameraModel, step_px: int = 8) -> np.ndarray:
     z-depth for the same horizontal distance, which this accounts for. Computed on a grid of
     ``step_px`` and interpolated bilinearly (it varies smoothly over the image).
     """
+    key = (camera.f_u, camera.f_v, camera.c_u, camera.c_v, camera.k1, camera.k2, camera.p1, camera.p2,
+           camera.k3, int(camera.width), int(camera.height),
+           np.asarray(camera.vehicle_from_camera, np.float64).tobytes(), max(1, int(step_px)))
+    scale = _SCALE_CACHE.get(key)
+    if scale is None:
+        scale = _horizontal_depth_scale(camera, step_px)
+        scale.flags.writeable = False
+        if len(_SCALE_CACHE) >= _SCALE_CACHE_SIZE:
+            _SCALE_CACHE.clear()
+        _SCALE_CACHE[key] = scale
+    return scale
+
+
+def _horizontal_depth_scale(camera: CameraModel, step_px: int) -> np.ndarray:
     import cv2
 
     height, width = int(camera.height), int(camera.width)
@@ -224,6 +244,18 @@ def bound_blind_zone(sparse: np.ndarray, reference: np.ndarray, cell_px: int, ra
     if int(cell_px) < 1 or not 0 < ratio <= 1:
         raise ValueError(f"bound_blind_zone: cell_px must be >= 1 (got {cell_px}), ratio in (0, 1] (got {ratio})")
     cell = int(cell_px)
+    if NUMBA_AVAILABLE:                     # one kernel, three passes (the numpy form below is its reference)
+        out = sparse.copy()
+        blind_zone_in_place(out, reference, cell, np.float32(ratio),
+                            np.zeros((1, 1), np.float32) if scale is None else np.asarray(scale, dtype=np.float32),
+                            scale is not None)
+        return out
+    return _bound_blind_zone_numpy(sparse, reference, cell, ratio, scale)
+
+
+def _bound_blind_zone_numpy(sparse: np.ndarray, reference: np.ndarray, cell: int, ratio: float,
+                            scale: np.ndarray | None) -> np.ndarray:
+    """The numpy form of :func:`bound_blind_zone` (validated arguments)."""
     height, width = sparse.shape
     cells = -(-width // cell)
     out = sparse.copy()

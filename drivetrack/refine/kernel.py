@@ -32,6 +32,7 @@ __all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "s
            "frame_time_candidates", "inside_counts"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
+from drivetrack.parallel import pool_map
 
 #: at most this many grid cells; the cell grows beyond ``cell_m`` to respect it
 _MAX_CELLS = 1 << 22
@@ -281,8 +282,9 @@ def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, fa: np.ndarr
 
 @njit(cache=True, nogil=True)
 def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offsets, box_frame, box_center,
-                   box_radius, count_only, counts, index, owner):
-    # boxes grouped by frame, so each return of a frame is read once whatever the number of boxes
+                   box_radius, count_only, counts, index, owner, frame_lo, frame_hi):
+    # boxes grouped by frame, so each return of a frame is read once whatever the number of boxes;
+    # only boxes of frames [frame_lo, frame_hi) (calls on disjoint ranges write disjoint entries)
     n_box = box_frame.shape[0]
     by_frame = np.argsort(box_frame, kind="mergesort")
     fill = np.zeros(n_box, np.int64)
@@ -295,6 +297,9 @@ def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
         e = s
         while e < n_box and box_frame[by_frame[e]] == f:
             e += 1
+        if f < frame_lo or f >= frame_hi:
+            s = e
+            continue
         for i in range(frame_offsets[f], frame_offsets[f + 1]):
             if not (laser_ok[laser[i] + 128] and return_ok[return_index[i] + 128]):
                 continue
@@ -340,9 +345,13 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
             np.ascontiguousarray(box_radius, dtype=np.float64))
     counts = np.zeros(box_frame.shape[0], np.int64)
     empty = np.empty(0, np.int64)
-    _gather_kernel(*args, True, counts, empty, empty)
+    # two halves of the frames on the segment's pool (drivetrack.parallel; the kernel releases the
+    # GIL): each pass writes only its own boxes' counts and output slots
+    n_frames = frame_offsets.shape[0] - 1
+    ranges = [(0, n_frames // 2), (n_frames // 2, n_frames)] if n_frames > 1 else [(0, n_frames)]
+    pool_map(lambda r: _gather_kernel(*args, True, counts, empty, empty, *r), ranges)
     index, owner = np.empty(int(counts.sum()), np.int64), np.empty(int(counts.sum()), np.int64)
-    _gather_kernel(*args, False, counts, index, owner)
+    pool_map(lambda r: _gather_kernel(*args, False, counts, index, owner, *r), ranges)
     return index, owner
 
 

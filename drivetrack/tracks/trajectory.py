@@ -398,8 +398,10 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
                                                   RESIDUAL_MARGIN_M, config.ground_clearance_m, False)
             rows = np.repeat(np.arange(k), np.diff(box_offsets))
             if scene.lidar.capture_offset_s is not None and rows.size:
-                decision["residual_frame_m"] = label_time_residual(scene, by_frame, rows, index)
-                decision["residual_sweep_m"] = label_time_residual(scene, by_sweep, rows, index)
+                from drivetrack.parallel import pool_map       # the two conventions at once, when a pool is installed
+
+                decision["residual_frame_m"], decision["residual_sweep_m"] = pool_map(
+                    lambda trajectory: label_time_residual(scene, trajectory, rows, index), [by_frame, by_sweep])
             decision["votes"] = int(voters.size)
             if not decision["residual_sweep_m"] < decision["residual_frame_m"]:
                 offsets = np.zeros(k)

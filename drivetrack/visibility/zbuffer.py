@@ -14,8 +14,8 @@ Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x 
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy.ndimage import maximum_filter
 
 __all__ = ["first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
 
@@ -50,6 +50,20 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     return np.sort(order[first_of_cells(cells[order])])
 
 
+def _square_min(image: np.ndarray, r: int) -> np.ndarray:
+    """float32 [H, W]: the minimum over the (2r+1)^2 square round each pixel, outside the image
+    +inf (``scipy.ndimage.minimum_filter(size=2r+1, mode="constant", cval=inf)``; OpenCV's
+    separable erosion, several times faster on a full-size image; min is exact, so the same map)."""
+    return cv2.erode(image, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=float("inf"))
+
+
+def _square_max(image: np.ndarray, r: int) -> np.ndarray:
+    """float32 [H, W]: the maximum over the (2r+1)^2 square round each pixel, the edge repeated
+    outside (``scipy.ndimage.maximum_filter(size=2r+1, mode="nearest")``; OpenCV's dilation)."""
+    return cv2.dilate(image, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+
+
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
                   radius_m, max_px: int, with_radius: bool = False):
     """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
@@ -62,10 +76,9 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
 
     Each footprint size is one pass: the returns of that size are written at their own pixels
     (the nearest per pixel) into a buffer padded by ``max_px``, which a separable minimum filter
-    of side 2r+1 then spreads (the cost does not grow with the square of the footprint).
+    of side 2r+1 (OpenCV's erosion) then spreads (the cost does not grow with the square of the
+    footprint).
     """
-    from scipy.ndimage import minimum_filter
-
     buffer = np.full((height, width), np.inf, dtype=np.float32)
     footprint = np.zeros((height, width), dtype=np.int8)
     if depth.size == 0:
@@ -85,7 +98,7 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
         np.minimum.at(centres, row[sel] * (width + 2 * pad) + col[sel], z[sel])
         centres = centres.reshape(height + 2 * pad, width + 2 * pad)
         if r > 0:
-            centres = minimum_filter(centres, size=2 * r + 1, mode="constant", cval=np.inf)
+            centres = _square_min(centres, r)
         spread = centres[pad:pad + height, pad:pad + width]
         np.minimum(buffer, spread, out=buffer)
         if with_radius:
@@ -160,7 +173,7 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         farthest = np.full(n, np.inf, dtype=np.float64)
         for r in np.unique(radius[inside]).tolist():
             sel = inside & (radius == r)
-            covered = buffer if r == 0 else maximum_filter(buffer, size=2 * r + 1, mode="nearest")
+            covered = buffer if r == 0 else _square_max(buffer, r)
             farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
         threshold = z - (abs_m + rel * z)
         hidden[tau] = inside & (farthest < threshold)

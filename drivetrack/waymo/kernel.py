@@ -8,6 +8,8 @@ frame's vehicle frame).
   :func:`drivetrack.geometry.transform_points` operation for operation (tests/test_waymo_reader.py).
 - :func:`returns_from_range_image`: the valid pixels of one range image as points, rows, columns
   and intensities (reference: :func:`drivetrack.waymo.lidar.points_from_directions`, same values).
+- :func:`pack_return_keys`: the return keys of equal-length columns in one pass, with the first
+  value outside its field (reference: :func:`drivetrack.waymo.lidar.return_keys`).
 - :func:`posed_returns`: one TOP image's returns moved with their pixel's pose, the pose checked
   finite where a return uses it, and each return's capture-time sample (reference:
   ``apply_pixel_pose`` and :func:`drivetrack.waymo.capture_time.pixel_time_offsets`).
@@ -20,7 +22,7 @@ import numpy as np
 
 from drivetrack.numba_compat import njit
 
-__all__ = ["vehicle_from_pixel_pose", "returns_from_range_image", "posed_returns"]
+__all__ = ["vehicle_from_pixel_pose", "returns_from_range_image", "posed_returns", "pack_return_keys"]
 
 
 @njit(cache=True, nogil=True)
@@ -145,3 +147,26 @@ def posed_returns(points: np.ndarray, rows: np.ndarray, cols: np.ndarray, pose: 
                         np.ascontiguousarray(position, dtype=np.float64), np.ascontiguousarray(velocity, dtype=np.float64),
                         float(min_speed), float(max_abs), out, dt)
     return out, dt, int(bad)
+
+
+@njit(cache=True, nogil=True)
+def pack_return_keys(frame, laser, return_index, row, col, bits, out):
+    """``out[i]`` (int64 [N]) = the return key of row i (frame, laser, return, row, col: int arrays
+    [N]; ``bits`` int64 [5] field widths, most significant first). Returns (field, index) of the
+    first value outside ``[0, 2**bits)`` of the first such field, (-1, -1) when all fit."""
+    first = np.full(5, -1, np.int64)
+    n = frame.shape[0]
+    for i in range(n):
+        values = (np.int64(frame[i]), np.int64(laser[i]), np.int64(return_index[i]), np.int64(row[i]),
+                  np.int64(col[i]))
+        key = np.int64(0)
+        for k in range(5):
+            v = values[k]
+            if (v < 0 or v >= (np.int64(1) << bits[k])) and first[k] < 0:
+                first[k] = i
+            key = (key << bits[k]) | v
+        out[i] = key
+    for k in range(5):
+        if first[k] >= 0:
+            return k, first[k]
+    return -1, -1

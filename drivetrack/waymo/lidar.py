@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivetrack.geometry import invert_rigid
-from drivetrack.waymo.kernel import vehicle_from_pixel_pose
+from drivetrack.waymo.kernel import pack_return_keys, vehicle_from_pixel_pose
 
 __all__ = ["beam_inclinations", "beam_azimuths", "sensor_directions", "lidar_points",
            "points_from_directions", "apply_pixel_pose", "camera_projection_at",
@@ -149,8 +149,16 @@ def return_keys(frame, laser, return_index, row, col, where: str = "") -> np.nda
     Raises:
         ValueError naming ``where``, the field and the first value outside ``[0, 2**bits)``.
     """
-    key = np.zeros(np.broadcast(*(np.asarray(v) for v in (frame, laser, return_index, row, col))).shape,
-                   np.int64)
+    columns = [np.asarray(v) for v in (frame, laser, return_index, row, col)]
+    if all(c.ndim == 1 and c.shape == columns[0].shape and c.dtype.kind in "iu" for c in columns):
+        # one pass over equal columns (a segment's 9.4 M returns: ~30 numpy passes otherwise)
+        out = np.empty(columns[0].shape[0], np.int64)
+        field, i = pack_return_keys(*columns, np.array([b for _, b in RETURN_KEY_BITS], np.int64), out)
+        if field >= 0:
+            name, bits = RETURN_KEY_BITS[field]
+            raise ValueError(f"{where}: LiDAR {name} value {int(columns[field][i])} outside [0, {1 << bits})")
+        return out
+    key = np.zeros(np.broadcast(*columns).shape, np.int64)
     for (name, bits), value in zip(RETURN_KEY_BITS, (frame, laser, return_index, row, col)):
         value = np.asarray(value)
         limit = 1 << bits
