@@ -30,8 +30,18 @@ def _frame_priority_order(frame: np.ndarray, priority: np.ndarray) -> np.ndarray
     if n > 1 and np.all(frame[1:] >= frame[:-1]):
         cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
         starts, stops = np.concatenate([[0], cuts]), np.append(cuts, n)
-        return np.concatenate([a + np.argsort(priority[a:b], kind="stable") for a, b in zip(starts, stops)])
+        return np.concatenate([a + _argsort_ties_by_index(priority[a:b]) for a, b in zip(starts, stops)])
     return np.lexsort((priority, frame))
+
+
+def _argsort_ties_by_index(values: np.ndarray) -> np.ndarray:
+    """``np.argsort(values, kind="stable")``: numpy's default sort (about twice as fast on 10^5
+    floats) when it leaves no two equal values, the stable one otherwise (ties keep index order)."""
+    order = np.argsort(values)
+    ordered = values[order]
+    if ordered.size > 1 and not np.all(ordered[1:] > ordered[:-1]):
+        return np.argsort(values, kind="stable")
+    return order
 
 
 class _Selection:
