@@ -60,15 +60,16 @@ class _Selection:
         order = _frame_priority_order(frame, priority)
         self.points, self.frame = points[order], frame[order]
         self.half_frame = np.ascontiguousarray(half, dtype=np.float64)        # [T, 3]
-        self.half = half[self.frame]
         self.cap, self.t_count, self.kernel = cap, t_count, kernel
         counts = np.bincount(self.frame, minlength=t_count)
         self.counts = counts.astype(np.int64)
         self.start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self.rank = np.arange(self.frame.size) - self.start[self.frame]
         self.screen = 3 * cap
-        self.screened = np.flatnonzero(self.rank < self.screen)
-        self.frame_full = counts > self.screen          # frames with returns beyond the screen
+        if not kernel:                                  # the numpy path's per-point screen
+            self.half = half[self.frame]
+            self.rank = np.arange(self.frame.size) - self.start[self.frame]
+            self.screened = np.flatnonzero(self.rank < self.screen)
+            self.frame_full = counts > self.screen      # frames with returns beyond the screen
 
     def select(self, center: np.ndarray, heading: np.ndarray, margin: float, clearance: float,
                tilt: np.ndarray | None = None):
