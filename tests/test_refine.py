@@ -676,6 +676,7 @@ def test_frame_priority_order_equals_lexsort():
     rng = np.random.default_rng(5)
     frame = np.sort(rng.integers(0, 7, 5000))
     priority = rng.random(5000)
+    np.testing.assert_array_equal(_frame_priority_order(frame, priority), np.lexsort((priority, frame)))
     priority[::50] = priority[1::50]                                    # ties keep index order
     np.testing.assert_array_equal(_frame_priority_order(frame, priority), np.lexsort((priority, frame)))
     shuffled = rng.permutation(frame)                                  # unsorted frames: lexsort itself

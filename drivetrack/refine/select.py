@@ -30,8 +30,18 @@ def _frame_priority_order(frame: np.ndarray, priority: np.ndarray) -> np.ndarray
     if n > 1 and np.all(frame[1:] >= frame[:-1]):
         cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
         starts, stops = np.concatenate([[0], cuts]), np.append(cuts, n)
-        return np.concatenate([a + np.argsort(priority[a:b], kind="stable") for a, b in zip(starts, stops)])
+        return np.concatenate([a + _argsort_ties_by_index(priority[a:b]) for a, b in zip(starts, stops)])
     return np.lexsort((priority, frame))
+
+
+def _argsort_ties_by_index(values: np.ndarray) -> np.ndarray:
+    """``np.argsort(values, kind="stable")``: numpy's default sort (about twice as fast on 10^5
+    floats) when it leaves no two equal values, the stable one otherwise (ties keep index order)."""
+    order = np.argsort(values)
+    ordered = values[order]
+    if ordered.size > 1 and not np.all(ordered[1:] > ordered[:-1]):
+        return np.argsort(values, kind="stable")
+    return order
 
 
 class _Selection:
@@ -50,15 +60,16 @@ class _Selection:
         order = _frame_priority_order(frame, priority)
         self.points, self.frame = points[order], frame[order]
         self.half_frame = np.ascontiguousarray(half, dtype=np.float64)        # [T, 3]
-        self.half = half[self.frame]
         self.cap, self.t_count, self.kernel = cap, t_count, kernel
         counts = np.bincount(self.frame, minlength=t_count)
         self.counts = counts.astype(np.int64)
         self.start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-        self.rank = np.arange(self.frame.size) - self.start[self.frame]
         self.screen = 3 * cap
-        self.screened = np.flatnonzero(self.rank < self.screen)
-        self.frame_full = counts > self.screen          # frames with returns beyond the screen
+        if not kernel:                                  # the numpy path's per-point screen
+            self.half = half[self.frame]
+            self.rank = np.arange(self.frame.size) - self.start[self.frame]
+            self.screened = np.flatnonzero(self.rank < self.screen)
+            self.frame_full = counts > self.screen      # frames with returns beyond the screen
 
     def select(self, center: np.ndarray, heading: np.ndarray, margin: float, clearance: float,
                tilt: np.ndarray | None = None):
