@@ -109,6 +109,30 @@ def test_corrupt_range_image_pages_name_the_lidar_file(tmp_path):
     _expect(e, "lidar", R1 + "values", "truncated or corrupt parquet file", "readable column chunks")
 
 
+def test_corrupt_per_pixel_pose_pages_name_the_lidar_pose_file(tmp_path):
+    """``lidar_pose`` is decoded on its own helper thread while the range images stream: a
+    damaged data page fails the load from the caller's thread, naming that file, and leaves no
+    reader thread behind."""
+    import threading
+
+    import pyarrow.parquet as pq
+
+    path = tiny_segment(tmp_path)["lidar_pose"]
+    meta = pq.ParquetFile(path).metadata.row_group(0)
+    chunk = next(meta.column(i) for i in range(meta.num_columns)
+                 if meta.column(i).path_in_schema.startswith("[LiDARPoseComponent].range_image_return1.values"))
+    data = bytearray(path.read_bytes())
+    first = chunk.dictionary_page_offset if chunk.has_dictionary_page else chunk.data_page_offset
+    start, stop = chunk.data_page_offset + 20, first + chunk.total_compressed_size - 5    # the chunk's own bytes
+    data[start:stop] = b"\xab" * (stop - start)
+    path.write_bytes(bytes(data))
+    before = threading.active_count()
+    with pytest.raises(WaymoFormatError) as e:
+        _load(tmp_path)
+    _expect(e, "lidar_pose", "[LiDARPoseComponent].range_image_return1.values", "truncated or corrupt parquet file")
+    assert threading.active_count() == before
+
+
 def test_nan_in_vehicle_pose(tmp_path):
     tiny_segment(tmp_path, skip=("vehicle_pose",))
     poses = [flat(np.eye(4)) for _ in TIMESTAMPS]
