@@ -183,7 +183,6 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     return with_updates(done), results
 
 
-
 def _frame_time_candidates(points: np.ndarray, index: np.ndarray, owner: np.ndarray, rows: np.ndarray,
                            offsets: np.ndarray, label_offset_s: np.ndarray | None, center: np.ndarray,
                            heading: np.ndarray, velocity: np.ndarray, yaw_rate: np.ndarray,

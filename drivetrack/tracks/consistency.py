@@ -10,8 +10,9 @@ clip's duration. The error is ``|speed - annotated box speed|``, the box speed b
 annotated ``speed`` field the track stage uses.
 
 numpy, and the track stage's numba path-length kernel for the speeds
-(:func:`drivetrack.tracks.kernel.path_speeds`); nothing here imports Prefect. Used by :mod:`drivetrack.annotate` to fill the
-``label_speed_err_p*`` columns of ``stats/objects.parquet`` (gate ``object.refine_speed_err_not_worse``).
+(:func:`drivetrack.tracks.kernel.path_speeds`); nothing here imports Prefect. Used by
+:mod:`drivetrack.annotate` to fill the ``label_speed_err_p*`` columns of ``stats/objects.parquet``
+(gate ``object.refine_speed_err_not_worse``).
 """
 from __future__ import annotations
 

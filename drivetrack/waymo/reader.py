@@ -16,6 +16,7 @@ Column names come from :mod:`drivetrack.waymo.schema` only.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator, Sequence
 
@@ -330,8 +331,6 @@ class _TopPoses:
     """
 
     def __init__(self, f: ComponentFile, timestamps: np.ndarray, world_from_vehicle: np.ndarray):
-        import threading
-
         self.f, self.timestamps, self.world_from_vehicle = f, timestamps, world_from_vehicle
         self.ego_velocity = capture_time.ego_velocity_world(world_from_vehicle, timestamps)
         c = f.comp
