@@ -372,14 +372,10 @@ def _frame_time_kernel(points, index, owner, row_of, offsets, label_offset, has_
         vz = points[j, 2] - (center[k, 2] + velocity[k, 2] * dt)
         yaw = heading[k] + yaw_rate[k] * dt
         c, s = np.cos(yaw), np.sin(yaw)
-        u0, u1, u2 = c * vx + s * vy, -s * vx + c * vy, vz
         ct, st, cr, sr = 1.0, 0.0, 1.0, 0.0
         if has_tilt:
             ct, st, cr, sr = np.cos(pitch[k]), np.sin(pitch[k]), np.cos(roll[k]), np.sin(roll[k])
-            wx, wz = ct * u0 - st * u2, st * u0 + ct * u2
-            q0, q1, q2 = wx, cr * u1 + sr * wz, -sr * u1 + cr * wz
-        else:
-            q0, q1, q2 = u0, u1, u2
+        q0, q1, q2 = _to_box(vx, vy, vz, c, s, ct, st, cr, sr, has_tilt)
         if abs(q0) <= size[k, 0] / 2.0 + margin and abs(q1) <= size[k, 1] / 2.0 + margin and \
                 abs(q2) <= size[k, 2] / 2.0 + margin:
             local[m, 0], local[m, 1], local[m, 2] = q0, q1, q2
@@ -430,14 +426,20 @@ def _trig(heading, tilt, has_tilt, t):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _body(points, i, center, t, c, s, ct, st, cr, sr, has_tilt):
-    """Body point of row i in frame t's box: ``vectors_to_box`` operation for operation."""
-    x, y, z = points[i, 0] - center[t, 0], points[i, 1] - center[t, 1], points[i, 2] - center[t, 2]
+def _to_box(x, y, z, c, s, ct, st, cr, sr, has_tilt):
+    """``R^T v`` of vector (x, y, z): ``vectors_to_box`` operation for operation."""
     ux, uy, uz = c * x + s * y, -s * x + c * y, z                 # Rz^T
     if has_tilt:
         vx, vz = ct * ux - st * uz, st * ux + ct * uz             # Ry^T
         ux, uy, uz = vx, cr * uy + sr * vz, -sr * uy + cr * vz    # Rx^T
     return ux, uy, uz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _body(points, i, center, t, c, s, ct, st, cr, sr, has_tilt):
+    """Body point of row i in frame t's box."""
+    return _to_box(points[i, 0] - center[t, 0], points[i, 1] - center[t, 1], points[i, 2] - center[t, 2],
+                   c, s, ct, st, cr, sr, has_tilt)
 
 
 @njit(cache=True, nogil=True)
