@@ -806,8 +806,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # kept point-frame's occlusion margin (:func:`_occlusion_margins`).
     hidden_other = zbuffer_margin = face_margin = None
     # The other labelled objects' boxes for the depth-map test (drivetrack.visibility.other_surface):
-    # a map surface inside one of them is that object's, which the z-buffer draws from its own
-    # surface; [T, 0, 18]: off.
+    # a map surface inside one of them (grown) on a ray that misses the box itself is that object's
+    # depth spread past its outline, which the z-buffer draws from its own surface; posed like the
+    # own box (the global-shutter image pose); [T, 0, 18]: off.
     others = np.zeros((0, 0, 18))
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
