@@ -7,7 +7,9 @@ it once per entry of :data:`VARIANTS` (the paper's depth-ratio test; with the ba
 ``drivetrack.visibility``; the default ``occlusion="surface"``, which adds the z-buffer of the other
 objects' returns; that with labelled objects' returns moved to the image time in the depth maps;
 that which also lets no object's own returns in the depth maps hide its points where the
-back-face test can decide; the default, which also narrows the z-buffer's tolerance to 0.15 m),
+back-face test can decide; that which also narrows the z-buffer's tolerance to 0.15 m; that
+which also closes holes between an occluder's splats in the z-buffer; the default, which also
+leaves a depth-map surface inside another labelled object's box to the z-buffer),
 each with the default pipeline otherwise
 (``drivetrack.annotate.annotate_segment``; only the clip selection is widened: all five cameras, every object type,
 ``min_frames`` 8 and ``max_camera_distance_m`` 75 so that the far and side-camera cases become
@@ -149,20 +151,28 @@ def _f(x, digits=3):
 #: The z-buffer's tolerance before 2026-11-26 (0.3 m + 2% of the depth).
 _OLD_TOLERANCE = {"occluder_tolerance_m": 0.3, "occluder_tolerance_rel": 0.02}
 
+#: The z-buffer without hole filling, and the depth map hiding points behind every surface
+#: (before 2026-11-26, fifth session).
+_BEFORE_FILL = {"occluder_fill_px": 0, "depth_defers_to_zbuffer": False}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
-                                 "own_surface_margin_m": None},
+                                 "own_surface_margin_m": None, **_BEFORE_FILL},
     "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
-                                             **_OLD_TOLERANCE},
-    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE},
+                                             **_OLD_TOLERANCE, **_BEFORE_FILL},
+    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m (default)": {},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL},
+    # holes between an occluder's splats closed by 4 px
+    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False},
+    # a depth-map surface inside another labelled object's box is left to the z-buffer
+    "+ depth map defers to the z-buffer (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 

@@ -16,8 +16,8 @@ from test_tracks import (DT, FRONT, H, W, SceneBuilder, camera_model, world_cent
 
 pytestmark = pytest.mark.skipif(not kernel.NUMBA_AVAILABLE, reason="numba is not importable")
 
-#: The track kernel's own-box arguments turned off (TrackConfig.own_surface_margin_m=None).
-OFF = (np.zeros((0, 6)), np.zeros(0, dtype=bool))
+#: The track kernel's own-box and other-box arguments turned off (TrackConfig.own_surface_margin_m=None).
+OFF = (np.zeros((0, 6)), np.zeros(0, dtype=bool), np.zeros((0, 0, 18)))
 
 
 def _hand_built_clip(seed=3, n=3000, t_count=7):
@@ -258,3 +258,53 @@ def test_summarise_tracks_equals_the_numpy_summary():
     expect_pixels, expect_counts = _summarise_tracks(tracks, visibles, source, model)
     assert counts.tolist() == expect_counts.tolist() and counts[0] >= 1 and counts[1] >= 1
     assert pixels.tobytes() == expect_pixels.tobytes()
+
+
+def test_kernel_own_and_other_boxes_equal_the_numpy_rules():
+    """The depth-map test with the object's own box (:func:`drivetrack.visibility.own_surface`) and
+    other labelled objects' boxes (:func:`drivetrack.visibility.other_surface`: a map surface
+    inside another box grown by the margin, on a ray that misses that box itself, hides nothing):
+    the kernel's visibles equal the numpy rules point-frame by point-frame, and each rule decides
+    some of them."""
+    from drivetrack.visibility import (camera_centres_box, other_boxes, other_surface, own_box_parameters,
+                                       own_surface)
+
+    model, p, cam, shift, veh, world, maps = _hand_built_clip(seed=5)
+    ratio = 0.95
+    t_count = len(maps)
+    rng = np.random.default_rng(11)
+    own = own_box_parameters(camera_centres_box(cam, shift), np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2)
+    own_points = rng.random(len(p)) < 0.7
+    # per frame four or five other boxes between the camera and the object, one frame without any
+    others_list = []
+    for tau in range(t_count):
+        m = 0 if tau == 2 else 4 + tau % 2
+        centres = rng.uniform([1.5, -3.0, -1.0], [7.0, 3.0, 1.0], size=(m, 3))
+        camera_from_other = box_from_center_heading(centres, rng.uniform(-np.pi, np.pi, m))
+        others_list.append((camera_from_other, rng.uniform([0.5, 0.5, 0.5], [4.0, 2.5, 2.0], size=(m, 3))))
+    others = other_boxes(cam, shift, others_list, 0.2)
+    assert others.shape == (t_count, 5, 18) and (others[2, :, 12] < 0).all() and (others[0, 4, 12] < 0)
+    _, vis_plain, *_, ok, surface = _reference(model, p, cam, shift, veh, world, maps, ratio, 0.6)
+    points_camera_x = np.einsum("tj,nj->tn", cam[:, 0, :3], p) + cam[:, None, 0, 3] + shift[:, None, 0]
+    occluded = ok & (surface > 0) & (surface < ratio * points_camera_x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth_ratio = surface / points_camera_x
+    mine = own_surface(p, depth_ratio, own, where=occluded & own_points[None])
+    theirs = other_surface(p, depth_ratio, own, others, where=occluded)
+    grown_only = other_surface(p, depth_ratio, own, np.concatenate([others[..., :15], np.full(others[..., 15:].shape, -1.0)], -1),
+                               where=occluded)
+    assert mine.sum() > 20 and (theirs & ~mine).sum() > 20
+    assert (grown_only & ~theirs).sum() > 5        # rays through a box: the map still hides (10 here)
+    expected = (ok & ~(occluded & ~mine & ~theirs)).T
+
+    status = np.empty(len(p), np.int8)
+    world_step = np.ascontiguousarray(world[1:] - world[:-1])
+    kernel.screen_points(p, cam, shift, world_step, kernel.camera_parameters(model), maps, ratio, own, own_points,
+                         others, 0.6, np.nan, np.nan, status, np.empty(len(p)))
+    np.testing.assert_array_equal(status == kernel.KEPT, expected.any(axis=1))
+    visibles = np.empty((len(p), t_count), bool)
+    kernel.fill_tracks(p, np.arange(len(p), dtype=np.int64), cam, shift, veh, kernel.camera_parameters(model), maps,
+                       ratio, own, own_points, others, np.empty((len(p), t_count, 2), np.float32), visibles,
+                       np.empty((len(p), t_count, 3), np.float32))
+    np.testing.assert_array_equal(visibles, expected)
+    assert not np.array_equal(visibles, vis_plain)

@@ -108,6 +108,43 @@ def test_zbuffer_hides_a_car_behind_a_car():
                                 [(project(near), near[:, 0])], width, height, focal, 0.05, 2, 0.3, 0.02)[0].any()
 
 
+def test_zbuffer_hole_fill_closes_gaps_in_an_occluder_but_not_its_outline():
+    """A near occluder sampled in two bands of returns with an 8 px strip between them that no
+    return covers (its capped footprints cannot bridge it): without the fill, far points behind the
+    strip are called visible; closed by 4 px they are hidden at the occluder's depth, and far
+    points beside the occluder's outline, or in a gap wider than twice the fill, stay visible."""
+    from drivetrack.visibility.zbuffer import close_holes, hidden_by_others, nearest_depth
+
+    focal, width, height = 500.0, 200, 100
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                focal * points[:, 2] / points[:, 0] + height / 2])
+
+    # a near 'car' at 5 m, returns every pixel over columns 80..119 except columns 96..103 (8 px),
+    # and a 'gap' between it and a second 'car' at columns 130..139 that is 10 px wide
+    cols = np.concatenate([np.arange(80, 96), np.arange(104, 120), np.arange(130, 140)]) + 0.5
+    rows = np.arange(40, 60) + 0.5
+    c, r = np.meshgrid(cols, rows)
+    near = np.column_stack([np.full(c.size, 5.0), (c.ravel() - width / 2) * 5.0 / focal,
+                            (r.ravel() - height / 2) * 5.0 / focal])
+    buffer = nearest_depth(project(near), near[:, 0], width, height, focal, 0.002, 0)    # 0 px footprints
+    closed = close_holes(buffer, 4)
+    assert np.isinf(buffer[50, 96:104]).all() and (closed[50, 96:104] == np.float32(5.0)).all()
+    assert np.isinf(closed[50, 120:130]).all() and np.isinf(closed[50, :80]).all()       # outline and wide gap
+    assert (closed <= buffer).all()
+    # far points at 20 m on row 50, at the centres of columns 70..149
+    columns = np.arange(70, 150) + 0.5
+    far = np.column_stack([np.full(columns.size, 20.0), (columns - width / 2) * 20.0 / focal,
+                           np.full(columns.size, 0.5 * 20.0 / focal)])
+    args = (far[None], project(far)[None], np.ones((1, len(far)), bool), [(project(near), near[:, 0])],
+            width, height, focal, 0.002, 0, 0.15, 0.0)
+    without, with_fill = hidden_by_others(*args)[0][0], hidden_by_others(*args, fill_px=4)[0][0]
+    strip = (columns > 96) & (columns < 104)
+    assert not without[strip].any() and with_fill[strip].all()
+    np.testing.assert_array_equal(with_fill, ((columns > 80) & (columns < 120)) | ((columns > 130) & (columns < 140)))
+
+
 def test_zbuffer_does_not_grow_a_near_occluders_outline_over_far_points():
     """A near occluder's returns are splatted 2 px either side (closing the gaps between them); a
     far point's own footprint is smaller (here 0 px). The test looks as far round the point as the
@@ -487,6 +524,33 @@ def test_own_returns_smeared_over_the_objects_far_points_hide_nothing(hard_scene
     assert right.sum() > 3 * (freed & ~both["visible_before"]).sum()
     assert (~after_visible).sum() < 0.8 * (~before_visible).sum()
     assert after_back.mean() < before_back.mean() + 0.02
+
+
+def test_hole_fill_and_labelled_outlines_left_to_the_zbuffer(hard_scene, tmp_path):
+    """The z-buffer's holes closed (``occluder_fill_px`` 4) and the depth map's spread of another
+    labelled object beyond its outline left to the z-buffer (``depth_defers_to_zbuffer``), against
+    both off (before). Measured on this scene, over the ~123,000 point-frames both match: wrong
+    calls 1,185 -> 979 (265 fixed, 59 broken); hidden by another object called visible 0.104 ->
+    0.071; truly visible called visible 0.9958 -> 0.9973; back faces called visible 0.122 ->
+    0.124."""
+    root, segment = hard_scene
+    before_calls, after_calls, before_others, after_others = [], [], [], []
+    before_back, before_visible, _ = _back_face_calls(root, segment, str(tmp_path / "before"), 90.0, "numba",
+                                                      "surface", before_others, before_calls,
+                                                      occluder_fill_px=0, depth_defers_to_zbuffer=False)
+    after_back, after_visible, _ = _back_face_calls(root, segment, str(tmp_path / "after"), 90.0, "numba",
+                                                    "surface", after_others, after_calls)
+    both = pd.concat(before_calls).merge(pd.concat(after_calls), on=["camera", "point", "frame"],
+                                         suffixes=("_before", "_after"))
+    assert len(both) > 10000
+    wrong_before = both["pred_before"] != both["visible_before"]
+    wrong_after = both["pred_after"] != both["visible_before"]
+    assert wrong_after.sum() < 0.9 * wrong_before.sum()
+    assert (wrong_before & ~wrong_after).sum() > 3 * (~wrong_before & wrong_after).sum()
+    # both directions improve: points beside labelled outlines freed, points behind holes hidden
+    assert after_visible.mean() > before_visible.mean()
+    assert np.concatenate(after_others).mean() < np.concatenate(before_others).mean()
+    assert after_back.mean() <= before_back.mean() + 0.005
 
 
 def test_occluding_objects_lie_between_the_camera_and_a_clip():

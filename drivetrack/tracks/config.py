@@ -64,6 +64,13 @@ class TrackConfig:
             rear face); whether an object hides its own point is the back-face test's call
             (:func:`drivetrack.visibility.own_surface`), at points whose normal is reliable (the
             depth map still decides for the others). None: every surface counts (before).
+        depth_defers_to_zbuffer: under ``occlusion="surface"``, with the z-buffer of other objects
+            and the own-box rule on, the depth-map test also ignores a surface whose point on the
+            ray lies inside another labelled object's box (posed for the image, grown by
+            ``own_surface_margin_m``): the map spreads that object's returns a few pixels beyond
+            its outline by nearest neighbour, while the z-buffer draws it from its own surface
+            (:func:`drivetrack.visibility.other_surface`). False: the map hides there too (before
+            2026-11-26, fifth session; docs/visibility.md).
         normals_from: where the back-face normals' neighbourhoods come from: ``segment`` (default)
             all the object's returns over the segment in its box frame, thinned to cubes of half
             ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
@@ -96,6 +103,12 @@ class TrackConfig:
             (:func:`drivetrack.tracks.core.segment_surface_radius`; the clip's returns under
             ``time_model="velocity"`` keep ``surfel_radius_m``).
             Only objects of ``object_types`` have returns, so only they occlude this way.
+        occluder_fill_px: the z-buffer is closed by this many pixels (a grey-level closing,
+            nearest depth spread then the farthest taken back: holes up to twice as wide between an
+            occluder's splats are filled at its depth, its outlines and depth steps stay where
+            they are). The capped footprints of near occluders and the parts of an object no
+            lidar sweep sampled leave such holes, through which hidden points were called
+            visible. Default 4; 0: off (before 2026-11-26, fifth session; docs/visibility.md).
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -145,6 +158,7 @@ class TrackConfig:
     occlusion_ratio: float = 0.95
     back_face_max_deg: float | None = 90.0
     own_surface_margin_m: float | None = 0.2
+    depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
     normal_neighbours: int = 12
     occlusion: str = "surface"
@@ -154,6 +168,7 @@ class TrackConfig:
     ambiguity_deg: float = 5.0
     surfel_radius_m: float = 0.05
     surfel_max_px: int = 8
+    occluder_fill_px: int = 4
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -226,6 +241,12 @@ class TrackConfig:
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
+        if not isinstance(self.depth_defers_to_zbuffer, bool):
+            raise ValueError(f"TrackConfig.depth_defers_to_zbuffer must be true or false, got "
+                             f"{self.depth_defers_to_zbuffer!r}")
+        if not (isinstance(self.occluder_fill_px, int) and 0 <= self.occluder_fill_px <= 64):
+            raise ValueError(f"TrackConfig.occluder_fill_px must be an integer number of pixels in [0, 64], got "
+                             f"{self.occluder_fill_px!r}")
         if self.surfel_radius_from not in SURFEL_RADII:
             raise ValueError(f"TrackConfig.surfel_radius_from must be one of {SURFEL_RADII}, got "
                              f"{self.surfel_radius_from!r}")

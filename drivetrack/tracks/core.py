@@ -38,7 +38,7 @@ from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
 from drivetrack.tracks.sweep_motion import box_motion_world, points_box_at_capture
 from drivetrack.tracks.trajectory import points_box_at, segment_trajectory
-from drivetrack.visibility.facing import own_surface
+from drivetrack.visibility.facing import other_surface, own_surface
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["ObjectTracks", "TrackSource", "ClipPoses", "clip_poses", "run_object_job", "track_speeds", "rolling_shutter_projector",
@@ -638,10 +638,12 @@ def occluding_objects(plan) -> set[str]:
     return found
 
 
-def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
-               target_radius_m: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
+               with_boxes: bool = False):
     """Per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint radius float64 [m],
-    metres) of the other labelled objects' returns.
+    metres) of the other labelled objects' returns. With ``with_boxes``, also per clip frame the
+    boxes of those objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each
+    object's shift added to the translation, size float64 [k, 3]).
 
     Every object but ``job``'s with a box at some clip frame and returns selected by the plan
     (somewhere in the segment) is carried by its own :func:`clip_poses` (the capture time of
@@ -672,6 +674,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
                              & np.isin(boxes.object_id, with_points))
     candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
+    frame_boxes: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
@@ -703,12 +706,19 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray,
         valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
+        placed = poses.camera_from_box.copy()
+        placed[:, :3, 3] += poses.shift_camera
         for k, t in enumerate(obj_frames.tolist()):
             ok = valid[k]
             per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
-    return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
-             np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-             np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
+            frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
+    returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
+                np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+                np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
+    if not with_boxes:
+        return returns
+    return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
+                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -795,12 +805,22 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # both surface tests, float32 [T, n] (+inf where a test cannot hide the point), go into each
     # kept point-frame's occlusion margin (:func:`_occlusion_margins`).
     hidden_other = zbuffer_margin = face_margin = None
+    # The other labelled objects' boxes for the depth-map test (drivetrack.visibility.other_surface):
+    # a map surface inside one of them (grown) on a ray that misses the box itself is that object's
+    # depth spread past its outline, which the z-buffer draws from its own surface; posed like the
+    # own box (the global-shutter image pose); [T, 0, 18]: off.
+    others = np.zeros((0, 0, 18))
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
-        occluders = _occluders(plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
+        occluders, occluder_boxes = _occluders(plan, job, frames, centre_camera,
+                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1), with_boxes=True)
         any_occluder = any(o[1].size for o in occluders)
+        if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
+            from drivetrack.visibility import other_boxes
+
+            others = other_boxes(camera_from_box, shift_camera, occluder_boxes, float(config.own_surface_margin_m))
         if any_occluder:
             hidden_other = np.zeros((t_count, n), dtype=bool)
             zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
@@ -815,7 +835,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
                     points_camera, pixels, valid, occluders, int(model.width), int(model.height),
                     float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
-                    float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
+                    float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
+                    int(config.occluder_fill_px))
             if surfels is not None:
                 angle = np.degrees(np.arccos(np.clip(
                     facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box), -1.0, 1.0)))
@@ -865,7 +886,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
         params = kernel.camera_parameters(model)
         kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
-                             params, clip_maps, float(config.occlusion_ratio), own_box, own_points, float(duration_s),
+                             params, clip_maps, float(config.occlusion_ratio), own_box, own_points, others,
+                             float(duration_s),
                              box_speed_mean, max_deviation, status, speeds)
         keep = status == kernel.KEPT
         kept = int(keep.sum())
@@ -886,7 +908,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
                                float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[kept_rows[start:stop]]),
-                               tracks, visibles[start:stop], no_points3d, False)
+                               others, tracks, visibles[start:stop], no_points3d, False)
             faces = facing(0, 0, kept_rows[start:stop])
             if faces is not None:
                 visibles[start:stop] &= faces.T
@@ -927,6 +949,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             if own_box.shape[0]:
                 occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box,
                                          where=occluded & own_points[None, start:start + chunk.shape[0]])
+                occluded &= ~other_surface(chunk, surface / points_camera[..., 0], own_box, others, where=occluded)
             visible = ok & ~occluded
             faces = facing(start, start + chunk.shape[0])
             if faces is not None:
@@ -965,7 +988,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         project = projection.project
 
     margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
-                                 own_box, own_points)
+                                 own_box, own_points, others)
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
@@ -1004,7 +1027,8 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
                        rows: np.ndarray, zbuffer_margin: np.ndarray | None,
-                       face_margin: np.ndarray | None, own_box: np.ndarray, own_points: np.ndarray) -> np.ndarray:
+                       face_margin: np.ndarray | None, own_box: np.ndarray, own_points: np.ndarray,
+                       others: np.ndarray | None = None) -> np.ndarray:
     """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] of ``p_box``
     (see :class:`ObjectTracks`' ``occlusion_margin``).
 
@@ -1013,8 +1037,9 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
     candidates, None when that test is off; ``own_box`` float64 [T, 6] or [0, 6] (off) and
     ``own_points`` bool [n]: where the depth map's surface is the object's own
-    (:func:`drivetrack.visibility.own_surface`) at a point it applies to, the depth-map test
-    cannot hide the point (+inf).
+    (:func:`drivetrack.visibility.own_surface`) at a point it applies to, or another labelled
+    object's spread beyond its outline (``others`` float64 [T, K, 18],
+    :func:`drivetrack.visibility.other_surface`), the depth-map test cannot hide the point (+inf).
     """
     from drivetrack.depth import lookup_max4
 
@@ -1034,8 +1059,17 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
             own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box,
                               where=(margin < face) & own_points[None, idx])
             margin[own] = np.inf
-        if zbuffer_margin is not None:
-            margin = np.minimum(margin, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)))
+        zbuffer = None if zbuffer_margin is None else _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m))
+        if own_box.shape[0] and others is not None and others.shape[1]:
+            # the depth-map term where it is the smallest (the decision and the margin as above)
+            rest = np.full(margin.shape, np.inf, dtype=np.float32)
+            for term in (face, zbuffer):
+                if term is not None:
+                    np.minimum(rest, term, out=rest)
+            margin[other_surface(p_box[idx], surface / points_camera[..., 0], own_box, others,
+                                 where=margin < rest)] = np.inf
+        if zbuffer is not None:
+            margin = np.minimum(margin, zbuffer)
         if face is not None:
             margin = np.minimum(margin, face)
         margin[~inside] = np.nan

@@ -41,14 +41,20 @@ KEPT, DROPPED_INVISIBLE, DROPPED_SPEED = 0, 1, 2
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own, own_point, px, py, pz):
+def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own, own_point, others,
+             px, py, pz):
     """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
 
     ``own`` float64 [T, 6] (or [0, 6]: off): per frame the camera centre in the box frame and the
     half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``; when
     ``own_point`` (the point has a reliable normal), a surface whose point on the ray to the
     box-frame point (px, py, pz) lies in that box does not hide it
-    (:func:`drivetrack.visibility.own_surface`)."""
+    (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
+    only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
+    translation values taking this object's box frame to theirs, their half extents grown by the
+    margin (negative: an unused slot), then their half extents; a surface whose point lies in a
+    grown one while the ray to the point misses the box itself is that object's outline spread by
+    the map, and the z-buffer decides instead (:func:`drivetrack.visibility.other_surface`)."""
     if not valid:
         return False
     if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
@@ -75,7 +81,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
             best = max(best, depth_maps[tau, r1, c1])
     if not (best > 0 and best < occlusion_ratio * x):
         return True
-    if own.shape[0] == 0 or not own_point:
+    if own.shape[0] == 0 or not (own_point or others.shape[1] > 0):
         return False
     # the surface's point on the ray from the camera centre e through p: e + (best / x) (p - e)
     scale = best / x
@@ -83,7 +89,40 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     qx = e[0] + scale * (px - e[0])
     qy = e[1] + scale * (py - e[1])
     qz = e[2] + scale * (pz - e[2])
-    return abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]
+    if own_point and abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]:
+        return True
+    for k in range(others.shape[1]):
+        o = others[tau, k]
+        if o[12] < 0:
+            continue
+        ox = o[0] * qx + o[1] * qy + o[2] * qz + o[9]
+        oy = o[3] * qx + o[4] * qy + o[5] * qz + o[10]
+        oz = o[6] * qx + o[7] * qy + o[8] * qz + o[11]
+        if abs(ox) <= o[12] and abs(oy) <= o[13] and abs(oz) <= o[14] and not _segment_enters_box(o, e, px, py, pz):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _segment_enters_box(o, e, px, py, pz):
+    """The segment from the camera centre ``e[:3]`` to the point (px, py, pz) (this object's box
+    frame) passes through the box of ``o`` (:func:`_visible`'s slot: rotation, translation, grown
+    and plain half extents) before the point (slab test, t in [0, 1))."""
+    enter, leave = 0.0, np.inf
+    for a in range(3):
+        s = o[3 * a] * e[0] + o[3 * a + 1] * e[1] + o[3 * a + 2] * e[2] + o[9 + a]
+        f = o[3 * a] * px + o[3 * a + 1] * py + o[3 * a + 2] * pz + o[9 + a]
+        d = f - s
+        half = o[15 + a]
+        if abs(d) < 1e-12:
+            if abs(s) > half:
+                return False
+            continue
+        t1 = (-half - s) / d
+        t2 = (half - s) / d
+        enter = max(enter, min(t1, t2))
+        leave = min(leave, max(t1, t2))
+    return enter <= leave and enter < 1.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -110,7 +149,7 @@ def path_speeds(points_box, world_step, duration_s, speeds):
 
 @njit(cache=True, nogil=True)
 def screen_points(points_box, camera_from_box, shift_camera, world_step, camera, depth_maps,
-                  occlusion_ratio, own, own_points, duration_s, box_speed_mps, max_speed_deviation_mps,
+                  occlusion_ratio, own, own_points, others, duration_s, box_speed_mps, max_speed_deviation_mps,
                   status, speeds):
     """Which candidates survive, and their speeds; returns the number kept.
 
@@ -125,6 +164,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         own: float64 [T, 6] or [0, 6]: the object's own box for the depth test (:func:`_visible`),
             ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
             ``own`` is [0, 6]), the points it applies to (reliable normals).
+        others: float64 [T, K, 18], the other labelled objects' boxes (:func:`_visible`).
         duration_s: clip duration; the speed is NaN when T < 2 or this is <= 0.
         box_speed_mps, max_speed_deviation_mps: the speed filter drops a visible point whose
             ``|speed - box_speed_mps|`` is not <= the deviation; a NaN of either disables it.
@@ -152,7 +192,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
             z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
             pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
             if _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own,
-                        own.shape[0] > 0 and own_points[i], px, py, pz):
+                        own.shape[0] > 0 and own_points[i], others, px, py, pz):
                 seen = True
                 break
         if not seen:
@@ -172,7 +212,7 @@ _BLOCK = 256
 
 @njit(cache=True, nogil=True)
 def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
-                occlusion_ratio, own, own_points, tracks, visibles, points3d, with_points3d=True):
+                occlusion_ratio, own, own_points, others, tracks, visibles, points3d, with_points3d=True):
     """Tracks of the points ``points_box`` float64 [K, 3] (box frame), written in [K, T] order.
 
     Outputs (filled in place): ``tracks`` float32 [K, T, 2] pixels (invalid projections hold the
@@ -222,7 +262,7 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
                 i = order[j]
                 visibles[i, tau] = _visible(depth_maps, tau, height, width, scratch[j - block, 0],
                                             scratch[j - block, 1], x, not np.isnan(x), occlusion_ratio, own,
-                                            own.shape[0] > 0 and own_points[i],
+                                            own.shape[0] > 0 and own_points[i], others,
                                             points_box[i, 0], points_box[i, 1], points_box[i, 2])
         for j in range(block, stop):
             _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)

@@ -4,13 +4,15 @@
 box frame, and the back-face test (a point whose surface turns away from the camera is hidden by
 its own object, whatever the depth map says there); :func:`~drivetrack.visibility.facing.own_surface`:
 whether the depth map's surface in front of a point is the object's own (then the back-face test,
-not the depth map, decides).
+not the depth map, decides); :func:`~drivetrack.visibility.facing.other_surface`: whether it lies in
+another labelled object's box (then the z-buffer, not the depth map, decides).
 :mod:`drivetrack.visibility.zbuffer`: the nearest-depth buffer of the other labelled objects'
 returns in each image, and the test hiding a point behind another object's surface.
 """
 from drivetrack.visibility.facing import (SENSOR_VEHICLE_M, SurfelNormals, camera_centres_box, facing_mask,
-                                          own_box_parameters, own_surface, sensor_positions, surfel_normals)
+                                          other_boxes, other_surface, own_box_parameters, own_surface,
+                                          sensor_positions, surfel_normals)
 from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "camera_centres_box", "facing_mask", "hidden_by_others",
-           "nearest_depth", "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals"]
+           "nearest_depth", "other_boxes", "other_surface", "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals"]

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask", "own_box_parameters", "own_surface"]
+           "facing_cosine", "facing_mask", "other_boxes", "other_surface", "own_box_parameters", "own_surface"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -150,6 +150,85 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     with np.errstate(invalid="ignore"):
         surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
         out[t_idx, n_idx] = np.all(np.abs(surface) <= half, axis=-1)
+    return out
+
+
+def other_boxes(camera_from_box: np.ndarray, shift_camera: np.ndarray,
+                others: list[tuple[np.ndarray, np.ndarray]], margin_m: float) -> np.ndarray:
+    """float64 [T, K, 18]: the other labelled objects' boxes in this object's box frame, per frame.
+
+    ``camera_from_box`` float64 [T, 4, 4] and ``shift_camera`` float64 [T, 3] place this object
+    (camera frame, metres: ``R p + t + shift``); ``others[tau]`` = (camera_from_box float64
+    [m, 4, 4] with the other objects' shifts added to the translation, size float64 [m, 3]) of the
+    other objects posed for that image. Each slot holds the 9 rotation and 3 translation values
+    of ``box_other_from_box_self``, the other box's half extents grown by ``margin_m``, then its
+    half extents; unused slots have half extents -1 (:func:`other_surface`, the track kernel's
+    depth test).
+    """
+    t_count = camera_from_box.shape[0]
+    k_max = max((o[1].shape[0] for o in others), default=0)
+    out = np.full((t_count, k_max, 18), -1.0)
+    for tau, (camera_from_other, size) in enumerate(others):
+        m = size.shape[0]
+        if m == 0:
+            continue
+        rotation, translation = camera_from_other[:, :3, :3], camera_from_other[:, :3, 3]
+        r_self, t_self = camera_from_box[tau, :3, :3], camera_from_box[tau, :3, 3] + shift_camera[tau]
+        # other <- camera <- self: R_o^T (R_s q + t_s - t_o)
+        out[tau, :m, :9] = np.einsum("mji,jk->mik", rotation, r_self).reshape(m, 9)
+        out[tau, :m, 9:12] = np.einsum("mji,mj->mi", rotation, t_self[None] - translation)
+        out[tau, :m, 12:15] = 0.5 * size + float(margin_m)
+        out[tau, :m, 15:18] = 0.5 * size
+    return out
+
+
+def _segment_enters_box(start: np.ndarray, stop: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """bool [...]: the segment from ``start`` to ``stop`` (float [..., 3], box frame) passes through
+    the box of half extents ``half`` (float [..., 3]) before its end (slab test, t in [0, 1))."""
+    d = stop - start
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (-half - start) / d, (half - start) / d
+    flat = np.abs(d) < 1e-12
+    lo = np.where(flat, np.where(np.abs(start) <= half, -np.inf, np.inf), np.minimum(t1, t2))
+    hi = np.where(flat, np.where(np.abs(start) <= half, np.inf, -np.inf), np.maximum(t1, t2))
+    enter, leave = np.maximum(lo.max(axis=-1), 0.0), hi.min(axis=-1)
+    return (enter <= leave) & (enter < 1.0)
+
+
+def other_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray, others: np.ndarray,
+                  where: np.ndarray | None = None) -> np.ndarray:
+    """bool [T, n]: the depth-map surface in front of each point-frame lies in another labelled
+    object's box (grown) while the ray to the point misses that box itself: the map spread that
+    object's returns beyond its outline, and its own surface in the z-buffer, not the map, decides.
+
+    As :func:`own_surface` (``own`` float64 [T, 6] gives the camera centres), against the boxes
+    ``others`` float64 [T, K, 18] of :func:`other_boxes`. The depth maps are completed by nearest
+    neighbour, which spreads a labelled occluder's returns a few pixels beyond its outline (points
+    beside a pole, or just past a car's edge, were called hidden); the z-buffer draws that
+    occluder from its own surface with its outline kept (:mod:`drivetrack.visibility.zbuffer`).
+    A ray through the box is left to the map: there the z-buffer's holes (parts of the occluder no
+    sweep sampled) would let hidden points through.
+    """
+    points_box = np.asarray(points_box, dtype=np.float64)
+    depth_ratio = np.asarray(depth_ratio, dtype=np.float64)
+    if where is None:
+        where = np.ones(depth_ratio.shape, dtype=bool)
+    out = np.zeros(depth_ratio.shape, dtype=bool)
+    if others.shape[1] == 0:
+        return out
+    t_idx, n_idx = np.nonzero(where)
+    centre = own[t_idx, :3]
+    with np.errstate(invalid="ignore"):
+        surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)    # [m, 3]
+        slots = others[t_idx]                                                                # [m, K, 18]
+        rotation = slots[..., :9].reshape(-1, slots.shape[1], 3, 3)
+
+        def to_other(points):                                                                # [m, 3] -> [m, K, 3]
+            return np.einsum("mkij,mj->mki", rotation, points) + slots[..., 9:12]
+
+        inside = np.all(np.abs(to_other(surface)) <= slots[..., 12:15], axis=-1) & (slots[..., 12] >= 0)
+        through = _segment_enters_box(to_other(centre), to_other(points_box[n_idx]), slots[..., 15:18])
+    out[t_idx, n_idx] = (inside & ~through).any(axis=-1)
     return out
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
+__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
 
 
 def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -62,6 +62,22 @@ def _square_max(image: np.ndarray, r: int) -> np.ndarray:
     """float32 [H, W]: the maximum over the (2r+1)^2 square round each pixel, the edge repeated
     outside (``scipy.ndimage.maximum_filter(size=2r+1, mode="nearest")``; OpenCV's dilation)."""
     return cv2.dilate(image, np.ones((2 * r + 1, 2 * r + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+
+
+def close_holes(buffer: np.ndarray, fill_px: int) -> np.ndarray:
+    """float32 [H, W]: the nearest-depth ``buffer`` float32 [H, W] (inf: empty) closed by ``fill_px``.
+
+    A grey-level closing of the near surfaces: each pixel's depth spreads over the
+    ``(2 fill_px + 1)^2`` square round it (minimum), then each pixel takes the farthest of that
+    over its own square (maximum). An empty or farther pixel with nearer depths on both sides
+    within ``2 fill_px`` is filled at about their depth (a hole between an occluder's splats, where a
+    capped near footprint or an unsampled part of the object left one); a convex outline and a
+    depth step between two surfaces stay where they are, because the second pass takes back what
+    the first spread beyond them. Never farther than ``buffer``.
+    """
+    if fill_px <= 0:
+        return buffer
+    return np.minimum(buffer, _square_max(_square_min(buffer, fill_px), fill_px))
 
 
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
@@ -113,7 +129,7 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
 
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
-                     radius_m: float, max_px: int, abs_m: float, rel: float) -> np.ndarray:
+                     radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0):
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
@@ -126,6 +142,7 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         width, height, focal: the image and its focal length (pixels).
         radius_m, max_px: the footprint (see :func:`nearest_depth`).
         abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
+        fill_px: close the buffer by this many pixels first (:func:`close_holes`).
 
     Returns:
         ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
@@ -161,6 +178,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         buffer, footprint = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0,
                                           focal, occ_radius[near] if np.ndim(occ_radius) else radius_m, max_px,
                                           with_radius=True)
+        if fill_px > 0:
+            buffer = close_holes(buffer, fill_px)
         # The same footprint rule on the point's side: it is hidden only when the occluders cover
         # its whole footprint (the farthest buffer value over it is nearer than the point), so the
         # footprints that close the gaps between an occluder's returns do not grow its outline.
