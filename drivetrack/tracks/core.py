@@ -638,12 +638,11 @@ def occluding_objects(plan) -> set[str]:
     return found
 
 
-def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
-               with_boxes: bool = False):
-    """Per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint radius float64 [m],
-    metres) of the other labelled objects' returns. With ``with_boxes``, also per clip frame the
-    boxes of those objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each
-    object's shift added to the translation, size float64 [k, 3]).
+def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray):
+    """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
+    radius float64 [m], metres) of the other labelled objects' returns, and the boxes of those
+    objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
+    added to the translation, size float64 [k, 3]).
 
     Every object but ``job``'s with a box at some clip frame and returns selected by the plan
     (somewhere in the segment) is carried by its own :func:`clip_poses` (the capture time of
@@ -715,8 +714,6 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
-    if not with_boxes:
-        return returns
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
                       np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
 
@@ -815,7 +812,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
         occluders, occluder_boxes = _occluders(plan, job, frames, centre_camera,
-                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1), with_boxes=True)
+                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
         any_occluder = any(o[1].size for o in occluders)
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes

@@ -146,11 +146,18 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
         where = np.ones(depth_ratio.shape, dtype=bool)
     t_idx, n_idx = np.nonzero(where)
     out = np.zeros(depth_ratio.shape, dtype=bool)
-    centre, half = own[t_idx, :3], own[t_idx, 3:]                                  # [m, 3]
     with np.errstate(invalid="ignore"):
-        surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
-        out[t_idx, n_idx] = np.all(np.abs(surface) <= half, axis=-1)
+        surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)
+        out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:], axis=-1)
     return out
+
+
+def _surface_points(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray, t_idx: np.ndarray,
+                    n_idx: np.ndarray) -> np.ndarray:
+    """float64 [m, 3]: the depth map's surface point on the ray from the camera centre ``e``
+    (``own[t_idx, :3]``) through each point-frame (``t_idx``, ``n_idx`` int [m]): ``e + ratio (p - e)``."""
+    centre = own[t_idx, :3]
+    return centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
 
 
 def other_boxes(camera_from_box: np.ndarray, shift_camera: np.ndarray,
@@ -219,7 +226,7 @@ def other_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarr
     t_idx, n_idx = np.nonzero(where)
     centre = own[t_idx, :3]
     with np.errstate(invalid="ignore"):
-        surface = centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)    # [m, 3]
+        surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)                # [m, 3]
         slots = others[t_idx]                                                                # [m, K, 18]
         rotation = slots[..., :9].reshape(-1, slots.shape[1], 3, 3)
 
