@@ -24,10 +24,15 @@ clips at all) and scores the tracks against the exact truth:
 - per camera and per moving / static object: median pixel error (truth-visible frames) and AJ.
 
 The figures before any fix (issues 15 and 16) stay in docs/benchmarks.md as measured; this
-script writes the comparison block (``bench_visibility_compare``).
+script writes the comparison block (``bench_visibility_compare``). With ``--rolling-shutter`` the
+world's cameras are read out row by row (``SynthConfig(rolling_shutter=True)``, as real logs'
+are) and the block ``bench_visibility_rolling`` is written instead; ``--variants`` picks
+entries of :data:`VARIANTS` (comma-separated names, default all).
 
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
+    .venv/bin/python bench/bench_visibility.py --rolling-shutter \
+        --variants "depth-ratio (paper),+ depth map defers to the z-buffer (default)"   # ~12 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -175,13 +180,20 @@ VARIANTS = {
     "+ depth map defers to the z-buffer (default)": {},
 }
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
+ROLLING_START, ROLLING_END = "<!-- bench_visibility_rolling:start -->", "<!-- bench_visibility_rolling:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
     """The comparison block: one column per variant, the same segment and truth."""
     names = list(results)
-    lines = ["## Visibility on the hard world: back faces from each object's own surface", "",
-             f"`bench/bench_visibility.py` (same segment and scoring as the block above: preset "
+    rolling = setup.get("rolling_shutter", False)
+    title = ("## Visibility on the hard world read out by a rolling shutter" if rolling
+             else "## Visibility on the hard world: back faces from each object's own surface")
+    world = ("the hard world of the block above rendered with rolling-shutter cameras "
+             "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
+             else "same segment and scoring as the block above: preset ")
+    lines = [title, "",
+             f"`bench/bench_visibility.py{' --rolling-shutter' if rolling else ''}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
              f"type, `min_frames` 8, `max_camera_distance_m` 75), annotated once per variant in one run. "
              f"Annotation wall time per variant: "
@@ -224,17 +236,29 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_hard_world_arguments(ap)
+    ap.add_argument("--rolling-shutter", action="store_true",
+                    help="cameras read out row by row (writes the bench_visibility_rolling block)")
+    ap.add_argument("--variants", default=None,
+                    help="comma-separated names of VARIANTS to run (default all)")
     args = ap.parse_args(argv if argv is not None else [])
+    variants = VARIANTS
+    if args.variants:
+        names = [v.strip() for v in args.variants.split(",") if v.strip()]
+        unknown = [v for v in names if v not in VARIANTS]
+        if unknown:
+            ap.error(f"--variants: unknown {unknown}; known: {list(VARIANTS)}")
+        variants = {v: VARIANTS[v] for v in names}
     results, annotate_s, stage_s = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
-                                                         cameras=CAMERAS, world="hard"),
+                                                         cameras=CAMERAS, world="hard",
+                                                         rolling_shutter=args.rolling_shutter),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
         role_of = dict(zip(objects["object_id"].astype(str), objects["role"].astype(str)))
-        for k, (name, overrides) in enumerate(VARIANTS.items()):
+        for k, (name, overrides) in enumerate(variants.items()):
             config = AnnotateConfig(track=TrackConfig(
                 cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
                 max_camera_distance_m=75.0, **overrides))
@@ -252,13 +276,14 @@ def main(argv: list[str] | None = None) -> int:
             results[name] = summary
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
-             "annotate_s": annotate_s, "stage_s": stage_s}
+             "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
     print(markdown)
     if not args.no_docs:
-        replace_doc_block(DOC, COMPARE_START, COMPARE_END, f"{COMPARE_START}\n{markdown}{COMPARE_END}")
+        start, end = (ROLLING_START, ROLLING_END) if args.rolling_shutter else (COMPARE_START, COMPARE_END)
+        replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
     return 0
 
 

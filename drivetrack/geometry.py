@@ -22,7 +22,7 @@ __all__ = [
     "transform_points", "invert_rigid", "matrix_from_flat", "rotation_z", "rotation_from_rpy",
     "rigid_from_rotation_translation", "box_from_center_heading", "points_in_box_mask", "wrap_angle",
     "vectors_to_box", "vectors_from_box", "poses_from_center_heading", "center_heading_from_poses",
-    "tilt_from_poses",
+    "tilt_from_poses", "rigid_velocity_world",
 ]
 
 
@@ -195,3 +195,19 @@ def tilt_from_poses(vehicle_from_box: np.ndarray) -> np.ndarray:
     ``Rz(heading) Ry(pitch) Rx(roll)``; exactly 0 for yaw-only poses."""
     r = np.asarray(vehicle_from_box, dtype=np.float64)[..., :3, :3]
     return np.stack([-np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0)), np.arctan2(r[..., 2, 1], r[..., 2, 2])], axis=-1)
+
+
+def rigid_velocity_world(points_world: np.ndarray, centre_world: np.ndarray, velocity_world: np.ndarray,
+                         yaw_rate: float | np.ndarray) -> np.ndarray:
+    """float64 [n, 3] m/s: the world velocity of points float [n, 3] (world frame, metres) of objects
+    moving rigidly, ``v + w z x (p - c)``: centre ``centre_world`` [3] or [n, 3] (metres), centre
+    velocity ``velocity_world`` [3] or [n, 3] (m/s), yaw rate ``yaw_rate`` scalar or [n] (rad/s)
+    about the world z."""
+    points_world = np.asarray(points_world, np.float64)
+    velocity = np.broadcast_to(np.asarray(velocity_world, np.float64), points_world.shape)
+    yaw_rate = np.asarray(yaw_rate, np.float64)
+    if not np.any(yaw_rate):
+        return velocity
+    lever = points_world - centre_world
+    spin = np.stack([-lever[:, 1], lever[:, 0], np.zeros(lever.shape[0])], axis=-1)
+    return velocity + (yaw_rate[:, None] if yaw_rate.ndim else yaw_rate) * spin

@@ -105,6 +105,20 @@ class ShutterState:
         centre = self.world_from_camera[:3, 3][None] + dt[:, None] * self.camera_velocity_world[None]
         return rot, centre
 
+    def rotate_at(self, dt: np.ndarray, vectors_world: np.ndarray) -> np.ndarray:
+        """float64 [N, 3]: world vectors float [N, 3] rotated by :meth:`pose_at`'s rotation at
+        ``dt`` (float [N], s), without forming the N matrices: ``R0 q - dt [w]x R0 q``."""
+        dt = np.asarray(dt, np.float64)
+        r0 = self.world_from_camera[:3, :3].T
+        return vectors_world @ r0.T - dt[:, None] * (vectors_world @ (_skew(self.camera_omega_camera) @ r0).T)
+
+    def camera_points_at(self, dt: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+        """float64 [N, 3]: world points float [N, 3] in the camera frame of :meth:`pose_at` ``dt``
+        (float [N], s): ``p_camera = camera_rot_world @ (p_world - camera_centre_world)``."""
+        dt = np.asarray(dt, np.float64)
+        return self.rotate_at(dt, points_world - self.world_from_camera[:3, 3][None]
+                              - dt[:, None] * self.camera_velocity_world[None])
+
 
 def _normalised_from_pixels(model: CameraModel, pixels: np.ndarray) -> np.ndarray:
     """float64 [..., 2] undistorted normalised (u, v) = (-y/x, -z/x) of pixels [..., 2]."""
@@ -241,9 +255,7 @@ def project_world(frames: CameraFrames, t: int, points_world: np.ndarray,
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        rot, centre = state.pose_at(dt[idx])
-        p_cam = np.einsum("nij,nj->ni", rot, points_world[idx] + dt[idx, None] * velocity_world[idx]
-                          - centre)
+        p_cam = state.camera_points_at(dt[idx], points_world[idx] + dt[idx, None] * velocity_world[idx])
         x = p_cam[:, 0]
         front = x > 0
         in_front[idx[~front]] = False
@@ -251,8 +263,7 @@ def project_world(frames: CameraFrames, t: int, points_world: np.ndarray,
         normalised = -p_cam[:, 1 + axis] / safe_x
         res = dt[idx] - normalised * state.time_per_normalised + state.pose_offset
         # d(normalised)/d(dt) through the point's and the camera's motion (chain rule on -y/x).
-        rate = (np.einsum("nij,nj->ni", rot, velocity_world[idx] - state.camera_velocity_world)
-                - p_cam @ omega_skew.T)
+        rate = state.rotate_at(dt[idx], velocity_world[idx] - state.camera_velocity_world) - p_cam @ omega_skew.T
         d_norm = (normalised * rate[:, 0] - rate[:, 1 + axis]) / safe_x
         jac = 1.0 - state.time_per_normalised * d_norm
         step = np.where(front, -res / jac, 0.0)
@@ -261,8 +272,7 @@ def project_world(frames: CameraFrames, t: int, points_world: np.ndarray,
         active[idx] = front & (np.abs(res) > _TOLERANCE_S)
     converged = in_front & (np.abs(residual) <= _MAX_RESIDUAL_S)
 
-    rot, centre = state.pose_at(dt)
-    points_camera = np.einsum("nij,nj->ni", rot, points_world + dt[:, None] * velocity_world - centre)
+    points_camera = state.camera_points_at(dt, points_world + dt[:, None] * velocity_world)
     pixels, trusted = _distorted(model, points_camera)
     valid = converged & trusted
     pixels[~valid] = np.nan

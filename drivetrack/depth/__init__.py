@@ -19,10 +19,10 @@ from drivetrack.depth.registry import (ENTRY_POINT_GROUP, CompleterPluginError,
                                        UnknownCompleterError, get_completer, list_completers,
                                        register_completer)
 from drivetrack.depth.sparse import (apply_depth_bounds, bound_blind_zone, horizontal_depth_scale,
-                                     see_through_returns, sparse_depth_from_points)
+                                     see_through_returns, sparse_depth_from_pixels, sparse_depth_from_points)
 from drivetrack.depth.torch_nearest import TorchNearestCompleter
 
-__all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
+__all__ = ["sparse_depth_from_points", "sparse_depth_from_pixels", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
            "horizontal_depth_scale", "get_completer", "list_completers", "lookup_max4", "register_completer", "DepthCompleter", "NearestCompleter", "IPBasicCompleter",
            "TorchNearestCompleter", "CompleterPluginError", "UnknownCompleterError",
            "ENTRY_POINT_GROUP", "default_max_reach_px"]

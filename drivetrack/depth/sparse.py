@@ -8,7 +8,7 @@ from drivetrack.camera.model import CameraModel
 from drivetrack.depth.kernel import NUMBA_AVAILABLE, blind_zone_in_place, bound_in_place, project_nearest
 from drivetrack.geometry import transform_points
 
-__all__ = ["sparse_depth_from_points", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
+__all__ = ["sparse_depth_from_points", "sparse_depth_from_pixels", "see_through_returns", "bound_blind_zone", "apply_depth_bounds",
            "horizontal_depth_scale"]
 
 
@@ -62,23 +62,39 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
                         subset if subset is not None else np.zeros(0, dtype=bool), depth, depth_subset)
         depth = depth.reshape(height, width)
         return depth if subset is None else (depth, depth_subset.reshape(height, width))
+    if not len(points_vehicle):
+        return sparse_depth_from_pixels(np.zeros((0, 2)), np.zeros(0), np.zeros(0, dtype=bool), camera,
+                                        None if subset is None else subset)
+    if vehicle_from_points is not None:
+        points_vehicle = transform_points(vehicle_from_points, points_vehicle)
+    points_camera = transform_points(camera.camera_from_vehicle, points_vehicle)
+    pixels, valid = camera.pixels_from_camera(points_camera)
+    return sparse_depth_from_pixels(pixels, points_camera[:, 0], valid, camera, subset)
+
+
+def sparse_depth_from_pixels(pixels: np.ndarray, depth: np.ndarray, valid: np.ndarray, camera: CameraModel,
+                             subset: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """The nearest z-depth per pixel of points already projected: ``pixels`` float [M, 2] (x, y),
+    ``depth`` float [M] metres of z-depth, ``valid`` bool [M] (e.g. a rolling-shutter projection,
+    :func:`drivetrack.camera.rolling_shutter.project_world`, each point at its capture time).
+    Points outside ``camera``'s image or not valid are dropped; the map and ``subset`` exactly as
+    :func:`sparse_depth_from_points` returns them (its numpy reference path is this function).
+    """
+    height, width = int(camera.height), int(camera.width)
     flat = np.full(height * width, np.inf, dtype=np.float64)
     # the subset's map in float32 directly: the minimum of float32-rounded depths equals the
     # float32-rounded minimum, so its values match the full map's where the same return wins
     flat_subset = np.full(height * width, np.inf, dtype=np.float32) if subset is not None else None
-    if len(points_vehicle):
-        if vehicle_from_points is not None:
-            points_vehicle = transform_points(vehicle_from_points, points_vehicle)
-        points_camera = transform_points(camera.camera_from_vehicle, points_vehicle)
-        pixels, valid = camera.pixels_from_camera(points_camera)
-        keep = valid & camera.inside_image(pixels)
+    if len(pixels):
+        keep = np.asarray(valid, dtype=bool) & np.isfinite(pixels).all(axis=-1)
+        keep[keep] = camera.inside_image(pixels[keep])
         cols = np.floor(pixels[keep, 0]).astype(np.int64)
         rows = np.floor(pixels[keep, 1]).astype(np.int64)
-        np.minimum.at(flat, rows * width + cols, points_camera[keep, 0])
+        np.minimum.at(flat, rows * width + cols, np.asarray(depth, np.float64)[keep])
         if subset is not None:
-            chosen = subset[keep]
+            chosen = np.asarray(subset, dtype=bool)[keep]
             np.minimum.at(flat_subset, rows[chosen] * width + cols[chosen],
-                          points_camera[keep, 0][chosen].astype(np.float32))
+                          np.asarray(depth, np.float64)[keep][chosen].astype(np.float32))
 
     def as_map(values: np.ndarray) -> np.ndarray:
         values[np.isinf(values)] = 0.0

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Callable, Iterable
 
 import numpy as np
 
-from drivetrack.geometry import invert_rigid
+from drivetrack.geometry import invert_rigid, rigid_velocity_world
 from drivetrack.scene import Scene
 from drivetrack.waymo.schema import CameraName
 
@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from drivetrack.tracks.config import TrackConfig
     from drivetrack.tracks.plan import SegmentPlan
 
-__all__ = ["DepthJob", "DepthBatch", "needed_frames", "depth_jobs", "sparse_depth", "complete_depth",
+__all__ = ["DepthJob", "DepthBatch", "needed_frames", "depth_jobs", "sparse_depth", "complete_depth", "motion_at_image_time",
            "sparse_depth_batch", "sparse_depth_batches", "complete_depth_batch"]
 
 
@@ -110,23 +110,38 @@ def points_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, t
     kept with the plan, :func:`_labelled_motion`) they are computed once per frame; each object is
     then posed once per image, not once per return.
     """
+    return motion_at_image_time(scene, config, owner, trajectory, camera, frame, rows, points_vehicle, memo)[0]
+
+
+def motion_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, trajectory, camera: int,
+                         frame: int, rows: np.ndarray, points_vehicle: np.ndarray,
+                         memo: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(points float64 [n, 3], velocity_world float64 [n, 3])``: the points of
+    :func:`points_at_image_time` and each one's world velocity (m/s) at the image's pose time, the
+    rigid motion of its object (centre velocity plus yaw rate about the world z) for labelled
+    returns, 0 for the others (what a rolling-shutter projection moves them by during the readout)."""
     from drivetrack.tracks.core import image_time_offsets
 
     out = np.array(points_vehicle, dtype=np.float64)
+    velocity_world = np.zeros_like(out)
     box_rows = owner[rows]
     moving = np.flatnonzero(box_rows >= 0)
     if moving.size == 0:
-        return out
+        return out, velocity_world
     box_rows = box_rows[moving]
     points_box = _labelled_points_box(scene, config, trajectory, frame, rows[moving], box_rows, out[moving],
                                       {} if memo is None else memo)
     unique_rows, which = np.unique(box_rows, return_inverse=True)
     image_time = trajectory.frame_time_s[unique_rows] + image_time_offsets(scene, camera, np.array([frame]))[0]
-    vehicle_from_world = invert_rigid(scene.world_from_vehicle[frame])
-    vehicle_from_box = vehicle_from_world[None] @ trajectory.world_from_box(unique_rows, image_time)   # [u, 4, 4]
+    world_from_vehicle = scene.world_from_vehicle[frame]
+    world_from_box = trajectory.world_from_box(unique_rows, image_time)                            # [u, 4, 4]
+    vehicle_from_box = invert_rigid(world_from_vehicle)[None] @ world_from_box
     out[moving] = (np.einsum("nij,nj->ni", vehicle_from_box[which, :3, :3], points_box)
                    + vehicle_from_box[which, :3, 3])
-    return out
+    _, _, _, _, velocity, yaw_rate = trajectory.motion(unique_rows, image_time)
+    velocity_world[moving] = rigid_velocity_world(out[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
+                                                  world_from_box[which, :3, 3], velocity[which], yaw_rate[which])
+    return out, velocity_world
 
 
 def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: int, rows: np.ndarray,
@@ -145,6 +160,32 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
         world = points_vehicle @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
         memo[key] = points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world)
     return memo[key]
+
+
+#: A rolling-shutter depth map solves the capture time of the returns within this fraction of
+#: the image's larger side of the image at its pose time (:func:`sparse_depth`).
+ROLLING_MARGIN = 0.25
+
+
+def _near_image(points_vehicle: np.ndarray, model, vehicle_from_points: np.ndarray | None) -> np.ndarray:
+    """int64 [k]: the returns float [n, 3] (vehicle frame of their frame, ``vehicle_from_points``
+    float64 [4, 4] to the vehicle frame at the image pose, or None) in front of the camera and
+    within ``ROLLING_MARGIN`` of the image (trusted distortion) at the image's pose time."""
+    points = np.asarray(points_vehicle, np.float64)
+    if vehicle_from_points is not None:
+        points = points @ vehicle_from_points[:3, :3].T + vehicle_from_points[:3, 3]
+    camera_from_vehicle = model.camera_from_vehicle
+    points_camera = points @ camera_from_vehicle[:3, :3].T + camera_from_vehicle[:3, 3]
+    pad = ROLLING_MARGIN * max(model.width, model.height)
+    # a cheap cone first (undistorted, twice the padded field of view), then the distortion
+    reach = 2.0 * (max(model.width, model.height) + pad) / min(model.f_u, model.f_v)
+    x = points_camera[:, 0]
+    cone = np.flatnonzero((x > 0) & (np.abs(points_camera[:, 1]) < reach * x) & (np.abs(points_camera[:, 2]) < reach * x))
+    pixels, valid = model.pixels_from_camera(points_camera[cone])
+    with np.errstate(invalid="ignore"):
+        near = (valid & (pixels[:, 0] >= -pad) & (pixels[:, 0] < model.width + pad)
+                & (pixels[:, 1] >= -pad) & (pixels[:, 1] < model.height + pad))
+    return cone[near]
 
 
 def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: SegmentPlan | None = None) -> np.ndarray:
@@ -169,6 +210,9 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
                                   sparse_depth_from_points)
     from drivetrack.waymo.schema import LaserName
 
+    from drivetrack.camera.rolling_shutter import project_world, shutter_state
+    from drivetrack.depth import sparse_depth_from_pixels
+
     frames = scene.cameras[job.camera]
     model = frames.model
     lidar = scene.lidar
@@ -183,19 +227,34 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
         keep = return_mask(lasers, returns, config.depth_laser_values, config.depth_returns)
         if not keep.all():
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
+        velocity_world = None
         if motion is not None:
             rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
-            points = points_at_image_time(scene, config, *motion[:2], job.camera, t, rows, points, memo=motion[2])
+            points, velocity_world = motion_at_image_time(scene, config, *motion[:2], job.camera, t, rows, points,
+                                                          memo=motion[2])
+        subset = (None if config.blind_zone_laser is None
+                  else (lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1))
         image_world_from_vehicle = frames.world_from_vehicle[t]
         image_vehicle_from_vehicle = None
         if np.all(np.isfinite(image_world_from_vehicle)):
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
-        if config.blind_zone_laser is None:
-            out[i] = sparse_depth_from_points(points, model, vehicle_from_points=image_vehicle_from_vehicle)
+        if config.rolling_shutter and shutter_state(frames, t).rolling:
+            # each return where the camera saw it: at its pixel's capture time in its row (the
+            # ego's motion during the readout, and a labelled object's own), as the tracks are
+            # projected (drivetrack.tracks.core, ``TrackConfig.rolling_shutter``); only returns
+            # near the image at its pose are solved (the readout moves them by tens of pixels)
+            near = _near_image(points, model, image_vehicle_from_vehicle)
+            world_from_vehicle = scene.world_from_vehicle[t]
+            seen = project_world(frames, t, points[near] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
+                                 None if velocity_world is None else velocity_world[near])
+            maps = sparse_depth_from_pixels(seen.pixels, seen.points_camera[:, 0], seen.valid, model,
+                                            None if subset is None else subset[near])
         else:
-            out[i], reference = sparse_depth_from_points(
-                points, model, subset=(lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1),
-                vehicle_from_points=image_vehicle_from_vehicle)
+            maps = sparse_depth_from_points(points, model, subset=subset, vehicle_from_points=image_vehicle_from_vehicle)
+        if config.blind_zone_laser is None:
+            out[i] = maps
+        else:
+            out[i], reference = maps
         if config.see_through_window_deg is not None:
             out[i][see_through_returns(out[i], window_px, config.occlusion_ratio,
                                        config.see_through_min_quadrants)] = 0.0

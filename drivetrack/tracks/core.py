@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivetrack.camera.model import CameraModel
-from drivetrack.geometry import invert_rigid
+from drivetrack.geometry import invert_rigid, rigid_velocity_world
 from drivetrack.outputs import RejectionReason
 from drivetrack.tracks.context import SegmentContext
 from drivetrack.tracks.plan import ObjectJob
@@ -206,24 +206,33 @@ class _NumpyProjection:
         self.world_from_box, self.shift_world, self.velocity_world = world_from_box, shift_world, velocity_world
         self.yaw_rate_world = yaw_rate_world
 
-    def project(self, chunk: np.ndarray):
+    def project(self, chunk: np.ndarray, at_capture: bool = False):
+        """``at_capture``: under rolling shutter the camera-frame points (their depth) are taken at
+        each point's capture time in its row (the z-buffer compares depths there), else at the
+        image pose like the global path; the pixels are the same either way."""
         points_camera = _carry(self.camera_from_box, chunk) + self.shift_camera[:, None]   # [T, n, 3]
         if not self.rolling:
             pixels, valid = self.model.pixels_from_camera(points_camera)
         else:
             pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
             valid = np.zeros(points_camera.shape[:2], dtype=bool)
+            if at_capture:
+                from drivetrack.camera.rolling_shutter import project_world
+
+                captured = np.full(points_camera.shape, np.nan)
             for tau, t in enumerate(self.frames.tolist()):
                 world = _carry(self.world_from_box[tau:tau + 1], chunk)[0] + self.shift_world[tau]
-                velocity = np.broadcast_to(self.velocity_world[tau], chunk.shape)
-                if self.yaw_rate_world is not None and self.yaw_rate_world[tau] != 0.0:
-                    # rigid motion: v + w z x (p - c), the object's yaw rate about the world z
-                    lever = world - self.world_from_box[tau, :3, 3]
-                    velocity = velocity + self.yaw_rate_world[tau] * np.stack(
-                        [-lever[:, 1], lever[:, 0], np.zeros(lever.shape[0])], axis=-1)
-                px, ok, _ = self.projector(self.frames_meta, t, world, velocity)
-                pixels[tau], valid[tau] = px, ok
+                velocity = rigid_velocity_world(world, self.world_from_box[tau, :3, 3], self.velocity_world[tau],
+                                           0.0 if self.yaw_rate_world is None else self.yaw_rate_world[tau])
+                if at_capture:
+                    found = project_world(self.frames_meta, t, world, velocity)
+                    pixels[tau], valid[tau], captured[tau] = found.pixels, found.valid, found.points_camera
+                else:
+                    px, ok, _ = self.projector(self.frames_meta, t, world, velocity)
+                    pixels[tau], valid[tau] = px, ok
             valid &= points_camera[..., 0] > 0
+            if at_capture:
+                points_camera = np.where(valid[..., None], captured, points_camera)
         return points_camera, pixels, valid
 
 
@@ -638,7 +647,47 @@ def occluding_objects(plan) -> set[str]:
     return found
 
 
-def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray):
+#: Under a rolling shutter an occluder's returns are solved for their capture time only within
+#: this fraction of the image's larger side of the tracked object's disc (at the image pose; the
+#: readout moves an object beside the ego by tens of pixels relative to another).
+_ROLLING_PAD = 0.1
+
+
+def _near_disc(model: CameraModel, centre_camera: np.ndarray, radius_m: float):
+    """``near(pixels float [m, 2]) -> bool [m]``: within the square round the image disc of the
+    sphere of centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded
+    by ``_ROLLING_PAD`` of the image; everywhere when the sphere reaches the camera or its centre
+    does not project."""
+    pad = _ROLLING_PAD * max(model.width, model.height)
+    distance = float(np.linalg.norm(centre_camera))
+    centre_px, ok = model.pixels_from_camera(np.asarray(centre_camera, np.float64)[None])
+    if distance <= 1.5 * radius_m or not ok[0] or not np.isfinite(centre_px).all():
+        return lambda pixels: np.ones(pixels.shape[0], dtype=bool)
+    # the disc's radius in pixels, generously (the distortion is not inverted here)
+    half = 2.0 * max(model.f_u, model.f_v) * radius_m / max(distance - radius_m, 1e-6) + pad
+    centre_px = centre_px[0]
+    return lambda pixels: (np.abs(pixels - centre_px) <= half).all(axis=-1)
+
+
+def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.ndarray, radius_m: np.ndarray,
+                     select: np.ndarray):
+    """(pixels float64 [s, 2], depth float64 [s], radius float64 [s]) of an occluder's returns
+    ``points_box[select]`` (box frame) in image ``t`` of ``shutter`` (the camera's frames), each at
+    its capture time in its row: the object moves rigidly from its pose ``k`` of ``poses`` (at the
+    image pose time) with its velocity and yaw rate, as :class:`_NumpyProjection` moves the
+    tracked points."""
+    from drivetrack.camera.rolling_shutter import project_world
+
+    chosen = np.flatnonzero(select)
+    world = _carry(poses.world_from_box[k:k + 1], points_box[chosen])[0] + poses.shift_world[k]
+    found = project_world(shutter, t, world, rigid_velocity_world(world, poses.world_from_box[k, :3, 3],
+                                                             poses.velocity_world[k], poses.yaw_rate_world[k]))
+    ok = found.valid & (found.points_camera[:, 0] > 0)
+    return found.pixels[ok], found.points_camera[ok, 0], radius_m[chosen[ok]]
+
+
+def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
+               shutter=None):
     """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
     radius float64 [m], metres) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
@@ -656,6 +705,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     lies entirely farther from the camera than the target's far side, or is seen at an angle from
     the target's that their angular radii (plus :data:`_OCCLUDER_ANGLE_MARGIN_RAD`, for the motion
     between label and image time) cannot bridge: it cannot occlude the target in that image.
+    ``shutter``: the camera's frames (``scene.cameras[job.camera]``, without images) when the job
+    projects with a rolling shutter: each return is then splatted at its pixel and depth at its
+    capture time in its row, as the tracked points are looked up (the boxes stay at the image
+    pose); None: the global-shutter image pose.
     """
     from drivetrack.visibility.zbuffer import surfel_subsample
 
@@ -677,6 +730,9 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
+    if shutter is not None:
+        # only returns near the target in the image at its pose are solved for their capture time
+        near_target = [_near_disc(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
     for object_id in np.unique(boxes.object_id[in_clip]).tolist():
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
@@ -709,7 +765,11 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         placed[:, :3, 3] += poses.shift_camera
         for k, t in enumerate(obj_frames.tolist()):
             ok = valid[k]
-            per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
+            if shutter is None:
+                per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
+            else:
+                per_frame[slot[t]].append(_captured_splats(shutter, t, poses, k, points_box, radius_m,
+                                                           ok & near_target[slot[t]](pixels[k])))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
@@ -796,9 +856,22 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         pixels, valid = model.pixels_from_camera(points_camera)
         return points_camera, pixels, valid & (points_camera[..., 0] > 0)
 
+    projector = rolling_shutter_projector() if config.rolling_shutter else None
+    # A camera whose shutter data say global shutter at every clip frame projects exactly like
+    # the global path (rolling_shutter.shutter_state's fallback): skip the per-frame loop.
+    rolling = projector is not None and _any_rolling_frame(frames_meta, frames)
+    # the projection is kept by the result's TrackSource: without the camera's images (a
+    # result crossing processes must not carry the segment's JPEGs)
+    shutter_meta = dataclasses.replace(frames_meta, jpeg=[None] * len(frames_meta.jpeg))
+    projection = _NumpyProjection(model, rolling, projector, shutter_meta, frames, camera_from_box,
+                                  shift_camera, poses.world_from_box, poses.shift_world, poses.velocity_world,
+                                  poses.yaw_rate_world)
+
     # Other objects (drivetrack.visibility.zbuffer): hidden[T, n] where another labelled object's
     # splatted returns lie nearer than the point, beyond the tolerance. The same numpy decision
-    # (global-shutter pixel at the image pose) for the kernel and numpy paths. The margins of
+    # for the kernel and numpy paths: at the image pose (global shutter), or under a rolling
+    # shutter at each point's and each occluder return's pixel and depth at its capture time
+    # (a parked car beside the ego moves ~10 px between two rows of a side camera). The margins of
     # both surface tests, float32 [T, n] (+inf where a test cannot hide the point), go into each
     # kept point-frame's occlusion margin (:func:`_occlusion_margins`).
     hidden_other = zbuffer_margin = face_margin = None
@@ -807,12 +880,25 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # depth spread past its outline, which the z-buffer draws from its own surface; posed like the
     # own box (the global-shutter image pose); [T, 0, 18]: off.
     others = np.zeros((0, 0, 18))
+    occluders = []
+
+    def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray) -> None:
+        """Fills ``hidden_other`` and ``zbuffer_margin`` of candidates ``start:`` from their
+        projection float [T, k, 3] (depth) / [T, k, 2] (pixels) / bool [T, k]."""
+        stop = start + pixels.shape[1]
+        hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
+            points_camera, pixels, valid, occluders, int(model.width), int(model.height),
+            float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
+            float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
+            int(config.occluder_fill_px))
+
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
         occluders, occluder_boxes = _occluders(plan, job, frames, centre_camera,
-                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1))
+                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
+                                               shutter_meta if rolling else None)
         any_occluder = any(o[1].size for o in occluders)
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes
@@ -827,19 +913,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             face_margin = np.empty((t_count, n), dtype=np.float32)
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
-            if any_occluder:
-                points_camera, pixels, valid = project_global(p_box[start:stop])
-                hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
-                    points_camera, pixels, valid, occluders, int(model.width), int(model.height),
-                    float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
-                    float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-                    int(config.occluder_fill_px))
+            if any_occluder and not rolling:      # rolling: in the numpy path's loop, from its projection
+                zbuffer_test(start, *project_global(p_box[start:stop]))
             if surfels is not None:
                 angle = np.degrees(np.arccos(np.clip(
                     facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box), -1.0, 1.0)))
                 face_margin[:, start:stop] = np.where(surfels.reliable[None, start:stop],
                                                       config.back_face_max_deg - angle, np.inf)
-        del occluders
+        if not rolling:
+            occluders = []
 
     def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
         """bool [T, k]: not hidden by the surface tests (back faces, other objects) for candidates
@@ -850,10 +932,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         idx = np.arange(start, stop) if where is None else where
         return ~hidden_other[:, idx] if faces is None else faces & ~hidden_other[:, idx]
 
-    projector = rolling_shutter_projector() if config.rolling_shutter else None
-    # A camera whose shutter data say global shutter at every clip frame projects exactly like
-    # the global path (rolling_shutter.shutter_state's fallback): skip the per-frame loop.
-    rolling = projector is not None and _any_rolling_frame(frames_meta, frames)
     depth = ctx.depth.get(job.camera)
     if depth is None or np.any(depth.slot[frames] < 0):
         raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
@@ -926,12 +1004,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
-        # the projection is kept by the result's TrackSource: without the camera's images (a
-        # result crossing processes must not carry the segment's JPEGs)
-        shutter_meta = dataclasses.replace(frames_meta, jpeg=[None] * len(frames_meta.jpeg))
-        projection = _NumpyProjection(model, rolling, projector, shutter_meta, frames, camera_from_box,
-                                      shift_camera, poses.world_from_box, poses.shift_world, poses.velocity_world,
-                                      poses.yaw_rate_world)
         parts: list[tuple[np.ndarray, np.ndarray]] = []
         keep = np.zeros(n, dtype=bool)
         speeds = np.zeros(n, dtype=np.float64)
@@ -939,7 +1011,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         dropped_invisible = dropped_speed = 0
         for start in range(0, n, config.chunk_points):
             chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
-            points_camera, pixels, valid = projection.project(chunk)
+            # under a rolling shutter the depths at the capture time (the depth maps and the
+            # z-buffer are drawn there too)
+            points_camera, pixels, valid = projection.project(chunk, at_capture=True)
+            if rolling and hidden_other is not None:
+                zbuffer_test(start, points_camera, pixels, valid)
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
@@ -982,7 +1058,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
         final_rows = np.flatnonzero(keep)
-        project = projection.project
+        occluders = []
+
+        def project(chunk: np.ndarray):
+            return projection.project(chunk, at_capture=True)
 
     margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
                                  own_box, own_points, others)
