@@ -223,7 +223,7 @@ class _NumpyProjection:
             for tau, t in enumerate(self.frames.tolist()):
                 world = _carry(self.world_from_box[tau:tau + 1], chunk)[0] + self.shift_world[tau]
                 velocity = rigid_velocity_world(world, self.world_from_box[tau, :3, 3], self.velocity_world[tau],
-                                           0.0 if self.yaw_rate_world is None else self.yaw_rate_world[tau])
+                                                0.0 if self.yaw_rate_world is None else self.yaw_rate_world[tau])
                 if at_capture:
                     found = project_world(self.frames_meta, t, world, velocity)
                     pixels[tau], valid[tau], captured[tau] = found.pixels, found.valid, found.points_camera
