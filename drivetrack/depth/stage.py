@@ -194,7 +194,10 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
     Uses the returns of ``config.depth_lasers`` and ``config.depth_returns`` (default: first
     returns of every lidar). Returns are moved from the frame's vehicle frame
     to the vehicle frame at the image's pose before projection, so that the maps agree with the
-    track projection (the ego vehicle moves between the LiDAR and the camera timestamps). With
+    track projection (the ego vehicle moves between the LiDAR and the camera timestamps); under a
+    rolling shutter (``config.rolling_shutter`` and the image's timing) each return near the image
+    is projected at its capture time in its row instead (``rolling_shutter.project_world``;
+    labelled objects' returns with their rigid velocity, :func:`motion_at_image_time`). With
     ``config.see_through_window_deg``, returns the camera cannot see (the LiDAR saw them past a
     nearer surface) are then removed (:func:`drivetrack.depth.see_through_returns`). With
     ``config.blind_zone_laser``, the region below that lidar's lowest scan line (its first
