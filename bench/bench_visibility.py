@@ -27,12 +27,18 @@ The figures before any fix (issues 15 and 16) stay in docs/benchmarks.md as meas
 script writes the comparison block (``bench_visibility_compare``). With ``--rolling-shutter`` the
 world's cameras are read out row by row (``SynthConfig(rolling_shutter=True)``, as real logs'
 are) and the block ``bench_visibility_rolling`` is written instead; ``--variants`` picks
-entries of :data:`VARIANTS` (comma-separated names, default all).
+entries of :data:`VARIANTS` or :data:`EXTRA_VARIANTS` (comma-separated names, default every
+:data:`VARIANTS` entry). With ``--car-shape cabin`` every vehicle is a body and a cabin inside its
+label box (``SynthConfig(car_shape="cabin")``: real cars are not boxes) and the block
+``bench_visibility_cabin`` is written.
 
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
         --variants "depth-ratio (paper),+ depth map defers to the z-buffer (default)"   # ~12 min
+    .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
++ depth map defers to the z-buffer (default),own-box rule without a gap limit (before),\
+default without the own-box rule"   # ~15 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -179,21 +185,32 @@ VARIANTS = {
     # a depth-map surface inside another labelled object's box is left to the z-buffer
     "+ depth map defers to the z-buffer (default)": {},
 }
+#: Variants run only when named in ``--variants``: the default with one rule switched off.
+EXTRA_VARIANTS = {
+    "own-box rule without a gap limit (before)": {"own_surface_max_gap_m": None},
+    "default without the own-box rule": {"own_surface_margin_m": None},
+}
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 ROLLING_START, ROLLING_END = "<!-- bench_visibility_rolling:start -->", "<!-- bench_visibility_rolling:end -->"
+CABIN_START, CABIN_END = "<!-- bench_visibility_cabin:start -->", "<!-- bench_visibility_cabin:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
     """The comparison block: one column per variant, the same segment and truth."""
     names = list(results)
     rolling = setup.get("rolling_shutter", False)
+    cabin = setup.get("car_shape", "box") == "cabin"
     title = ("## Visibility on the hard world read out by a rolling shutter" if rolling
+             else "## Visibility on the hard world with cabin-shaped cars" if cabin
              else "## Visibility on the hard world: back faces from each object's own surface")
     world = ("the hard world of the block above rendered with rolling-shutter cameras "
              "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
+             else "the hard world of the block above with every vehicle a body and a cabin inside its label "
+                  "box (`SynthConfig(world=\"hard\", car_shape=\"cabin\")`), same scoring: preset " if cabin
              else "same segment and scoring as the block above: preset ")
+    options = (" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
     lines = [title, "",
-             f"`bench/bench_visibility.py{' --rolling-shutter' if rolling else ''}` ({world}"
+             f"`bench/bench_visibility.py{options}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
              f"type, `min_frames` 8, `max_camera_distance_m` 75), annotated once per variant in one run. "
              f"Annotation wall time per variant: "
@@ -238,22 +255,27 @@ def main(argv: list[str] | None = None) -> int:
     add_hard_world_arguments(ap)
     ap.add_argument("--rolling-shutter", action="store_true",
                     help="cameras read out row by row (writes the bench_visibility_rolling block)")
+    ap.add_argument("--car-shape", choices=["box", "cabin"], default="box",
+                    help="cabin: every vehicle a body and a cabin inside its label box (writes the "
+                         "bench_visibility_cabin block)")
     ap.add_argument("--variants", default=None,
-                    help="comma-separated names of VARIANTS to run (default all)")
+                    help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
     variants = VARIANTS
     if args.variants:
         names = [v.strip() for v in args.variants.split(",") if v.strip()]
-        unknown = [v for v in names if v not in VARIANTS]
+        known = {**VARIANTS, **EXTRA_VARIANTS}
+        unknown = [v for v in names if v not in known]
         if unknown:
-            ap.error(f"--variants: unknown {unknown}; known: {list(VARIANTS)}")
-        variants = {v: VARIANTS[v] for v in names}
+            ap.error(f"--variants: unknown {unknown}; known: {list(known)}")
+        variants = {v: known[v] for v in names}
     results, annotate_s, stage_s = {}, {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
                                                          cameras=CAMERAS, world="hard",
-                                                         rolling_shutter=args.rolling_shutter),
+                                                         rolling_shutter=args.rolling_shutter,
+                                                         car_shape=args.car_shape),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
@@ -276,13 +298,15 @@ def main(argv: list[str] | None = None) -> int:
             results[name] = summary
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
-             "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter}
+             "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
+             "car_shape": args.car_shape}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
     print(markdown)
     if not args.no_docs:
-        start, end = (ROLLING_START, ROLLING_END) if args.rolling_shutter else (COMPARE_START, COMPARE_END)
+        start, end = ((ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
+                      if args.car_shape == "cabin" else (COMPARE_START, COMPARE_END))
         replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
     return 0
 

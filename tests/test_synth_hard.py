@@ -229,3 +229,64 @@ def test_camera_synced_boxes_are_at_the_most_visible_cameras_time(hard):
     moved = np.linalg.norm(c_synced[rows] - c_label[rows], axis=1)
     assert (moved > 0.2).any()          # a car beside the ego in a side camera: >= 8 m/s x 25 ms
     np.testing.assert_array_equal(c_synced[cam == 0], c_label[cam == 0])
+
+
+def test_cabin_cars_are_a_body_and_a_cabin_inside_their_label_box(tmp_path):
+    """``car_shape="cabin"``: every vehicle is a body and a narrower, shorter cabin whose tight
+    bounding box is the label box; the LiDAR and the truth see that solid (returns on the bonnet
+    at the body's height, none in the label box's empty corners), the labels and every other
+    object are those of the box world, and the truth's face normals follow the solid hit."""
+    from drivetrack.synth.raycast import intersect_solids
+    from drivetrack.synth.truth import face_normals
+    from drivetrack.synth.world import cabin_parts
+
+    size = (4.6, 1.9, 1.6)
+    parts = cabin_parts(size)
+    lo = np.min([np.subtract(o, h) for o, h in parts], axis=0)
+    hi = np.max([np.add(o, h) for o, h in parts], axis=0)
+    np.testing.assert_allclose(lo, -np.array(size) / 2, atol=1e-12)
+    np.testing.assert_allclose(hi, np.array(size) / 2, atol=1e-12)
+    solids = tuple((np.asarray(o), np.asarray(h)) for o, h in parts)
+    # straight down onto the bonnet: the body's top, not the label box's; onto the roof: the cabin's
+    origins = np.array([[2.0, 0.0, 5.0], [0.0, 0.0, 5.0], [0.0, 0.93, 5.0]])
+    t_in, _, axis, part = intersect_solids(origins, np.tile([0.0, 0.0, -1.0], (3, 1)), np.zeros(3), 0.0, solids)
+    np.testing.assert_allclose(5.0 - t_in, [-0.8 + 0.55 * 1.6, 0.8, -0.8 + 0.55 * 1.6], atol=1e-9)
+    assert axis.tolist() == [2, 2, 2] and part.tolist() == [0, 1, 0]
+
+    root = str(tmp_path / "cabin")
+    config = SynthConfig(seed=7, frames=4, preset="small", cameras=("FRONT", "SIDE_RIGHT"), world="hard",
+                         car_shape="cabin")
+    seg = generate_segment(root, config, 0)["segment"]
+    truth = load_ground_truth(root, "training", seg)
+    boxes = load_ground_truth(*_box_world(tmp_path, config), "training", seg)
+    objects, hits = truth.objects, truth.hits
+    for key in ("object_id", "size", "world_from_box", "type"):
+        np.testing.assert_array_equal(objects[key], boxes.objects[key])
+    vehicles = np.flatnonzero(objects["type"] == int(BoxType.VEHICLE))
+    on = np.isin(hits["object_index"], vehicles)
+    assert on.sum() > 1000
+    point, k = hits["point_box"][on], hits["object_index"][on]
+    half = objects["size"][k] / 2
+    body_top = -half[:, 2] + 0.55 * 2 * half[:, 2]
+    # nothing in the empty corners: above the body's top only within the cabin's footprint
+    high = point[:, 2] > body_top + 1e-6
+    assert high.any() and (np.abs(point[high, 1]) <= 0.86 * half[high, 1] + 1e-6).all()
+    assert (np.abs(point[high, 0] + 0.06 * 2 * half[high, 0]) <= 0.25 * 2 * half[high, 0] + 1e-6).all()
+    bonnet = (np.abs(point[:, 2] - body_top) < 1e-6) & (point[:, 0] > 0.3 * 2 * half[:, 0])
+    assert bonnet.sum() > 10
+    solids = {int(i): tuple((np.asarray(o), np.asarray(h)) for o, h in cabin_parts(objects["size"][i]))
+              for i in vehicles.tolist()}
+    normals = face_normals(k, point, [solids.get(i, ()) for i in range(int(k.max()) + 1)])
+    np.testing.assert_array_equal(normals[bonnet], np.tile([0.0, 0.0, 1.0], (int(bonnet.sum()), 1)))
+    # a cabin's side face (the glasshouse) faces sideways although it lies inside the label box
+    glass = high & (np.abs(np.abs(point[:, 1]) - 0.86 * half[:, 1]) < 1e-6)
+    assert glass.any() and (np.abs(normals[glass, 1]) == 1.0).all()
+    assert not (hits["visible"] & ~hits["facing"]).any()
+
+
+def _box_world(tmp_path, config):
+    import dataclasses
+
+    root = str(tmp_path / "box")
+    generate_segment(root, dataclasses.replace(config, car_shape="box"), 0)
+    return (root,)

@@ -260,7 +260,8 @@ def test_summarise_tracks_equals_the_numpy_summary():
     assert pixels.tobytes() == expect_pixels.tobytes()
 
 
-def test_kernel_own_and_other_boxes_equal_the_numpy_rules():
+@pytest.mark.parametrize("max_gap_m", [None, 3.0])
+def test_kernel_own_and_other_boxes_equal_the_numpy_rules(max_gap_m):
     """The depth-map test with the object's own box (:func:`drivetrack.visibility.own_surface`) and
     other labelled objects' boxes (:func:`drivetrack.visibility.other_surface`: a map surface
     inside another box grown by the margin, on a ray that misses that box itself, hides nothing):
@@ -273,7 +274,7 @@ def test_kernel_own_and_other_boxes_equal_the_numpy_rules():
     ratio = 0.95
     t_count = len(maps)
     rng = np.random.default_rng(11)
-    own = own_box_parameters(camera_centres_box(cam, shift), np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2)
+    own = own_box_parameters(camera_centres_box(cam, shift), np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2, max_gap_m)
     own_points = rng.random(len(p)) < 0.7
     # per frame four or five other boxes between the camera and the object, one frame without any
     others_list = []
@@ -294,6 +295,10 @@ def test_kernel_own_and_other_boxes_equal_the_numpy_rules():
     grown_only = other_surface(p, depth_ratio, own, np.concatenate([others[..., :15], np.full(others[..., 15:].shape, -1.0)], -1),
                                where=occluded)
     assert mine.sum() > 20 and (theirs & ~mine).sum() > 20
+    if max_gap_m is not None:        # the gap limit decides some: surfaces in the box but far in front
+        unlimited = own_surface(p, depth_ratio, own_box_parameters(camera_centres_box(cam, shift),
+                                np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2), where=occluded & own_points[None])
+        assert (unlimited & ~mine).sum() > 5, (unlimited.sum(), mine.sum())
     assert (grown_only & ~theirs).sum() > 5        # rays through a box: the map still hides (10 here)
     expected = (ok & ~(occluded & ~mine & ~theirs)).T
 

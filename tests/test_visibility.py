@@ -488,7 +488,7 @@ def test_own_surface_point_on_the_ray():
     size = np.array([[4.0, 2.0, 1.5], [4.0, 2.0, 1.5]])
     centres = np.array([[-20.0, 0.0, 0.8], [-20.0, 0.0, 0.8]])              # camera 20 m behind the box
     own = own_box_parameters(centres, size, 0.2)
-    assert own.shape == (2, 6) and np.allclose(own[:, 3:], [2.2, 1.2, 0.95])
+    assert own.shape == (2, 7) and np.allclose(own[:, 3:6], [2.2, 1.2, 0.95]) and np.isinf(own[:, 6]).all()
     far = np.array([[1.9, 0.0, 0.7], [1.9, 0.5, -0.3]])                        # on the far end of the box
     ratio = np.array([[20.0 / 21.9, 17.9 / 21.9],                              # the near face: own
                       [10.0 / 21.9, np.nan]])                                   # a car halfway: not own; unknown
@@ -498,6 +498,14 @@ def test_own_surface_point_on_the_ray():
     at_the_point = np.ones((1, 1))
     assert own_surface(roof, at_the_point, own[:1]).all()
     assert not own_surface(roof, at_the_point, own_box_parameters(centres[:1], size[:1], 0.05)).all()
+    # the gap: with own_surface_max_gap_m 1 m, a surface 1.9 m in front of the point is a part of
+    # the object itself (a box has none, a cabin in front of a bonnet is one) and hides it; 0.5 m
+    # in front it is still the object's own surface spread by the map
+    gap = own_box_parameters(centres, size, 0.2, 1.0)
+    assert np.allclose(gap[:, 6], 1.0)
+    np.testing.assert_array_equal(own_surface(far, ratio, gap), [[False, False], [False, False]])
+    near = np.array([[21.4 / 21.9], [21.4 / 21.9]]).reshape(2, 1)
+    np.testing.assert_array_equal(own_surface(far[:1], near, gap), [[True], [True]])
 
 
 def test_own_returns_smeared_over_the_objects_far_points_hide_nothing(hard_scene, tmp_path):

@@ -46,6 +46,11 @@ def add_parser(sub) -> None:
     p.add_argument("--label-time", choices=["frame", "sweep"], default="frame",
                    help="lidar_box at the frame time (default) or where the object was when the "
                         "TOP sweep passed it")
+    p.add_argument("--car-shape", choices=["box", "cabin"], default="box",
+                   help="box: every vehicle is its label box (default); cabin: a lower body and a "
+                        "narrower, shorter cabin on it, the label box their bounding box (bonnet "
+                        "and boot below the glasshouse: faces the box does not have, and empty "
+                        "corners inside the label box)")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -75,7 +80,7 @@ def run(args) -> int:
     config = SynthConfig(
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
         box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
-        camera_trigger=args.camera_trigger, label_time=args.label_time,
+        camera_trigger=args.camera_trigger, label_time=args.label_time, car_shape=args.car_shape,
         heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
@@ -98,5 +103,6 @@ def run(args) -> int:
     print(f"{args.segments} segment(s) written to {args.out} (split {args.split}, seed {args.seed}, "
           f"preset {args.preset}, {shutter} shutter"
           + (f", world {config.world}, cameras at {config.trigger} time, lidar_box at {config.label_time} time"
-             if config.extended_truth else "") + ")", file=sys.stdout)
+             if config.extended_truth else "")
+          + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "") + ")", file=sys.stdout)
     return 0

@@ -42,7 +42,9 @@ class SynthConfig:
     as Waymo's do: ``pose_timestamp`` = frame time - yaw / (2 pi) * 0.1 s); None means "sweep"
     in the hard world, "frame" otherwise. ``label_time``: "frame" (``lidar_box`` = the box at the
     frame time) or "sweep" (the box where the object was when the TOP sweep passed its centre,
-    still expressed in the vehicle frame of the frame time)."""
+    still expressed in the vehicle frame of the frame time). ``car_shape``: "box" (every vehicle is
+    its label box) or "cabin" (a body and a cabin inside the label box, see
+    :func:`drivetrack.synth.world.cabin_parts`)."""
     seed: int = 7
     frames: int = 40
     preset: str = "small"
@@ -54,13 +56,15 @@ class SynthConfig:
     world: str = "default"
     camera_trigger: str | None = None
     label_time: str = "frame"
+    car_shape: str = "box"
 
     def __post_init__(self):
-        from drivetrack.synth.world import WORLDS
+        from drivetrack.synth.world import CAR_SHAPES, WORLDS
 
         for name, value, allowed in (("world", self.world, WORLDS),
                                      ("camera_trigger", self.camera_trigger, (None, "frame", "sweep")),
-                                     ("label_time", self.label_time, ("frame", "sweep"))):
+                                     ("label_time", self.label_time, ("frame", "sweep")),
+                                     ("car_shape", self.car_shape, CAR_SHAPES)):
             if value not in allowed:
                 raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
 

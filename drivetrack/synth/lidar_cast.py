@@ -92,7 +92,7 @@ class _LidarCasting:
             sub = cast(o_all[second_local], d_all[second_local], self.world, pose_sub,
                        [np.arange(second_local.size)] * self.K,
                        t_min=first.t_exit[second_local] + 0.05, t_max=spec.max_range)
-            for name in ("t", "obj", "axis", "t_exit"):
+            for name in ("t", "obj", "axis", "t_exit", "part"):
                 getattr(second, name)[second_local] = getattr(sub, name)
         out = {"range": np.zeros((2, H, W), np.float32), "intensity": np.zeros((2, H, W), np.float32),
                "elongation": np.zeros((2, H, W), np.float32), "obj": np.full((2, H, W), -2, np.int32),

@@ -1,5 +1,8 @@
 """Vectorised ray casting against the ground plane (z = 0) and yaw-oriented boxes.
 
+An object is the union of its :attr:`drivetrack.synth.world.SynthObject.solids` (its label box,
+or a vehicle's body and cabin): a ray hits the nearest of them.
+
 Rays are given in the world frame (origins float64 [N, 3], unit directions float64 [N, 3]); a hit
 distance ``t`` is metres along the ray. Boxes are passed per object as centre and heading, either
 one pose for all its candidate rays or one per ray (a lidar column sees a moving object at that
@@ -17,7 +20,7 @@ import numpy as np
 from drivetrack.synth.texture import face_albedo, ground_albedo
 from drivetrack.synth.world import World
 
-__all__ = ["Hits", "intersect_box", "cast", "surface_albedo_normal", "GROUND", "NO_HIT"]
+__all__ = ["Hits", "intersect_box", "intersect_solids", "part_center", "cast", "surface_albedo_normal", "GROUND", "NO_HIT"]
 
 GROUND = -1
 NO_HIT = -2
@@ -30,16 +33,18 @@ PoseFn = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
 class Hits:
     """First hit per ray. ``t`` float64 [N] metres (inf = none), ``obj`` int32 [N] object index
     or GROUND / NO_HIT, ``axis`` int8 [N] box-frame axis of the hit face, ``t_exit`` float64 [N]
-    where the ray leaves the hit object (inf for the ground)."""
+    where the ray leaves the hit solid (inf for the ground), ``part`` int8 [N] which of the
+    object's solids it hit."""
     t: np.ndarray
     obj: np.ndarray
     axis: np.ndarray
     t_exit: np.ndarray
+    part: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> "Hits":
         return cls(np.full(n, np.inf), np.full(n, NO_HIT, np.int32), np.zeros(n, np.int8),
-                   np.full(n, np.inf))
+                   np.full(n, np.inf), np.zeros(n, np.int8))
 
 
 def _to_box(origins, dirs, center, heading):
@@ -79,6 +84,35 @@ def intersect_box(origins: np.ndarray, dirs: np.ndarray, center: np.ndarray, hea
     return np.where(hit, t_near, np.inf), np.where(hit, t_far, np.inf), axis
 
 
+def part_center(center: np.ndarray, heading: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """float64 [..., 3]: the world centre of a solid at box-frame ``offset`` float64 [3] of a box at
+    ``center`` float64 [..., 3] with yaw ``heading`` float64 [...]."""
+    c, s = np.cos(heading), np.sin(heading)
+    return np.stack([center[..., 0] + c * offset[0] - s * offset[1],
+                     center[..., 1] + s * offset[0] + c * offset[1],
+                     center[..., 2] + offset[2] + 0.0 * c], axis=-1)
+
+
+def intersect_solids(origins: np.ndarray, dirs: np.ndarray, center: np.ndarray, heading: np.ndarray,
+                     solids, t_min: np.ndarray | float = 0.0):
+    """:func:`intersect_box` against the union of ``solids`` (``((offset [3], half size [3]), ...)``
+    in the box frame; :attr:`drivetrack.synth.world.SynthObject.solids`): the nearest entry.
+    Returns ``(t_enter, t_exit, axis, part int8 [n])``."""
+    center = np.asarray(center, np.float64)
+    heading = np.asarray(heading, np.float64)
+    best = None
+    for index, (offset, half) in enumerate(solids):
+        found = intersect_box(origins, dirs, part_center(center, heading, offset) if offset.any() else center,
+                              heading, half, t_min)
+        if best is None:
+            best = (*found, np.zeros(found[0].shape, np.int8))
+            continue
+        nearer = found[0] < best[0]
+        best = (np.where(nearer, found[0], best[0]), np.where(nearer, found[1], best[1]),
+                np.where(nearer, found[2], best[2]).astype(np.int8), np.where(nearer, np.int8(index), best[3]))
+    return best
+
+
 def cast(origins: np.ndarray, dirs: np.ndarray, world: World, pose_of: PoseFn,
          candidates: list[np.ndarray | None], t_min: np.ndarray | float = 0.0,
          t_max: float = np.inf, ground: bool = True) -> Hits:
@@ -105,14 +139,15 @@ def cast(origins: np.ndarray, dirs: np.ndarray, world: World, pose_of: PoseFn,
             continue
         obj = world.objects[k]
         center, heading = pose_of(k, idx)
-        t_in, t_out, axis = intersect_box(origins[idx], dirs[idx], center, heading,
-                                          np.asarray(obj.size) / 2.0, t_min_arr[idx])
+        t_in, t_out, axis, part = intersect_solids(origins[idx], dirs[idx], center, heading, obj.solids,
+                                                   t_min_arr[idx])
         better = t_in < hits.t[idx]
         sel = idx[better]
         hits.t[sel] = t_in[better]
         hits.obj[sel] = k
         hits.axis[sel] = axis[better]
         hits.t_exit[sel] = t_out[better]
+        hits.part[sel] = part[better]
     far = hits.t > t_max
     hits.t[far] = np.inf
     hits.obj[far] = NO_HIT
@@ -145,7 +180,9 @@ def surface_albedo_normal(hits: Hits, origins: np.ndarray, dirs: np.ndarray, wor
         other_b = np.where(axis == 2, pb[:, 1], pb[:, 2])
         albedo[idx] = face_albedo(other_a + 7.0 * axis, other_b, np.asarray(obj.color),
                                   obj.pattern, obj.texture_scale, obj.seed)
-        sign = np.sign(pb[np.arange(idx.size), axis])
+        # the face's side from the hit solid's own centre (the box centre for a plain box)
+        offsets = np.stack([o for o, _ in obj.solids])[hits.part[idx].astype(np.int64)]      # [n, 3]
+        sign = np.sign((pb - offsets)[np.arange(idx.size), axis])
         nb = np.zeros((idx.size, 3))
         nb[np.arange(idx.size), axis] = sign
         c, s = np.cos(heading), np.sin(heading)

@@ -16,7 +16,7 @@ from drivetrack.synth.config import (FRAME_PERIOD_S, LABEL_RANGE_M, T0_MICROS, S
 from drivetrack.synth.lidar_cast import _LidarCasting
 from drivetrack.synth.render import _CameraRendering
 from drivetrack.synth.sensors import GLOBAL_SHUTTER, PRESETS, READOUT_S, SHUTTER_S, camera_models, lidar_specs
-from drivetrack.synth.world import World, make_world
+from drivetrack.synth.world import World, make_world, with_car_shape
 
 
 class _Generator(_CameraRendering, _LidarCasting):
@@ -34,8 +34,8 @@ class _Generator(_CameraRendering, _LidarCasting):
         self.T = config.frames
         self.times = np.arange(self.T) * FRAME_PERIOD_S
         self.timestamps = (T0_MICROS + index * 10**9 + np.arange(self.T) * 100_000).astype(np.int64)
-        self.world: World = make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S,
-                                             config.world)
+        self.world: World = with_car_shape(make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S,
+                                                      config.world), config.car_shape)
         self.id_rng = np.random.default_rng(id_seq)
         self.noise_rng = np.random.default_rng(noise_seq)
         self.rolling = bool(config.rolling_shutter)

@@ -9,7 +9,7 @@ from drivetrack.camera.model import CameraModel
 from drivetrack.geometry import invert_rigid
 from drivetrack.synth import ground_truth as gt
 from drivetrack.synth.boxes import _apply, _yaw_transform
-from drivetrack.synth.raycast import intersect_box
+from drivetrack.synth.raycast import intersect_solids
 
 if TYPE_CHECKING:
     from drivetrack.synth.state import _Generator
@@ -33,6 +33,25 @@ def face_normals_box(object_index: np.ndarray, point_box: np.ndarray, sizes: np.
     return normal
 
 
+def face_normals(object_index: np.ndarray, point_box: np.ndarray, solids: list) -> np.ndarray:
+    """float64 [N, 3] outward unit normal, in the box frame, of the face each body point lies on,
+    for objects made of several solids (``solids[k]``: object k's
+    :attr:`drivetrack.synth.world.SynthObject.solids`): the solid whose surface the point lies on
+    (its largest relative coordinate nearest 1), then :func:`face_normals_box` of that solid."""
+    normal = np.zeros_like(point_box)
+    for k in np.unique(object_index).tolist():
+        on = np.flatnonzero(object_index == k)
+        local = [point_box[on] - offset for offset, _ in solids[k]]
+        gap = np.stack([np.abs(np.max(np.abs(q) / half, axis=-1) - 1.0) for q, (_, half) in zip(local, solids[k])])
+        pick = np.argmin(gap, axis=0)
+        for index, (_, half) in enumerate(solids[k]):
+            sel = pick == index
+            if sel.any():
+                normal[on[sel]] = face_normals_box(np.zeros(int(sel.sum()), np.int64), local[index][sel],
+                                                   (2.0 * half)[None])
+    return normal
+
+
 def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndarray, progress):
     """Pixels float32 [N, C, T, 2], visibility bool [N, C, T] and facing bool [N, C, T] of every
     body point. ``facing``: the point's face normal points towards the camera centre at the
@@ -44,8 +63,8 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
     facing = np.zeros((N, C, T), bool)
     if N == 0:
         return pixels, visible, facing
-    half = g.sizes / 2.0
-    normal_box = face_normals_box(object_index, point_box, g.sizes)
+    solids = [obj.solids for obj in g.world.objects]
+    normal_box = face_normals(object_index, point_box, solids)
     for tau in range(T):
         pw_frame = _yaw_transform(point_box, g.centers[object_index, tau], g.headings[object_index, tau])
         for ci, (cam, model) in enumerate(g.cameras.items()):
@@ -110,7 +129,7 @@ def _carry_and_check(g: _Generator, object_index: np.ndarray, point_box: np.ndar
                 else:
                     obj = g.world.objects[k]
                     center_k, heading_k = obj.center(point_time[cand[sel]]), obj.heading(point_time[cand[sel]])
-                t_in, _, _ = intersect_box(origins[sel], dirs[sel], center_k, heading_k, half[k], 0.0)
+                t_in = intersect_solids(origins[sel], dirs[sel], center_k, heading_k, solids[k], 0.0)[0]
                 better = t_in < best[sel]
                 best[sel[better]] = t_in[better]
                 best_obj[sel[better]] = k

@@ -24,10 +24,20 @@ import numpy as np
 from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 from drivetrack.waymo.schema import BoxType
 
-__all__ = ["Motion", "SynthObject", "World", "make_world", "LANE_WIDTH", "WORLDS"]
+__all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "LANE_WIDTH", "WORLDS", "CAR_SHAPES"]
 
 #: ``SynthConfig.world`` values: the default scene, and the one adding the cases of issues 15/16.
 WORLDS = ("default", "hard")
+
+#: ``SynthConfig.car_shape`` values: "box" (every object is its label box) or "cabin" (a vehicle is
+#: a lower body and a narrower, shorter cabin on it; the label box is their tight bounding box).
+CAR_SHAPES = ("box", "cabin")
+
+#: The cabin shape as fractions of the label box (length L, width W, height H): the body is the
+#: whole length and width and the lower ``_BODY_HEIGHT`` of H; the cabin, the rest of the height,
+#: is ``_CABIN_LENGTH`` of L long, centred ``_CABIN_SHIFT`` of L behind the box centre, and
+#: ``_CABIN_WIDTH`` of W wide (a saloon's glasshouse; bonnet ahead of it, boot behind).
+_BODY_HEIGHT, _CABIN_LENGTH, _CABIN_SHIFT, _CABIN_WIDTH = 0.55, 0.5, 0.06, 0.86
 
 LANE_WIDTH = 3.5
 #: lane centres (world y, metres): ego direction at negative y, oncoming at positive y.
@@ -119,7 +129,9 @@ class SynthObject:
 
     ``size`` (length along heading, width, height) in metres; the box sits on the ground unless
     ``z_center`` says otherwise. ``color`` float RGB in [0, 1], ``pattern`` 0 = checker,
-    1 = stripes, ``texture_scale`` metres per texture cell, ``seed`` for its noise.
+    1 = stripes, ``texture_scale`` metres per texture cell, ``seed`` for its noise. ``parts``: the
+    solid as axis-aligned boxes in the box frame, ``((offset xyz, half size xyz), ...)`` metres,
+    all inside the label box; empty: the label box itself (:attr:`solids`).
     """
     object_id: str
     type: int
@@ -131,6 +143,15 @@ class SynthObject:
     texture_scale: float
     seed: int
     role: str
+    parts: tuple = ()
+
+    @property
+    def solids(self) -> tuple:
+        """``((offset float64 [3], half size float64 [3]), ...)``: the boxes (in the box frame) whose
+        union is the object's surface."""
+        if self.parts:
+            return tuple((np.asarray(o, np.float64), np.asarray(h, np.float64)) for o, h in self.parts)
+        return ((np.zeros(3), np.asarray(self.size, np.float64) / 2.0),)
 
     def center(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 3] box centre in the world at times ``t``."""
@@ -208,6 +229,31 @@ class World:
 def _object_id(rng: np.random.Generator) -> str:
     alphabet = np.array(list(string.ascii_letters + string.digits + "-_"))
     return "".join(rng.choice(alphabet, size=22))
+
+
+def cabin_parts(size) -> tuple:
+    """``parts`` (:class:`SynthObject`) of a vehicle of label ``size`` (L, W, H) shaped as a body and
+    a cabin (:data:`CAR_SHAPES`); the label box is their tight bounding box."""
+    length, width, height = (float(s) for s in size)
+    body, cabin = _BODY_HEIGHT * height, (1.0 - _BODY_HEIGHT) * height
+    return (((0.0, 0.0, -height / 2 + body / 2), (length / 2, width / 2, body / 2)),
+            ((-_CABIN_SHIFT * length, 0.0, height / 2 - cabin / 2),
+             (_CABIN_LENGTH * length / 2, _CABIN_WIDTH * width / 2, cabin / 2)))
+
+
+def with_car_shape(world: World, car_shape: str) -> World:
+    """``world`` with every vehicle given ``car_shape`` (:data:`CAR_SHAPES`); nothing else changes
+    (the same objects, motions, colours and labels), so a segment differs from the box world's only
+    where a vehicle's shape does."""
+    import dataclasses
+
+    if car_shape not in CAR_SHAPES:
+        raise ValueError(f"unknown car shape {car_shape!r}; choose from {', '.join(CAR_SHAPES)}")
+    if car_shape == "box":
+        return world
+    objects = tuple(dataclasses.replace(o, parts=cabin_parts(o.size)) if o.type == int(BoxType.VEHICLE) else o
+                    for o in world.objects)
+    return dataclasses.replace(world, objects=objects)
 
 
 def make_world(rng: np.random.Generator, duration: float, kind: str = "default") -> World:

@@ -64,6 +64,12 @@ class TrackConfig:
             rear face); whether an object hides its own point is the back-face test's call
             (:func:`drivetrack.visibility.own_surface`), at points whose normal is reliable (the
             depth map still decides for the others). None: every surface counts (before).
+        own_surface_max_gap_m: ... only when that surface point lies at most this far (metres)
+            in front of the tracked point along its ray; farther, it is a part of the object
+            itself in front of the point (a cabin in front of a bonnet or boot, a mirror, a
+            truck's cab), which a box never has but real vehicles do, and the map hides the
+            point. None: no limit (before). Measured in docs/visibility.md ("Vehicles are not
+            boxes").
         depth_defers_to_zbuffer: under ``occlusion="surface"``, with the z-buffer of other objects
             and the own-box rule on, the depth-map test also ignores a surface whose point on the
             ray lies inside another labelled object's box (posed for the image, grown by
@@ -158,6 +164,7 @@ class TrackConfig:
     occlusion_ratio: float = 0.95
     back_face_max_deg: float | None = 90.0
     own_surface_margin_m: float | None = 0.2
+    own_surface_max_gap_m: float | None = 1.0
     depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
     normal_neighbours: int = 12
@@ -226,6 +233,10 @@ class TrackConfig:
                                                           and 0 <= self.own_surface_margin_m < 10):
             raise ValueError(f"TrackConfig.own_surface_margin_m must be None or a number of metres in [0, 10), "
                              f"got {self.own_surface_margin_m!r}")
+        if self.own_surface_max_gap_m is not None and not (isinstance(self.own_surface_max_gap_m, (int, float))
+                                                           and self.own_surface_max_gap_m >= 0):
+            raise ValueError(f"TrackConfig.own_surface_max_gap_m must be None or a number of metres >= 0, "
+                             f"got {self.own_surface_max_gap_m!r}")
         if self.normals_from not in ("segment", "clip"):
             raise ValueError(f"TrackConfig.normals_from must be 'segment' or 'clip', got {self.normals_from!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):

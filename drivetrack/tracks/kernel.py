@@ -45,10 +45,11 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
              px, py, pz):
     """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
 
-    ``own`` float64 [T, 6] (or [0, 6]: off): per frame the camera centre in the box frame and the
-    half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``; when
-    ``own_point`` (the point has a reliable normal), a surface whose point on the ray to the
-    box-frame point (px, py, pz) lies in that box does not hide it
+    ``own`` float64 [T, 7] (or [0, 7]: off): per frame the camera centre in the box frame, the
+    half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m`` and
+    ``own_surface_max_gap_m``; when ``own_point`` (the point has a reliable normal), a surface
+    whose point on the ray to the box-frame point (px, py, pz) lies in that box, at most the gap
+    in front of the point, does not hide it
     (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the
@@ -90,7 +91,9 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     qy = e[1] + scale * (py - e[1])
     qz = e[2] + scale * (pz - e[2])
     if own_point and abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]:
-        return True
+        # ... unless it lies farther in front of the point than e[6] (a part of the object itself)
+        if np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2) <= e[6]:
+            return True
     for k in range(others.shape[1]):
         o = others[tau, k]
         if o[12] < 0:
@@ -161,9 +164,9 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         camera: float64 [11], :func:`camera_parameters`.
         depth_maps: float32 [T, H, W], z-depth, metres, 0 = unknown.
         occlusion_ratio: occluded iff ``0 < surface < occlusion_ratio * z``.
-        own: float64 [T, 6] or [0, 6]: the object's own box for the depth test (:func:`_visible`),
+        own: float64 [T, 7] or [0, 7]: the object's own box for the depth test (:func:`_visible`),
             ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
-            ``own`` is [0, 6]), the points it applies to (reliable normals).
+            ``own`` is [0, 7]), the points it applies to (reliable normals).
         others: float64 [T, K, 18], the other labelled objects' boxes (:func:`_visible`).
         duration_s: clip duration; the speed is NaN when T < 2 or this is <= 0.
         box_speed_mps, max_speed_deviation_mps: the speed filter drops a visible point whose

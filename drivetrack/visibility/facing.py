@@ -119,14 +119,18 @@ def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) ->
     return -np.einsum("tji,tj->ti", rotation, translation)
 
 
-def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float) -> np.ndarray:
-    """float64 [T, 6]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
-    :func:`camera_centres_box`) and the half extents of the box of ``size`` float [T, 3] (metres)
-    grown by ``margin_m`` on every side: what :func:`own_surface` and the track kernel's depth test
+def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float,
+                       max_gap_m: float | None = None) -> np.ndarray:
+    """float64 [T, 7]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
+    :func:`camera_centres_box`), the half extents of the box of ``size`` float [T, 3] (metres)
+    grown by ``margin_m`` on every side, and ``max_gap_m`` (metres; None: +inf), the farthest
+    in front of the point along its ray that a surface inside that box is still taken for the
+    object's own: what :func:`own_surface` and the track kernel's depth test
     (``drivetrack.tracks.kernel``) take."""
     centres_box = np.asarray(centres_box, dtype=np.float64)
     half = 0.5 * np.asarray(size, dtype=np.float64) + float(margin_m)
-    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape)], axis=-1))
+    gap = np.full((centres_box.shape[0], 1), np.inf if max_gap_m is None else float(max_gap_m))
+    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape), gap], axis=-1))
 
 
 def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray,
@@ -136,8 +140,10 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
     point's pixel over the point's own z-depth (the surface's point on the ray from the camera
     centre ``e`` is ``e + depth_ratio (p - e)``: the pixel is the projection of the point, so they
-    share the ray); ``own`` float64 [T, 6] from :func:`own_box_parameters`. True where that
-    surface point lies inside the grown box. NaN ratios give False. ``where`` bool [T, n]: compute
+    share the ray); ``own`` float64 [T, 7] from :func:`own_box_parameters`. True where that
+    surface point lies inside the grown box and at most ``own[:, 6]`` metres in front of the
+    point along the ray (farther in front, a part of the object itself hides it: a cabin in front
+    of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute
     only there (False elsewhere; the callers ask about the few point-frames the test decides).
     """
     points_box = np.asarray(points_box, dtype=np.float64)
@@ -148,7 +154,8 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     out = np.zeros(depth_ratio.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
         surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)
-        out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:], axis=-1)
+        gap = np.linalg.norm(points_box[n_idx] - surface, axis=-1)
+        out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:6], axis=-1) & (gap <= own[t_idx, 6])
     return out
 
 
