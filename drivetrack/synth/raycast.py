@@ -88,9 +88,9 @@ def part_center(center: np.ndarray, heading: np.ndarray, offset: np.ndarray) -> 
     """float64 [..., 3]: the world centre of a solid at box-frame ``offset`` float64 [3] of a box at
     ``center`` float64 [..., 3] with yaw ``heading`` float64 [...]."""
     c, s = np.cos(heading), np.sin(heading)
-    return np.stack([center[..., 0] + c * offset[0] - s * offset[1],
-                     center[..., 1] + s * offset[0] + c * offset[1],
-                     center[..., 2] + offset[2] + 0.0 * c], axis=-1)
+    x = center[..., 0] + c * offset[0] - s * offset[1]
+    y = center[..., 1] + s * offset[0] + c * offset[1]
+    return np.stack([x, y, np.broadcast_to(center[..., 2] + offset[2], x.shape)], axis=-1)
 
 
 def intersect_solids(origins: np.ndarray, dirs: np.ndarray, center: np.ndarray, heading: np.ndarray,

@@ -16,6 +16,7 @@ heading ``h0 + turn t``.
 """
 from __future__ import annotations
 
+import dataclasses
 import string
 from dataclasses import dataclass
 
@@ -245,8 +246,6 @@ def with_car_shape(world: World, car_shape: str) -> World:
     """``world`` with every vehicle given ``car_shape`` (:data:`CAR_SHAPES`); nothing else changes
     (the same objects, motions, colours and labels), so a segment differs from the box world's only
     where a vehicle's shape does."""
-    import dataclasses
-
     if car_shape not in CAR_SHAPES:
         raise ValueError(f"unknown car shape {car_shape!r}; choose from {', '.join(CAR_SHAPES)}")
     if car_shape == "box":
