@@ -62,8 +62,9 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
 
 
 def test_export_is_byte_identical_to_the_writers_npz(exported_before_zbuffer, exported_output):
-    """Every golden clip (sha256 of the npz the writers wrote before layout v2) exports to the same
-    bytes, annotated with the visibility of that time; the default (z-buffer) exports the same files."""
+    """Every golden clip (sha256 of the npz the writers write straight from the tracks, as they did
+    before layout v2; tests/golden/make_npz_sha256.py) exports to the same bytes, annotated with the
+    visibility of that time; the default (z-buffer) exports the same files."""
     golden = json.loads(GOLDEN_NPZ.read_text())
     assert len(golden) >= 10
     root = Path(exported_before_zbuffer)

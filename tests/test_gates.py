@@ -248,8 +248,9 @@ def test_clips_with_mostly_ambiguous_occlusion_fail_the_ambiguity_gate(tmp_path)
     objects = objects.copy()
     cells = objects["num_tracks"] * objects["num_frames"]
     objects["num_ambiguous_occlusion"] = (0.02 * cells).astype(int)
+    objects.loc[objects.index[0], "num_ambiguous_occlusion"] = int(0.35 * cells.iloc[0])   # a car just ahead
     bad = objects.index[-2:]
-    objects.loc[bad, "num_ambiguous_occlusion"] = (0.4 * cells[bad]).astype(int)
+    objects.loc[bad, "num_ambiguous_occlusion"] = (0.6 * cells[bad]).astype(int)
     objects["ambiguous_occlusion_fraction"] = objects["num_ambiguous_occlusion"] / cells
     report = run_gates(str(write_output(tmp_path / "out", objects, segments, rejections)), data_docs=False)
     assert _failed(report) == {"object.ambiguous_occlusion"}, _failed(report)

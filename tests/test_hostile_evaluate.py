@@ -91,8 +91,8 @@ def test_nan_tracks_are_errors_in_the_headline_not_zero_pixels(annotated_output,
     victim = _biggest(preds)
     arrays = _arrays(str(victim))
     tracks = arrays["tracks"].astype(np.float32)
-    tracks[0::2] = np.nan                                  # every other track: NaN everywhere
-    tracks[1, :, 0] = np.inf                               # and one track at +inf
+    tracks[np.arange(len(tracks)) % 3 != 0] = np.nan      # two tracks in three: NaN everywhere
+    tracks[0, :, 0] = np.inf                               # and one track at +inf
     np.savez(victim, tracks=tracks, visibles=arrays["visibles"])
     expected = int((arrays["visibles"] & ~np.isfinite(tracks).all(-1)).sum())
     assert expected > 0
@@ -206,7 +206,7 @@ def test_header_declaring_a_huge_array_is_refused_before_allocating(annotated_ou
         buffer = io.BytesIO()
         np.lib.format.write_array(buffer, arrays["visibles"])
         archive.writestr("visibles.npy", buffer.getvalue())
-    assert victim.stat().st_size < 10_000
+    assert victim.stat().st_size < 50_000                   # the clip's visibles, deflated
     outcome, peak, elapsed = _score_with_peak(annotated_output, tmp_path / "pred")
     assert peak < 100 * 2**20, f"peak traced allocation {peak / 2**20:.0f} MiB ({outcome!r})"
     assert isinstance(outcome, ValueError), outcome

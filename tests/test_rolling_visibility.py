@@ -102,12 +102,13 @@ def _occlusion_errors(root: str, tracks) -> tuple[int, int]:
 
 
 def test_occlusion_flags_follow_the_rows_capture_time(world, tmp_path):
-    """The whole track stage on the rolling-shutter world: the flags' accuracy. Measured when
-    written: 145 wrong of 24,556 point-frames (OA 0.9941) with the maps and the z-buffer drawn at
-    each return's capture time, 294 (0.9880) with both at the image's pose time (the code
-    before)."""
+    """The whole track stage on the rolling-shutter world: the flags' accuracy. Measured on the
+    world whose objects keep clear of each other: 78 wrong of 10,652 point-frames (OA 0.9927) with
+    the maps and the z-buffer drawn at each return's capture time, 192 of 10,629 (0.9819) with
+    ``rolling_shutter`` off (both at the image's pose time, the code before). (When written, on
+    the world whose cars drove through each other: 145 of 24,556, 0.9941, against 294, 0.9880.)"""
     root, segment, _, _, _ = world
     result = annotate_segment(root, "training", segment, str(tmp_path / "out"), _config(), keep_tracks=True)
     wrong, total = _occlusion_errors(root, result.tracks)
-    assert total > 20_000
+    assert total > 8_000
     assert 1.0 - wrong / total >= 0.992, (wrong, total)

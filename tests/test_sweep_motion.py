@@ -205,9 +205,12 @@ def test_compensated_body_points_match_the_truth(synth):
     e_comp = np.linalg.norm(compensated - body, axis=-1)
     moving = speed[ok] > 1.0
     assert moving.sum() > 1000 and (~moving).sum() > 1000
-    # measured: median 9.6 -> 0.7 cm, p95 61 -> 1.5 cm
-    assert np.median(e_plain[moving]) > 0.05 and np.percentile(e_plain[moving], 95) > 0.3
-    assert np.median(e_comp[moving]) < 0.02 and np.percentile(e_comp[moving], 95) < 0.04
+    (plain_p50, plain_p95), (comp_p50, comp_p95) = stats = [
+        (np.median(e[moving]), np.percentile(e[moving], 95)) for e in (e_plain, e_comp)]
+    # measured: median 4.1 -> 0.5 cm, p95 42 -> 1.0 cm (9.6 -> 0.7 and 61 -> 1.5 cm on the world
+    # before its objects kept clear of each other, where one drove through the ego)
+    assert plain_p50 > 5 * comp_p50 and plain_p95 > 10 * comp_p95 and plain_p95 > 0.2, stats
+    assert comp_p50 < 0.02 and comp_p95 < 0.04, stats
     # static objects: unchanged
     np.testing.assert_allclose(e_comp[~moving], e_plain[~moving], atol=1e-4)
 
@@ -228,8 +231,10 @@ def test_selection_in_boxes_keeps_the_points_of_moving_objects(synth):
         _, selected = select_object_points(scene, config, np.arange(len(scene.boxes)))
         missed[flag] = np.count_nonzero(~np.isin(wanted, selected))
         foreign[flag] = np.count_nonzero(~np.isin(selected, index))     # not on any object
-    # measured: 11.5k of 84k missed without, 23 with
-    assert missed[False] > 0.05 * wanted.size and missed[True] < 0.002 * wanted.size
+    # measured: 2,073 of 67k missed without, 20 with (11.5k of 84k, 23, on the world before its
+    # objects kept clear of each other)
+    assert missed[False] > 0.02 * wanted.size and missed[True] < 0.002 * wanted.size, (missed, wanted.size)
+    assert missed[False] > 50 * max(missed[True], 1), missed
     assert foreign[True] <= foreign[False] + 10
 
 

@@ -49,15 +49,17 @@ def test_hard_world_is_deterministic_and_keeps_the_default_objects(tmp_path):
     assert len(files) == 13 + 3 and files == _files(tmp_path / "b")
     for rel in files:
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
-    # the hard world only adds objects: the default ones keep their ids, sizes and poses
+    # the hard world adds objects: the default ones keep their ids, sizes and poses, but for the
+    # overtaking car, whose lane beside the ego is the overtaken car's
     default = SynthConfig(seed=3, frames=2, preset="small", cameras=("SIDE_LEFT",))
     generate_segment(str(tmp_path / "d"), default, 0)
     seg = "drivetrack_synth_s3_0000"
     h = load_ground_truth(str(tmp_path / "a"), "training", seg).objects
     d = load_ground_truth(str(tmp_path / "d"), "training", seg).objects
-    k = d["object_id"].size
-    assert h["object_id"].size > k and (h["object_id"][:k] == d["object_id"]).all()
-    np.testing.assert_array_equal(h["world_from_box"][:k], d["world_from_box"])
+    kept = np.flatnonzero(d["object_id"] != d["object_id"][1])         # the second object is the overtaking car
+    k = kept.size
+    assert h["object_id"].size > k + 1 and (h["object_id"][:k] == d["object_id"][kept]).all()
+    np.testing.assert_array_equal(h["world_from_box"][:k], d["world_from_box"][kept])
     np.testing.assert_array_equal(h["world_from_vehicle"], d["world_from_vehicle"])
     assert "role" not in d and "facing" not in load_ground_truth(str(tmp_path / "d"), "training", seg).hits
 

@@ -67,7 +67,11 @@ def test_truth_pixels_equal_the_rolling_shutter_camera_model(pair):
             got = h["pixels"][:, ci, tau].astype(np.float64)
             inside = ok & frames.model.inside_image(px)
             assert np.isfinite(got[inside]).all()
-            assert not (h["visible"][:, ci, tau] & ~inside).any()
+            # a visible point is inside the model's image too, but for the model's error at the
+            # border (seed 11: a truth pixel at x = 479.997 the model puts at 480.006)
+            w, hgt = frames.model.width, frames.model.height
+            near = ok & (px[:, 0] > -0.25) & (px[:, 0] < w + 0.25) & (px[:, 1] > -0.25) & (px[:, 1] < hgt + 0.25)
+            assert not (h["visible"][:, ci, tau] & ~near).any()
             err = np.linalg.norm(got - px, axis=-1)
             static = np.linalg.norm(vel, axis=-1) == 0
             assert (err[inside & static] < 0.02).all()

@@ -412,11 +412,13 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
 
 
 def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_scene, tmp_path):
-    """Measured on this scene: 805 matched back-face point-frames inside the image; the depth-ratio
-    test calls 55% of them visible, with the back-face test 11% (normals too thin to trust), with
-    ``occlusion="surface"`` 11% (12% since the own-surface rule, the test below). 9,730 point-frames facing the camera but hidden by another object:
-    depth ratio 20% called visible, back faces alone 16%, surface (z-buffer) 11.9%. Truly visible
-    point-frames called visible 0.9883 (depth ratio) -> 0.9879 (back faces) -> 0.9869 (surface).
+    """Measured on this scene (its objects kept clear of each other): 554 matched back-face
+    point-frames inside the image, the depth-ratio test calls 75% of them visible; ``occlusion=
+    "surface"`` 22% of its 356 (normals too thin to trust). 8,000 point-frames facing the camera
+    but hidden by another object: depth ratio 26% called visible, surface (z-buffer) 12.9%. Truly
+    visible point-frames called visible 0.9908 (depth ratio) -> 0.9960 (surface). On the world
+    whose cars drove through each other it was 805 back-face point-frames, 55% -> 12%, and 9,730
+    hidden by another object, 20% -> 11.9%, visible 0.9883 -> 0.9869.
     (A z-buffer whose footprints also grew the occluders' outlines: 7% and 0.9841; the pedestrians
     whose heads show just above a parked car's roof were called hidden.)"""
     root, segment = hard_scene
@@ -444,7 +446,7 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     old_others, new_others = np.concatenate(old_others), np.concatenate(new_others)
     assert old_back.size > 300 and new_back.size > 300
     assert old_back.mean() > 0.4
-    assert new_back.mean() < 0.2
+    assert new_back.mean() < 0.3
     # hidden by another object (cars behind cars, pedestrians behind cars): the z-buffer of the
     # other objects' returns hides most of what the 5% depth ratio calls visible
     assert old_others.size > 3000 and old_others.mean() > 0.15
@@ -587,39 +589,43 @@ def test_occluding_objects_lie_between_the_camera_and_a_clip():
 
 
 def test_occluders_of_annotated_clips_are_refined_too(tmp_path):
-    """A noisily labelled car that overtakes close beside the ego is never annotated (no clip
-    passes the filters) but hides the car it overtakes from SIDE_RIGHT: the occlusion z-buffer
-    draws its returns carried by its boxes. With ``RefineConfig.occluders`` (default) the pose
-    refinement refines it too: its frame-to-frame centre error falls from the labels' ~6 cm to
-    ~1.5 cm (measured 0.064 -> 0.015 m). On the small hard world (5 cm / 1 deg labels, five
-    cameras) the wrong occlusion calls fall 28,842 -> 23,720 of 1.04 M point-frames, those hidden
-    by another object called visible 7,002 -> 2,527 (docs/visibility.md, "Occluders")."""
+    """A noisily labelled moving car that is not annotated in a camera can still hide what is: in
+    FRONT_RIGHT alone (default world, seed 7, 5 cm / 1 deg labels) the slow car ahead in the outer
+    lane has no clip but hides part of a parked car. The occlusion z-buffer draws its returns
+    carried by its boxes; with ``RefineConfig.occluders`` (default) the pose refinement refines it
+    too, and its frame-to-frame centre error falls by more than half (measured 0.071 -> 0.003 m).
+    (Written for the hard world's overtaking car beside the ego, 0.064 -> 0.015 m, before the
+    world's cars stopped driving through each other and that car left the hard world. There, on
+    the small hard world, 5 cm labels, five cameras, the wrong occlusion calls fell 28,842 ->
+    23,720 of 1.04 M point-frames: docs/visibility.md, "Occluders".)"""
     from drivetrack.annotate import load_scene_for, refine_scene
     from drivetrack.synth import load_ground_truth
 
     src = str(tmp_path / "src")
-    cameras = ("FRONT", "SIDE_RIGHT")
-    seg = generate_segment(src, SynthConfig(seed=7, frames=10, preset="small", cameras=cameras, world="hard",
+    cameras = ("FRONT_RIGHT",)
+    seg = generate_segment(src, SynthConfig(seed=7, frames=10, preset="small", cameras=cameras,
                                             box_noise_m=0.05), 0)["segment"]
     truth = load_ground_truth(src, "training", seg).objects
     ids = truth["object_id"].astype(str)
-    overtaking = ids[list(truth["role"].astype(str)).index("overtaking")]
+    slow = ids[2]                                   # the default world's third object
     config = AnnotateConfig(track=TrackConfig(cameras=cameras, min_frames=4, max_camera_distance_m=75.0))
     scene = load_scene_for(src, "training", seg, config, refine=False)
     refined = refine_scene(scene, config)
     plain = refine_scene(scene, AnnotateConfig(track=config.track, refine_options={"occluders": False}))
-    assert set(refined.box_refinement) - set(plain.box_refinement) == {overtaking}
-    assert refined.box_refinement[overtaking]["refine_applied"]
+    occluders = set(refined.box_refinement) - set(plain.box_refinement)
+    moving = {o for o in occluders if np.linalg.norm(truth["velocity_world"][list(ids).index(o)], axis=-1).min() > 1.0}
+    assert moving == {slow}, (occluders, moving)
+    assert refined.box_refinement[slow]["refine_applied"]
     # the annotated objects are refined exactly as before
     for oid, summary in plain.box_refinement.items():
         assert refined.box_refinement[oid]["refine_translation_p50_m"] == summary["refine_translation_p50_m"], oid
 
     def centre_error(sc) -> float:
-        rows = np.flatnonzero(sc.boxes.object_id.astype(str) == overtaking)
+        rows = np.flatnonzero(sc.boxes.object_id.astype(str) == slow)
         f = sc.boxes.frame[rows]
         world = (np.einsum("tij,tj->ti", sc.world_from_vehicle[f, :3, :3], sc.boxes.center[rows])
                  + sc.world_from_vehicle[f, :3, 3])
-        d = world - truth["world_from_box"][list(ids).index(overtaking), f, :3, 3]
+        d = world - truth["world_from_box"][list(ids).index(slow), f, :3, 3]
         return float(np.median(np.linalg.norm(d - np.median(d, axis=0), axis=1)))
 
     assert centre_error(plain) > 0.04
@@ -664,8 +670,9 @@ def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     without a gap limit took the cabin in the map for the object's own smear and called them
     visible; limited to ``own_surface_max_gap_m`` (1 m, default) in front of the point it lets the
     map hide them. Measured on this scene: facing-but-hidden point-frames called visible
-    0.149 -> 0.094 of 10,791 (the rest: other objects, among them the hard world's cars that drive
-    through each other, docs/synthetic.md), wrong calls 2,237 -> 1,680 of 181,058."""
+    0.0996 -> 0.0968 of 9,072 (most are hidden by other objects), wrong calls 1,633 -> 1,604 of
+    150,829. (On the world whose cars drove through each other, 0.149 -> 0.094 and 2,237 -> 1,680:
+    most of that gain was the other cars' returns inside a car's box, docs/synthetic.md.)"""
     root = str(tmp_path / "cabin")
     segment = generate_segment(root, SynthConfig(seed=7, frames=10, preset="small", cameras=CAMERAS,
                                                  world="hard", car_shape="cabin"), 0)["segment"]
@@ -675,9 +682,9 @@ def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     _back_face_calls(root, segment, str(tmp_path / "after"), 90.0, "numba", "surface", after_others, after_calls)
     before, after = np.concatenate(before_others), np.concatenate(after_others)
     assert before.size > 5000
-    assert after.mean() < 0.75 * before.mean()
+    assert after.mean() < before.mean()
     both = pd.concat(before_calls).merge(pd.concat(after_calls), on=["camera", "point", "frame"],
                                          suffixes=("_before", "_after"))
     wrong_before = both["pred_before"] != both["visible_before"]
     wrong_after = both["pred_after"] != both["visible_before"]
-    assert wrong_after.sum() < 0.8 * wrong_before.sum()
+    assert wrong_after.sum() < wrong_before.sum()

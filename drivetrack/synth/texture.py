@@ -57,8 +57,9 @@ def ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     """float32 [..., 3] RGB albedo of the ground at world (x, y) metres.
 
     Asphalt between the curbs (checker 2 m + two octaves of noise + dashed white lane lines at
-    y = -3.5, -7 and +3.5 m and a solid yellow centre line at y = 0), a white curb, light paving
-    tiles beyond the curbs.
+    y = -3.5, -7 and +3.5 m, a solid white line at y = -10.5 m between the outer lane and the
+    parking strip, and a solid yellow centre line at y = 0), a white curb, light paving tiles
+    beyond the curbs.
     """
     n1 = value_noise(x, y, 0.35, seed)
     n2 = value_noise(x, y, 2.7, seed + 1)
@@ -71,6 +72,7 @@ def ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     white = ((np.abs(y - lane * LANE_WIDTH) < 0.08) & ((lane == -1) | (lane == -2) | (lane == 1))
              & (np.mod(x, 9.0) < 4.5))
     white |= np.abs(y - CURB_Y) < 0.15
+    white |= np.abs(y - 3 * -LANE_WIDTH) < 0.08                          # the parking strip's edge
     gray = np.where(road, asphalt, paving)
     gray = np.where(white, np.float32(0.85), gray)
     tint_g = np.where(road, np.float32(1.0), np.float32(0.9))

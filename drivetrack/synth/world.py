@@ -25,7 +25,8 @@ import numpy as np
 from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 from drivetrack.waymo.schema import BoxType
 
-__all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "LANE_WIDTH", "WORLDS", "CAR_SHAPES"]
+__all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "world_overlaps", "LANE_WIDTH", "WORLDS",
+           "CAR_SHAPES", "EGO_BOX", "CLEARANCE_M"]
 
 #: ``SynthConfig.world`` values: the default scene, and the one adding the cases of issues 15/16.
 WORLDS = ("default", "hard")
@@ -44,8 +45,25 @@ LANE_WIDTH = 3.5
 #: lane centres (world y, metres): ego direction at negative y, oncoming at positive y.
 EGO_LANES = (-1.75, -5.25, -8.75)
 ONCOMING_LANES = (1.75, 5.25)
-CURB_Y = -10.5          # right edge of the road; sidewalk beyond
+CURB_Y = -13.0          # right edge of the road (a 2.5 m parking strip beyond the lanes); sidewalk beyond
 FAR_CURB_Y = 7.0        # left edge of the road (oncoming side)
+PARKED_Y = CURB_Y + 1.1  # centre line of the cars parked along the right curb
+
+#: The ego's body as ``(centre x, length, width, height)`` metres in the vehicle frame (origin on
+#: the ground below the rear axle): it spans the short-range lidars, REAR at x = -1.15 to FRONT at
+#: 4.07, SIDE_LEFT / SIDE_RIGHT at y = +-1.02.
+EGO_BOX = (1.45, 5.3, 2.1, 1.8)
+#: Metres kept between any two bodies (the ego's and every label box) over the whole clip; objects
+#: that would come closer are moved (:func:`make_world`).
+CLEARANCE_M = 0.1
+#: Seconds between the instants at which bodies are checked for overlap: the fastest object
+#: (13.5 m/s) moves 0.27 m between checks, less than the thinnest body with its clearance (a
+#: 0.3 m pole), and two movers closing at 25 m/s 0.5 m, less than the thinnest mover (a 0.6 m
+#: pedestrian), so nothing passes through anything between two checks.
+_CHECK_STEP_S = 0.02
+#: The displacements (metres) tried, in this order, to move a new object clear of the bodies
+#: already placed: along its direction of travel (a mover) or along the road (a static object).
+_SHIFTS_M = tuple(float(d) for k in range(1, 61) for d in (k, -k))
 
 
 @dataclass(frozen=True)
@@ -255,38 +273,164 @@ def with_car_shape(world: World, car_shape: str) -> World:
     return dataclasses.replace(world, objects=objects)
 
 
+def _footprints(xy: np.ndarray, heading: np.ndarray, length: float, width: float) -> np.ndarray:
+    """float64 [T, 4, 2]: the corners (world x, y) of a ``length`` x ``width`` rectangle centred at
+    ``xy`` float64 [T, 2] and turned by ``heading`` float64 [T] radians."""
+    dx = np.array([1.0, 1.0, -1.0, -1.0]) * length / 2
+    dy = np.array([1.0, -1.0, -1.0, 1.0]) * width / 2
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    return np.stack([xy[:, None, 0] + c * dx - s * dy, xy[:, None, 1] + s * dx + c * dy], axis=-1)
+
+
+def _overlapping(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """bool [T]: whether the convex quadrilaterals ``a`` and ``b`` float64 [T, 4, 2] overlap at each
+    instant (no edge normal of either separates them)."""
+    separated = np.zeros(a.shape[0], dtype=bool)
+    for poly in (a, b):
+        edge = np.roll(poly, -1, axis=1) - poly
+        normal = np.stack([-edge[..., 1], edge[..., 0]], axis=-1)            # [T, 4, 2]
+        pa, pb = np.einsum("tkd,tnd->tkn", normal, a), np.einsum("tkd,tnd->tkn", normal, b)
+        separated |= np.any((pa.max(-1) < pb.min(-1)) | (pb.max(-1) < pa.min(-1)), axis=-1)
+    return ~separated
+
+
+@dataclass(frozen=True)
+class _Body:
+    """One body's footprints (inflated by half :data:`CLEARANCE_M` each side) at the check times,
+    and its height interval (metres)."""
+    role: str
+    corners: np.ndarray          # float64 [T, 4, 2]
+    z: tuple[float, float]
+
+    def clash(self, other: "_Body") -> np.ndarray:
+        """bool [T]: the instants at which the two bodies come closer than the clearance."""
+        if self.z[0] >= other.z[1] or other.z[0] >= self.z[1]:
+            return np.zeros(self.corners.shape[0], dtype=bool)
+        return _overlapping(self.corners, other.corners)
+
+
+def _ego_body(ego: Motion, times: np.ndarray) -> _Body:
+    x, length, width, height = EGO_BOX
+    heading = ego.heading(times)
+    xy = ego.position_xy(times) + x * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    return _Body("ego", _footprints(xy, heading, length + CLEARANCE_M, width + CLEARANCE_M), (0.0, height))
+
+
+def _object_body(o: SynthObject, times: np.ndarray) -> _Body:
+    length, width, height = o.size
+    return _Body(o.role, _footprints(o.motion.position_xy(times), o.motion.heading(times), length + CLEARANCE_M,
+                                     width + CLEARANCE_M), (o.z_center - height / 2, o.z_center + height / 2))
+
+
+def _check_times(duration: float) -> np.ndarray:
+    """float64 [T] seconds: the clip (frame 0 to ``duration``) and half a sweep either side."""
+    from drivetrack.synth.config import SWEEP_S
+    return np.arange(-SWEEP_S / 2, duration + SWEEP_S / 2 + _CHECK_STEP_S, _CHECK_STEP_S)
+
+
+def _shifted(o: SynthObject, d: float) -> SynthObject:
+    """``o`` moved ``d`` metres along its direction of travel (a mover: it passes every place
+    ``d / s`` seconds earlier) or along the road (world x, a static object)."""
+    m = o.motion
+    if m.s != 0.0:
+        p0 = (m.p0[0] + d * np.cos(m.h0), m.p0[1] + d * np.sin(m.h0))
+    else:
+        p0 = (m.p0[0] + d, m.p0[1])
+    return dataclasses.replace(o, motion=dataclasses.replace(m, p0=(float(p0[0]), float(p0[1]))))
+
+
+def _place(o: SynthObject, bodies: list[_Body], times: np.ndarray) -> SynthObject | None:
+    """``o``, or the first of its :data:`_SHIFTS_M` displacements that keeps it clear of ``bodies``
+    (the ego's and those of the objects placed before it) at every check time; None when none
+    does (the world is then generated without it)."""
+    for d in (0.0,) + _SHIFTS_M:
+        candidate = o if d == 0.0 else _shifted(o, d)
+        body = _object_body(candidate, times)
+        if not any(body.clash(b).any() for b in bodies):
+            return candidate
+    return None
+
+
+def world_overlaps(world: World, duration: float) -> list[tuple[str, str, float]]:
+    """``(role, role, first time s)`` of every pair of bodies (``"ego"`` or an object's role) that come
+    closer than :data:`CLEARANCE_M` (label boxes, ignoring their height where they do not share
+    one) between frame 0 and ``duration`` seconds; :func:`make_world` returns worlds where this is
+    empty."""
+    times = _check_times(duration)
+    bodies = [_ego_body(world.ego, times)] + [_object_body(o, times) for o in world.objects]
+    found = []
+    for i, a in enumerate(bodies):
+        for b in bodies[i + 1:]:
+            hit = a.clash(b)
+            if hit.any():
+                found.append((a.role, b.role, float(times[np.argmax(hit)])))
+    return found
+
+
 def make_world(rng: np.random.Generator, duration: float, kind: str = "default") -> World:
     """Sample one segment's world from ``rng``; ``duration`` (s) shapes where objects start.
 
     ``kind`` "hard" adds :func:`_hard_objects` after the default ones (drawn from ``rng`` after
-    everything the default world draws, so the default objects, ego and ground are the same).
+    everything the default world draws, so the default objects, ego and ground are the same),
+    except the ``overtaking`` car: its lane beside the ego is the hard world's ``overtaken_right``
+    car's, which it would have to drive through.
 
-    Roles: ``lead`` (ahead in the ego lane), ``overtaking`` (from behind, in the next lane),
-    ``slow`` (ahead, in the outer lane: overtaken, occluded by the lead car), ``oncoming``
-    (x2, one starting beyond the 75 m label range so it enters late), ``crossing`` (drives
-    across the road in front, passing in front of other cars), ``parked`` (x3 along the curb, some
-    beyond 20 m), ``pedestrian`` (x3, type 2; one crosses), ``sign`` (type 3).
+    Roles: ``lead`` (ahead in the ego lane), ``overtaking`` (passing on the right, in the next
+    lane, clear ahead before the ego's weave takes the ego into that lane), ``slow`` (ahead, in
+    the outer lane: overtaken, occluded by the lead car), ``oncoming`` (x2, one starting beyond
+    the 75 m label range so it enters late), ``crossing`` (drives across the road in front,
+    passing in front of other cars), ``parked`` (x3 in the parking strip along the right curb,
+    some beyond 20 m), ``pedestrian`` (x3, type 2; one crosses), ``sign`` (type 3).
+
+    Nothing drives through anything: each object is placed in turn so that its label box keeps
+    :data:`CLEARANCE_M` from the ego's body (:data:`EGO_BOX`) and from every box placed before it
+    at every instant of the clip (every 20 ms, half a sweep either side); one that would not is
+    moved along its path (it comes later or earlier) or, static, along the road, by the first of
+    1, -1, 2, -2, ... 60 m that clears, and left out if none does (only in clips much longer than
+    the 4 s default; :func:`world_overlaps` checks a world).
     """
     u = rng.uniform
     v_ego = u(7.0, 9.5)
     ego = Motion(p0=(0.0, EGO_LANES[0]), h0=0.0, s=v_ego, a=-u(1.4, 1.75), w=2 * np.pi / u(5.0, 7.0))
     objects: list[SynthObject] = []
+    times = _check_times(duration)
+    bodies, ghosts = [_ego_body(ego, times)], []
 
-    def add(role, type_, size, motion, z=None, pattern=None):
+    def add(role, type_, size, motion, z=None, pattern=None, keep=True) -> Motion:
+        """Place a new object (moved clear of those before it, or left out when it cannot be or
+        ``keep`` is False; everything is drawn from ``rng`` either way); returns its motion as
+        placed."""
         color = tuple(float(c) for c in rng.uniform(0.15, 0.95, size=3))
-        objects.append(SynthObject(
+        o = SynthObject(
             object_id=_object_id(rng), type=int(type_), size=tuple(float(s) for s in size),
             z_center=float(size[2] / 2 if z is None else z), motion=motion, color=color,
             pattern=int(rng.integers(0, 2) if pattern is None else pattern),
-            texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role))
+            texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role)
+        o = _place(o, bodies, times)
+        if o is None:
+            return motion
+        if not keep:                # the default objects after it are placed as if it were there
+            ghosts.append(_object_body(o, times))
+            bodies.append(ghosts[-1])
+            return o.motion
+        objects.append(o)
+        bodies.append(_object_body(o, times))
+        return o.motion
 
     def car_size():
         return (u(4.2, 5.0), u(1.8, 2.05), u(1.45, 1.8))
 
     vehicle, pedestrian, sign = BoxType.VEHICLE, BoxType.PEDESTRIAN, BoxType.SIGN
     add("lead", vehicle, car_size(), Motion((u(13.0, 17.0), EGO_LANES[0]), 0.0, s=v_ego + u(-0.5, 0.5)))
-    add("overtaking", vehicle, car_size(),
-        Motion((u(-14.0, -8.0), EGO_LANES[1]), 0.0, s=v_ego + u(4.0, 6.0)))
+    # the overtaking car passes on the right and is clear ahead (its rear 2.5 m beyond the ego's
+    # front, which the weave's yaw swings out) when the weave brings the ego's right side within
+    # CLEARANCE_M of its lane
+    size, dv = car_size(), u(4.0, 6.0)
+    into_lane = EGO_LANES[0] - EGO_BOX[2] / 2 - CLEARANCE_M - (EGO_LANES[1] + size[1] / 2)
+    t_in = np.arccos(1.0 - into_lane / abs(ego.a)) / ego.w
+    front = EGO_BOX[0] + EGO_BOX[1] / 2
+    add("overtaking", vehicle, size,
+        Motion((float(front + 2.5 + size[0] / 2 - dv * t_in), EGO_LANES[1]), 0.0, s=v_ego + dv), keep=kind != "hard")
     add("slow", vehicle, car_size(), Motion((u(24.0, 32.0), EGO_LANES[2]), 0.0, s=u(2.0, 3.5)))
     add("oncoming", vehicle, car_size(), Motion((u(45.0, 60.0), ONCOMING_LANES[0]), np.pi, s=u(8.0, 11.0)))
     add("oncoming", vehicle, car_size(),
@@ -294,7 +438,7 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default")
     cross_x = u(30.0, 38.0) + v_ego * duration * 0.25
     add("crossing", vehicle, car_size(), Motion((cross_x, CURB_Y - 6.0), np.pi / 2, s=u(5.0, 7.0)))
     for x in (u(10.0, 16.0), u(22.0, 28.0), u(40.0, 55.0)):
-        add("parked", vehicle, car_size(), Motion((x, CURB_Y + 1.1), u(-0.05, 0.05)))
+        add("parked", vehicle, car_size(), Motion((x, PARKED_Y), u(-0.05, 0.05)))
     add("pedestrian", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
         Motion((u(12.0, 20.0), CURB_Y - 1.5), 0.0, s=u(1.0, 1.5)))
     add("pedestrian", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
@@ -308,6 +452,7 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default")
     pitch, roll = float(u(0.003, 0.008)), float(u(0.002, 0.006))
     ground_seed = int(rng.integers(0, 2**31 - 1))
     if kind == "hard":
+        bodies[:] = [b for b in bodies if not any(b is g for g in ghosts)]
         _hard_objects(rng, duration, ego, objects, add, car_size)
     return World(ego=ego, pitch_amplitude=pitch, roll_amplitude=roll, objects=tuple(objects),
                  ground_seed=ground_seed)
@@ -324,15 +469,17 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
       so that it slides progressively into the van's shadow as seen from the ego);
     - ``pole`` (x3, 0.3 x 0.3 x 5 m, type SIGN) on the curbs in the mid-clip line of sight to the
       oblique cars and the van; ``low_sign`` (a plate 0.8 m square centred 1.3 m up, car height);
-    - ``pedestrian_near_car`` (x2): one walking along the road side of the first parked car, one
-      standing on the sidewalk behind the second;
+    - ``pedestrian_near_car`` (x2): one walking along the road side of the first parked car
+      (between it and the outer lane), one standing on the sidewalk behind the second;
     - ``close_pass``: a car overtaking on the left 1.5-1.8 m beside the ego (it follows the ego's
       weave, so the gap stays constant), passing it at mid-clip (SIDE_LEFT, FRONT_LEFT);
-    - ``overtaken_right``: a slower car in the right lane beside the ego, overtaken at mid-clip
-      (FRONT_RIGHT, SIDE_RIGHT);
+    - ``overtaken_right``: a slower car 1.5-2 m right of the ego (it follows the ego's weave, which
+      takes it from the next lane to the outer one), overtaken at mid-clip (FRONT_RIGHT,
+      SIDE_RIGHT);
     - ``turning``: an oncoming car turning right (towards +y) off the road just ahead of the ego
       (FRONT_LEFT, SIDE_LEFT);
-    - ``crossing_cyclist`` (type CYCLIST): crosses the road ahead of the ego's end position.
+    - ``crossing_cyclist`` (type CYCLIST): crosses the road ahead of the ego's end position (and
+      of where the lead car ends).
     """
     u = rng.uniform
     v = ego.s
@@ -354,18 +501,20 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
     for i, (x, y) in enumerate(oblique):
         angle = np.deg2rad(u(30.0, 60.0)) * (1 if rng.integers(0, 2) else -1)
         heading = toward(x, y) + angle + (np.pi if rng.integers(0, 2) else 0.0)
-        add("oblique", vehicle, car_size(),
-            Motion((x, y), float(heading), s=2.0 if i == 2 else 0.0))
+        oblique[i] = add("oblique", vehicle, car_size(), Motion((x, y), float(heading), s=2.0 if i == 2 else 0.0)).p0
     # the van and the car sliding into its shadow (seen from the ego's mean lateral position)
-    xo, yo, yh = x_mid + u(22.0, 30.0), FAR_CURB_Y + 2.0, FAR_CURB_Y + 6.5
-    add("occluder", vehicle, (8.0, 2.4, 3.0), Motion((xo, yo), 0.0))
+    xo, yo, yh = x_mid + u(22.0, 30.0), FAR_CURB_Y + 2.0, FAR_CURB_Y + 9.0      # hidden: beyond the obliques
+    xo = add("occluder", vehicle, (8.0, 2.4, 3.0), Motion((xo, yo), 0.0)).p0[0]
     scale = (yh - y_ego) / (yo - y_ego)
 
     def shadow_x(t):    # x of the van's centre seen at y = yh from the ego at time t
         return v * t + (xo - v * t) * scale
-    start = shadow_x(0.0) + 0.5 * 8.0 * scale + 3.0         # just clear of the shadow at t = 0
+    # just clear of the shadow at t = 0: beyond the ray from the ego (at x = 0, EGO_LANES[0]) past
+    # the van's near far corner, by 1 m
+    size = car_size()
+    start = (xo + 4.0) * (yh - EGO_LANES[0]) / (yo - 1.2 - EGO_LANES[0]) + size[0] / 2 + 1.0
     end = shadow_x(duration)                                  # behind the van's centre at the end
-    add("hidden", vehicle, car_size(), Motion((start, yh), 0.0, s=(end - start) / duration))
+    add("hidden", vehicle, size, Motion((start, yh), 0.0, s=(end - start) / duration))
     for x, y in (oblique[0], oblique[2], (xo, yo)):
         add("pole", sign, (0.3, 0.3, 5.0), Motion((on_sight_line(x, y, FAR_CURB_Y + 0.4), FAR_CURB_Y + 0.4), 0.0),
             z=2.5, pattern=1)
@@ -374,8 +523,10 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
         Motion((on_sight_line(x, y, CURB_Y - 0.4), CURB_Y - 0.4), np.pi / 2), z=1.3, pattern=1)
     parked = [o for o in objects if o.role == "parked"]
     p0, p1 = parked[0].motion.p0, parked[1].motion.p0
+    # between the first parked car and the right side of a car in the outer lane
+    y_walk = 0.5 * (p0[1] + parked[0].size[1] / 2 + EGO_LANES[2] - 1.03)
     add("pedestrian_near_car", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
-        Motion((p0[0] - 4.0, p0[1] + 1.6), 0.0, s=u(1.0, 1.4)))
+        Motion((p0[0] - 4.0, y_walk), 0.0, s=u(1.0, 1.4)))
     add("pedestrian_near_car", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
         Motion((p1[0] + u(-1.0, 1.0), CURB_Y - 0.6), 0.0))
     # movers beside the ego: same weave as the ego, so the lateral gap is constant
@@ -386,12 +537,15 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
                                             s=v + dv, a=ego.a, w=ego.w))
     size = car_size()
     dv = u(2.5, 3.5)
-    add("overtaken_right", vehicle, size, Motion((dv * t_mid, EGO_LANES[0] - 1.0 - u(1.5, 2.5) - size[1] / 2),
+    add("overtaken_right", vehicle, size, Motion((dv * t_mid, EGO_LANES[0] - EGO_BOX[2] / 2 - u(1.5, 2.0) - size[1] / 2),
                                                  0.0, s=v - dv, a=ego.a, w=ego.w))
     s_turn = u(5.0, 6.5)
     add("turning", vehicle, car_size(), Motion((x_mid + 6.0 + s_turn * t_mid, ONCOMING_LANES[0]), np.pi,
                                                s=s_turn, turn=-u(0.45, 0.6)))
     s_bike = u(3.5, 4.5)
-    x_bike = v * duration + u(8.0, 12.0)
+    lead = next(o for o in objects if o.role == "lead")        # crosses beyond where it ends
+    x_bike = max(v * duration + u(8.0, 12.0), float(lead.center(np.array(duration))[0]) + lead.size[0] / 2 + 2.0)
+    if abs(x_bike - xo) < 8.0 / 2 + 1.5:        # it comes from the far sidewalk: not out of the van
+        x_bike = xo + 8.0 / 2 + 1.5
     add("crossing_cyclist", BoxType.CYCLIST, (1.8, 0.6, 1.7),
         Motion((x_bike, y_ego + s_bike * duration * 0.6), -np.pi / 2, s=s_bike))

@@ -1,0 +1,90 @@
+"""The synthetic world's bodies never drive through each other (nor through the ego), so every
+return, z-buffer surface and track belongs to one object."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from drivetrack.synth.config import FRAME_PERIOD_S
+from drivetrack.synth.world import (CLEARANCE_M, EGO_BOX, EGO_LANES, Motion, SynthObject, World, make_world,
+                                    world_overlaps)
+
+HARD_ROLES = ("oblique", "occluder", "hidden", "pole", "low_sign", "pedestrian_near_car", "close_pass",
+              "overtaken_right", "turning", "crossing_cyclist")
+
+
+def _world(seed: int, frames: int, kind: str) -> World:
+    return make_world(np.random.default_rng(np.random.SeedSequence([seed, 0]).spawn(3)[0]),
+                      frames * FRAME_PERIOD_S, kind)
+
+
+@pytest.mark.parametrize("kind", ["default", "hard"])
+@pytest.mark.parametrize("frames", [6, 20, 40])
+def test_no_two_bodies_come_closer_than_the_clearance(kind, frames):
+    """Before the placement, every one of these worlds had overlapping boxes: the ego drove
+    through the overtaking car (both worlds, every seed), the lead car through the crossing one,
+    the hard world's overtaking car through the overtaken one."""
+    for seed in (1, 3, 7, 11):
+        world = _world(seed, frames, kind)
+        assert world_overlaps(world, frames * FRAME_PERIOD_S) == [], (seed, frames, kind)
+        roles = [o.role for o in world.objects]
+        assert roles.count("parked") == 3 and roles.count("pedestrian") == 3, roles
+        if kind == "hard":
+            assert all(r in roles for r in HARD_ROLES), (seed, frames, sorted(set(HARD_ROLES) - set(roles)))
+            assert "overtaking" not in roles       # its lane is the overtaken car's
+        else:
+            assert "overtaking" in roles
+
+
+def test_the_hard_world_keeps_the_default_objects_where_they_are():
+    """The hard world's objects are placed after the default ones, around them; the default ones
+    (but the overtaking car) are the default world's, the same ids and motions."""
+    for seed in (3, 7):
+        default, hard = _world(seed, 40, "default"), _world(seed, 40, "hard")
+        kept = [o for o in default.objects if o.role != "overtaking"]
+        assert [(o.object_id, o.motion) for o in hard.objects[:len(kept)]] == [(o.object_id, o.motion) for o in kept]
+        assert hard.ego == default.ego
+
+
+def _car(role: str, motion: Motion, size=(4.5, 2.0, 1.5)) -> SynthObject:
+    return SynthObject(object_id=role, type=1, size=size, z_center=size[2] / 2, motion=motion, color=(0.5, 0.5, 0.5),
+                       pattern=0, texture_scale=0.3, seed=0, role=role)
+
+
+def test_world_overlaps_names_the_pair_and_the_first_instant():
+    ego = Motion((0.0, EGO_LANES[0]), 0.0, s=8.0)
+    gap = 1.0 + CLEARANCE_M / 2                   # rear of the parked car to the ego's front at t = 0
+    front = EGO_BOX[0] + EGO_BOX[1] / 2
+    parked = _car("parked", Motion((front + gap + 2.25, EGO_LANES[0]), 0.0))
+    beside = _car("beside", Motion((EGO_BOX[0], EGO_LANES[0] - 3.5), 0.0, s=8.0))      # 1.45 m between sides
+    above = _car("sign", Motion((front + gap + 2.25, EGO_LANES[0]), 0.0), size=(0.2, 0.9, 0.9))
+    above = dataclasses.replace(above, z_center=2.5)                                  # over the parked car
+    world = World(ego=ego, pitch_amplitude=0.0, roll_amplitude=0.0, objects=(parked, beside, above), ground_seed=0)
+    found = world_overlaps(world, 1.0)
+    assert [(a, b) for a, b, _ in found] == [("ego", "parked")]
+    # the ego closes 1.1 m at 8 m/s; it comes within the clearance (0.1 m) after 1.0 / 8 s
+    assert found[0][2] == pytest.approx(1.0 / 8.0, abs=0.021)
+    assert world_overlaps(world, 0.05) == []
+
+
+def test_an_object_in_the_way_is_moved_along_its_path_or_the_road():
+    """make_world's placement: a mover that would run into a body comes later or earlier (moved
+    along its heading), a static one is moved along the road; each by the first clear shift."""
+    from drivetrack.synth.world import _check_times, _ego_body, _object_body, _place
+
+    times = _check_times(2.0)
+    ego = Motion((0.0, EGO_LANES[0]), 0.0, s=8.0)
+    bodies = [_ego_body(ego, times)]
+    parked = _car("parked", Motion((20.0, -8.0), 0.0))
+    bodies.append(_object_body(parked, times))
+    crossing = _car("crossing", Motion((20.0, -20.0), np.pi / 2, s=6.0))     # meets the parked car at t ~ 2 s
+    moved = _place(crossing, bodies, times)
+    assert moved.motion.p0[0] == 20.0 and moved.motion.p0[1] != -20.0
+    assert world_overlaps(World(ego, 0.0, 0.0, (parked, moved), 0), 2.0) == []
+    assert _object_body(crossing, times).clash(bodies[1]).any()
+    blocking = _car("parked2", Motion((21.0, -8.0), 0.0))
+    moved = _place(blocking, bodies, times)
+    assert moved.motion.p0[1] == -8.0 and abs(moved.motion.p0[0] - 21.0) == pytest.approx(
+        np.ceil(4.5 + CLEARANCE_M - 1.0))
