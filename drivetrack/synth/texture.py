@@ -72,7 +72,7 @@ def ground_albedo(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     white = ((np.abs(y - lane * LANE_WIDTH) < 0.08) & ((lane == -1) | (lane == -2) | (lane == 1))
              & (np.mod(x, 9.0) < 4.5))
     white |= np.abs(y - CURB_Y) < 0.15
-    white |= np.abs(y - 3 * -LANE_WIDTH) < 0.08                          # the parking strip's edge
+    white |= np.abs(y + 3 * LANE_WIDTH) < 0.08                           # the parking strip's edge
     gray = np.where(road, asphalt, paving)
     gray = np.where(white, np.float32(0.85), gray)
     tint_g = np.where(road, np.float32(1.0), np.float32(0.9))
