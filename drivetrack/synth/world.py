@@ -503,8 +503,9 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
         heading = toward(x, y) + angle + (np.pi if rng.integers(0, 2) else 0.0)
         oblique[i] = add("oblique", vehicle, car_size(), Motion((x, y), float(heading), s=2.0 if i == 2 else 0.0)).p0
     # the van and the car sliding into its shadow (seen from the ego's mean lateral position)
+    van = (8.0, 2.4, 3.0)
     xo, yo, yh = x_mid + u(22.0, 30.0), FAR_CURB_Y + 2.0, FAR_CURB_Y + 9.0      # hidden: beyond the obliques
-    xo = add("occluder", vehicle, (8.0, 2.4, 3.0), Motion((xo, yo), 0.0)).p0[0]
+    xo = add("occluder", vehicle, van, Motion((xo, yo), 0.0)).p0[0]
     scale = (yh - y_ego) / (yo - y_ego)
 
     def shadow_x(t):    # x of the van's centre seen at y = yh from the ego at time t
@@ -512,7 +513,7 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
     # just clear of the shadow at t = 0: beyond the ray from the ego (at x = 0, EGO_LANES[0]) past
     # the van's near far corner, by 1 m
     size = car_size()
-    start = (xo + 4.0) * (yh - EGO_LANES[0]) / (yo - 1.2 - EGO_LANES[0]) + size[0] / 2 + 1.0
+    start = (xo + van[0] / 2) * (yh - EGO_LANES[0]) / (yo - van[1] / 2 - EGO_LANES[0]) + size[0] / 2 + 1.0
     end = shadow_x(duration)                                  # behind the van's centre at the end
     add("hidden", vehicle, size, Motion((start, yh), 0.0, s=(end - start) / duration))
     for x, y in (oblique[0], oblique[2], (xo, yo)):
@@ -523,7 +524,8 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
         Motion((on_sight_line(x, y, CURB_Y - 0.4), CURB_Y - 0.4), np.pi / 2), z=1.3, pattern=1)
     parked = [o for o in objects if o.role == "parked"]
     p0, p1 = parked[0].motion.p0, parked[1].motion.p0
-    # between the first parked car and the right side of a car in the outer lane
+    # between the first parked car and the right side of the widest car (car_size: 2.05 m, half
+    # rounded up) in the outer lane
     y_walk = 0.5 * (p0[1] + parked[0].size[1] / 2 + EGO_LANES[2] - 1.03)
     add("pedestrian_near_car", pedestrian, (u(0.6, 0.9), u(0.6, 0.9), u(1.6, 1.9)),
         Motion((p0[0] - 4.0, y_walk), 0.0, s=u(1.0, 1.4)))
@@ -545,7 +547,7 @@ def _hard_objects(rng, duration, ego: Motion, objects, add, car_size) -> None:
     s_bike = u(3.5, 4.5)
     lead = next(o for o in objects if o.role == "lead")        # crosses beyond where it ends
     x_bike = max(v * duration + u(8.0, 12.0), float(lead.center(np.array(duration))[0]) + lead.size[0] / 2 + 2.0)
-    if abs(x_bike - xo) < 8.0 / 2 + 1.5:        # it comes from the far sidewalk: not out of the van
-        x_bike = xo + 8.0 / 2 + 1.5
+    if abs(x_bike - xo) < van[0] / 2 + 1.5:     # it comes from the far sidewalk: not out of the van
+        x_bike = xo + van[0] / 2 + 1.5
     add("crossing_cyclist", BoxType.CYCLIST, (1.8, 0.6, 1.7),
         Motion((x_bike, y_ego + s_bike * duration * 0.6), -np.pi / 2, s=s_bike))
