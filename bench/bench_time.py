@@ -23,6 +23,10 @@ Per clip: median pixel error over truth-visible point-frames and AJ (TAP-Vid, qu
 
     .venv/bin/python bench/bench_time.py --preset small --frames 20 --no-docs   # while iterating
     .venv/bin/python bench/bench_time.py                                         # medium, writes docs
+
+``--speed-changes G`` makes the movers brake and speed up (``SynthConfig.speed_changes_mps2``);
+``--refine-options JSON`` overrides ``RefineConfig`` for every model (docs/refinement.md, "Jerk",
+was measured with both).
 """
 from __future__ import annotations
 
