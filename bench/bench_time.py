@@ -23,6 +23,10 @@ Per clip: median pixel error over truth-visible point-frames and AJ (TAP-Vid, qu
 
     .venv/bin/python bench/bench_time.py --preset small --frames 20 --no-docs   # while iterating
     .venv/bin/python bench/bench_time.py                                         # medium, writes docs
+
+``--speed-changes G`` makes the movers brake and speed up (``SynthConfig.speed_changes_mps2``);
+``--refine-options JSON`` overrides ``RefineConfig`` for every model (docs/refinement.md, "Jerk",
+was measured with both).
 """
 from __future__ import annotations
 
@@ -92,7 +96,8 @@ def run_scenario(label_time: str, noise: float, args, models: tuple[str, ...]) -
         start = time.perf_counter()
         seg = generate_segment(f"{tmp}/src", SynthConfig(
             seed=args.seed, frames=args.frames, preset=args.preset, cameras=CAMERAS, world="hard",
-            rolling_shutter=True, label_time=label_time, box_noise_m=noise), 0, workers=args.workers)["segment"]
+            rolling_shutter=True, label_time=label_time, box_noise_m=noise,
+            speed_changes_mps2=args.speed_changes), 0, workers=args.workers)["segment"]
         out["generate_s"] = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
         role_of = dict(zip(objects["object_id"].astype(str), objects["role"].astype(str)))
@@ -100,7 +105,7 @@ def run_scenario(label_time: str, noise: float, args, models: tuple[str, ...]) -
             extra, refine = MODELS[model]
             config = AnnotateConfig(track=TrackConfig(
                 cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"), min_frames=8,
-                max_camera_distance_m=75.0, **extra), refine_options=dict(refine))
+                max_camera_distance_m=75.0, **extra), refine_options={**refine, **args.refine_options})
             start = time.perf_counter()
             result = annotate_segment(f"{tmp}/src", "training", seg, f"{tmp}/out_{model}", config,
                                       keep_tracks=True)
@@ -168,6 +173,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", default="velocity,trajectory/linear,no-static,trajectory",
                     help=f"comma-separated model names, of {sorted(MODELS)}")
     ap.add_argument("--scenarios", default="all", help="'all' or e.g. 'frame:0,sweep:0.05'")
+    ap.add_argument("--speed-changes", type=float, default=0.0, metavar="MPS2",
+                    help="SynthConfig.speed_changes_mps2: movers brake and speed up by up to this (default 0)")
+    ap.add_argument("--refine-options", type=json.loads, default={}, metavar="JSON",
+                    help="RefineConfig overrides applied to every model, e.g. '{\"accel_sigma_mps2\": 1.0}'")
     args = ap.parse_args(argv if argv is not None else [])
     scenarios = SCENARIOS if args.scenarios == "all" else tuple(
         (s.split(":")[0], float(s.split(":")[1])) for s in args.scenarios.split(","))
@@ -178,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         results.append(r)
         print(json.dumps({"label_time": label_time, "noise_m": noise,
                           **{m: v["summary"] for m, v in r["models"].items()}}), flush=True)
-    setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed}
+    setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed,
+             "speed_changes_mps2": args.speed_changes, "refine_options": args.refine_options}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = to_markdown(results, setup, machine_description())

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from drivetrack.synth.config import FRAME_PERIOD_S
+from drivetrack.synth.config import FRAME_PERIOD_S, SynthConfig
 from drivetrack.synth.world import (CLEARANCE_M, EGO_BOX, EGO_LANES, Motion, SynthObject, World, make_world,
                                     world_overlaps)
 
@@ -88,3 +88,53 @@ def test_an_object_in_the_way_is_moved_along_its_path_or_the_road():
     moved = _place(blocking, bodies, times)
     assert moved.motion.p0[1] == -8.0 and abs(moved.motion.p0[0] - 21.0) == pytest.approx(
         np.ceil(4.5 + CLEARANCE_M - 1.0))
+
+
+def test_a_surging_mover_brakes_and_speeds_up_with_consistent_derivatives():
+    """``Motion.surge``: the along-track acceleration ``g cos(W t + phi)``; velocity, acceleration,
+    heading and yaw rate are the derivatives of the closed-form position (checked by central
+    differences), and the surge leaves t = 0 where it was."""
+    m = Motion((3.0, -1.0), 0.3, s=8.0, a=-1.5, w=2 * np.pi / 6.0, surge=1.8, surge_w=2 * np.pi / 5.0, surge_phase=1.1)
+    flat = dataclasses.replace(m, surge=0.0)
+    t = np.linspace(-0.05, 4.05, 83)
+    h = 1e-5
+    np.testing.assert_allclose(m.velocity_xy(t), (m.position_xy(t + h) - m.position_xy(t - h)) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(m.acceleration_xy(t), (m.velocity_xy(t + h) - m.velocity_xy(t - h)) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(m.yaw_rate(t), (m.heading(t + h) - m.heading(t - h)) / (2 * h), atol=1e-6)
+    v = m.velocity_xy(t)
+    np.testing.assert_allclose(m.heading(t), np.arctan2(v[:, 1], v[:, 0]), atol=1e-12)
+    np.testing.assert_allclose(m.position_xy(np.zeros(1)), flat.position_xy(np.zeros(1)), atol=1e-12)
+    along = np.einsum("ti,i->t", m.acceleration_xy(t) - flat.acceleration_xy(t), [np.cos(0.3), np.sin(0.3)])
+    np.testing.assert_allclose(along, 1.8 * np.cos(2 * np.pi / 5.0 * t + 1.1), atol=1e-9)
+    with pytest.raises(ValueError, match="surge"):
+        Motion((0.0, 0.0), 0.0, s=0.0, surge=1.0, surge_w=1.0)
+    with pytest.raises(ValueError, match="surge"):
+        Motion((0.0, 0.0), 0.0, s=5.0, turn=0.2, surge=1.0, surge_w=1.0)
+
+
+@pytest.mark.parametrize("kind", ["default", "hard"])
+def test_speed_changes_leave_the_rest_of_the_world_as_it_was(kind):
+    """``make_world(speed_changes_mps2=...)``: moving vehicles and cyclists that do not turn brake
+    and speed up (acceleration amplitude within [0.5, 1] of the setting, speed above half its
+    mean); every object keeps its id, size and colour, nothing else surges, and nothing drives
+    through anything."""
+    for seed in (1, 7):
+        rng = lambda: np.random.default_rng(np.random.SeedSequence([seed, 0]).spawn(3)[0])  # noqa: E731
+        plain = make_world(rng(), 4.0, kind)
+        surging = make_world(rng(), 4.0, kind, 2.0, np.random.default_rng(seed))
+        assert [(o.object_id, o.size, o.color, o.role) for o in surging.objects] == \
+            [(o.object_id, o.size, o.color, o.role) for o in plain.objects]
+        assert world_overlaps(surging, 4.0) == []
+        t = np.linspace(0.0, 4.0, 41)
+        for o in surging.objects:
+            m = o.motion
+            eligible = o.type in (1, 4) and m.turn == 0.0 and m.s > 0.0        # VEHICLE, CYCLIST
+            assert (m.surge != 0.0) == eligible, (o.role, m)
+            if eligible:
+                assert m.surge <= 2.0 and (m.surge >= 1.0 or m.surge == pytest.approx(0.25 * m.s * m.surge_w))
+                assert 2 * np.pi / 8.0 <= m.surge_w <= 2 * np.pi / 4.0
+                assert np.linalg.norm(m.velocity_xy(t), axis=-1).min() >= 0.5 * m.s
+    with pytest.raises(ValueError, match="speed_changes_mps2"):
+        make_world(np.random.default_rng(0), 4.0, kind, -1.0)
+    with pytest.raises(ValueError, match="speed_changes_mps2"):
+        SynthConfig(speed_changes_mps2=-1.0)

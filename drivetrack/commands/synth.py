@@ -51,6 +51,9 @@ def add_parser(sub) -> None:
                         "narrower, shorter cabin on it, the label box their bounding box (bonnet "
                         "and boot below the glasshouse: faces the box does not have, and empty "
                         "corners inside the label box)")
+    p.add_argument("--speed-changes", type=float, default=0.0, metavar="MPS2",
+                   help="moving vehicles and cyclists brake and speed up with accelerations up to "
+                        "this (m/s^2, periods of 4-8 s); 0 (default): every mover keeps its speed")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -77,11 +80,14 @@ def run(args) -> int:
     if args.box_noise < 0:
         console.print(f"[red]error:[/] --box-noise must be >= 0 (got {args.box_noise})")
         return 2
+    if not 0 <= args.speed_changes < 20:
+        console.print(f"[red]error:[/] --speed-changes must be in [0, 20) m/s^2 (got {args.speed_changes})")
+        return 2
     config = SynthConfig(
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
         box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
         camera_trigger=args.camera_trigger, label_time=args.label_time, car_shape=args.car_shape,
-        heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
+        speed_changes_mps2=args.speed_changes, heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
         for index in range(args.segments):
@@ -104,5 +110,7 @@ def run(args) -> int:
           f"preset {args.preset}, {shutter} shutter"
           + (f", world {config.world}, cameras at {config.trigger} time, lidar_box at {config.label_time} time"
              if config.extended_truth else "")
-          + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "") + ")", file=sys.stdout)
+          + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "")
+          + (f", speed changes up to {config.speed_changes_mps2:g} m/s^2" if config.speed_changes_mps2 else "")
+          + ")", file=sys.stdout)
     return 0

@@ -44,7 +44,10 @@ class SynthConfig:
     frame time) or "sweep" (the box where the object was when the TOP sweep passed its centre,
     still expressed in the vehicle frame of the frame time). ``car_shape``: "box" (every vehicle is
     its label box) or "cabin" (a body and a cabin inside the label box, see
-    :func:`drivetrack.synth.world.cabin_parts`)."""
+    :func:`drivetrack.synth.world.cabin_parts`). ``speed_changes_mps2``: 0 (every mover keeps its
+    speed, the worlds before) or the largest along-track acceleration (m/s^2) with which moving
+    vehicles and cyclists brake and speed up (:func:`drivetrack.synth.world.make_world`); the
+    world is otherwise the same."""
     seed: int = 7
     frames: int = 40
     preset: str = "small"
@@ -57,6 +60,7 @@ class SynthConfig:
     camera_trigger: str | None = None
     label_time: str = "frame"
     car_shape: str = "box"
+    speed_changes_mps2: float = 0.0
 
     def __post_init__(self):
         from drivetrack.synth.world import CAR_SHAPES, WORLDS
@@ -67,6 +71,9 @@ class SynthConfig:
                                      ("car_shape", self.car_shape, CAR_SHAPES)):
             if value not in allowed:
                 raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
+        if not (isinstance(self.speed_changes_mps2, (int, float)) and 0 <= self.speed_changes_mps2 < 20):
+            raise ValueError(f"SynthConfig.speed_changes_mps2: expected a number of m/s^2 in [0, 20), "
+                             f"found {self.speed_changes_mps2!r}")
 
     @property
     def trigger(self) -> str:
@@ -79,7 +86,8 @@ class SynthConfig:
     def extended_truth(self) -> bool:
         """True when anything beyond the original scene is on: the truth then also records roles
         and time offsets (kept out of the default output so its bytes stay the same)."""
-        return self.world != "default" or self.trigger != "frame" or self.label_time != "frame"
+        return (self.world != "default" or self.trigger != "frame" or self.label_time != "frame"
+                or self.speed_changes_mps2 > 0)
 
     @property
     def heading_sigma(self) -> float:

@@ -29,13 +29,15 @@ class _Generator(_CameraRendering, _LidarCasting):
             raise ValueError(f"frames must be >= 1, got {config.frames}")
         self.config = config
         self.preset = PRESETS[config.preset]
-        world_seq, id_seq, noise_seq = np.random.SeedSequence([config.seed, index]).spawn(3)
+        # the fourth child leaves the first three (and so every world before it) as they were
+        world_seq, id_seq, noise_seq, speed_seq = np.random.SeedSequence([config.seed, index]).spawn(4)
         self.segment = segment_name(config.seed, index)
         self.T = config.frames
         self.times = np.arange(self.T) * FRAME_PERIOD_S
         self.timestamps = (T0_MICROS + index * 10**9 + np.arange(self.T) * 100_000).astype(np.int64)
         self.world: World = with_car_shape(make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S,
-                                                      config.world), config.car_shape)
+                                                      config.world, config.speed_changes_mps2,
+                                                      np.random.default_rng(speed_seq)), config.car_shape)
         self.id_rng = np.random.default_rng(id_seq)
         self.noise_rng = np.random.default_rng(noise_seq)
         self.rolling = bool(config.rolling_shutter)

@@ -13,6 +13,13 @@ initial heading ``h0`` about z and placed at ``p0``, ``local x = s t`` and
 Turning objects ("arc", ``turn`` != 0, ``a = 0``): a circle at speed ``s`` and constant yaw rate
 ``turn`` (rad/s): ``local x = s sin(turn t) / turn``, ``local y = s (1 - cos(turn t)) / turn``,
 heading ``h0 + turn t``.
+
+Speed changes ("surge", ``SynthConfig.speed_changes_mps2``; off by default): a weaving mover may
+also brake and speed up along its path, with the acceleration ``g cos(W t + phi)`` (m/s^2) added
+to its local x: ``local x = s t - g / W^2 (cos(W t + phi) - cos(phi)) - g / W sin(phi) t``, so its
+speed is ``s + g / W (sin(W t + phi) - sin(phi))`` and its jerk up to ``g W``; the heading follows
+the velocity. Real traffic brakes and accelerates; a world of constant speeds flatters any motion
+model that assumes them.
 """
 from __future__ import annotations
 
@@ -75,10 +82,16 @@ class Motion:
     a: float = 0.0
     w: float = 0.0
     turn: float = 0.0
+    surge: float = 0.0
+    surge_w: float = 0.0
+    surge_phase: float = 0.0
 
     def __post_init__(self):
         if self.turn != 0.0 and self.a != 0.0:
             raise ValueError(f"Motion: a turning motion (turn={self.turn}) cannot also weave (a={self.a})")
+        if self.surge != 0.0 and (self.turn != 0.0 or not self.s > 0.0 or not self.surge_w > 0.0):
+            raise ValueError(f"Motion: a speed change (surge={self.surge}) needs a weaving mover with s > 0 and "
+                             f"surge_w > 0, got s={self.s}, turn={self.turn}, surge_w={self.surge_w}")
 
     def _local(self, t):
         """(x, y, vx, vy, ax, ay) in the local frame, float64 [...] each."""
@@ -87,39 +100,34 @@ class Motion:
             r = self.s / self.turn
             return (r * np.sin(wt), r * (1.0 - np.cos(wt)), self.s * np.cos(wt), self.s * np.sin(wt),
                     -self.s * self.turn * np.sin(wt), self.s * self.turn * np.cos(wt))
-        return (self.s * t, self.a * (1.0 - np.cos(self.w * t)), np.full_like(t, self.s),
-                self.a * self.w * np.sin(self.w * t), np.zeros_like(t),
+        x, vx, ax = self.s * t, np.full_like(t, self.s), np.zeros_like(t)
+        if self.surge != 0.0:
+            g, ww, phi = self.surge, self.surge_w, self.surge_phase
+            x = x - g / ww**2 * (np.cos(ww * t + phi) - np.cos(phi)) - g / ww * np.sin(phi) * t
+            vx = vx + g / ww * (np.sin(ww * t + phi) - np.sin(phi))
+            ax = g * np.cos(ww * t + phi)
+        return (x, self.a * (1.0 - np.cos(self.w * t)), vx,
+                self.a * self.w * np.sin(self.w * t), ax,
                 self.a * self.w * self.w * np.cos(self.w * t))
+
+    def _world(self, lx, ly):
+        c, s = np.cos(self.h0), np.sin(self.h0)
+        return np.stack([c * lx - s * ly, s * lx + c * ly], axis=-1)
 
     def position_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world (x, y) at times ``t`` float [...], seconds."""
         t = np.asarray(t, dtype=np.float64)
-        if self.turn != 0.0:
-            lx, ly = self._local(t)[:2]
-        else:
-            lx, ly = self.s * t, self.a * (1.0 - np.cos(self.w * t))
+        lx, ly = self._local(t)[:2]
         c, s = np.cos(self.h0), np.sin(self.h0)
         return np.stack([self.p0[0] + c * lx - s * ly, self.p0[1] + s * lx + c * ly], axis=-1)
 
     def velocity_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world-frame velocity (m/s)."""
-        t = np.asarray(t, dtype=np.float64)
-        if self.turn != 0.0:
-            vx, vy = self._local(t)[2:4]
-        else:
-            vx, vy = np.full_like(t, self.s), self.a * self.w * np.sin(self.w * t)
-        c, s = np.cos(self.h0), np.sin(self.h0)
-        return np.stack([c * vx - s * vy, s * vx + c * vy], axis=-1)
+        return self._world(*self._local(np.asarray(t, dtype=np.float64))[2:4])
 
     def acceleration_xy(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 2] world-frame acceleration (m/s^2)."""
-        t = np.asarray(t, dtype=np.float64)
-        if self.turn != 0.0:
-            ax, ay = self._local(t)[4:]
-        else:
-            ax, ay = np.zeros_like(t), self.a * self.w * self.w * np.cos(self.w * t)
-        c, s = np.cos(self.h0), np.sin(self.h0)
-        return np.stack([c * ax - s * ay, s * ax + c * ay], axis=-1)
+        return self._world(*self._local(np.asarray(t, dtype=np.float64))[4:])
 
     def heading(self, t: np.ndarray) -> np.ndarray:
         """float64 [...] yaw about world z (radians)."""
@@ -128,7 +136,8 @@ class Motion:
             return self.h0 + self.turn * t
         if self.s == 0.0 and self.a == 0.0:
             return np.full_like(t, self.h0)
-        return self.h0 + np.arctan2(self.a * self.w * np.sin(self.w * t), self.s)
+        _, _, vx, vy, _, _ = self._local(t)
+        return self.h0 + np.arctan2(vy, vx)
 
     def yaw_rate(self, t: np.ndarray) -> np.ndarray:
         """float64 [...] d heading / dt (rad/s)."""
@@ -137,9 +146,8 @@ class Motion:
             return np.full_like(t, self.turn)
         if self.s == 0.0:
             return np.zeros_like(t)
-        vy = self.a * self.w * np.sin(self.w * t)
-        ay = self.a * self.w * self.w * np.cos(self.w * t)
-        return self.s * ay / (self.s * self.s + vy * vy)
+        _, _, vx, vy, ax, ay = self._local(t)
+        return (vx * ay - vy * ax) / (vx * vx + vy * vy)
 
 
 @dataclass(frozen=True)
@@ -367,8 +375,16 @@ def world_overlaps(world: World, duration: float) -> list[tuple[str, str, float]
     return found
 
 
-def make_world(rng: np.random.Generator, duration: float, kind: str = "default") -> World:
+def make_world(rng: np.random.Generator, duration: float, kind: str = "default", speed_changes_mps2: float = 0.0,
+               speed_rng: np.random.Generator | None = None) -> World:
     """Sample one segment's world from ``rng``; ``duration`` (s) shapes where objects start.
+
+    ``speed_changes_mps2`` > 0: every moving vehicle and cyclist that does not turn also brakes
+    and speeds up (module docstring, "surge"): acceleration amplitude ``g`` uniform in [0.5, 1]
+    of it (at most a quarter of its speed times ``W``, so its speed stays above half its mean),
+    period ``2 pi / W`` uniform in 4-8 s, phase uniform; drawn from ``speed_rng`` (default: seed 0)
+    so that everything else is the world of ``speed_changes_mps2 = 0`` (before placement, which
+    then keeps the surging objects clear like any other).
 
     ``kind`` "hard" adds :func:`_hard_objects` after the default ones (drawn from ``rng`` after
     everything the default world draws, so the default objects, ego and ground are the same),
@@ -395,6 +411,20 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default")
     objects: list[SynthObject] = []
     times = _check_times(duration)
     bodies, ghosts = [_ego_body(ego, times)], []
+    if not (np.isfinite(speed_changes_mps2) and speed_changes_mps2 >= 0):
+        raise ValueError(f"make_world: speed_changes_mps2 must be a number >= 0, got {speed_changes_mps2!r}")
+    if speed_changes_mps2 > 0 and speed_rng is None:
+        speed_rng = np.random.default_rng(0)
+
+    def surging(type_, motion: Motion) -> Motion:
+        """``motion`` with a speed change, for a moving vehicle or cyclist that does not turn."""
+        if not (speed_changes_mps2 > 0 and type_ in (BoxType.VEHICLE, BoxType.CYCLIST)
+                and motion.turn == 0.0 and motion.s > 0.0):
+            return motion
+        g, period, phase = speed_rng.uniform(0.5, 1.0), speed_rng.uniform(4.0, 8.0), speed_rng.uniform(0.0, 2 * np.pi)
+        w = 2 * np.pi / period
+        return dataclasses.replace(motion, surge=float(min(g * speed_changes_mps2, 0.25 * motion.s * w)),
+                                   surge_w=float(w), surge_phase=float(phase))
 
     def add(role, type_, size, motion, z=None, pattern=None, keep=True) -> Motion:
         """Place a new object (moved clear of those before it, or left out when it cannot be or
@@ -403,7 +433,7 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default")
         color = tuple(float(c) for c in rng.uniform(0.15, 0.95, size=3))
         o = SynthObject(
             object_id=_object_id(rng), type=int(type_), size=tuple(float(s) for s in size),
-            z_center=float(size[2] / 2 if z is None else z), motion=motion, color=color,
+            z_center=float(size[2] / 2 if z is None else z), motion=surging(type_, motion), color=color,
             pattern=int(rng.integers(0, 2) if pattern is None else pattern),
             texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role)
         o = _place(o, bodies, times)
