@@ -56,6 +56,13 @@ class RefineConfig:
         accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
             stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
             of a roof, so z is the least observed direction) and yaw acceleration.
+        jerk_sigma_mps3: the stiffness (m/s^3) of a second motion term on the world centre's
+            jerk (6 x the third divided difference over four frames, all three axes): it steadies
+            a weakly observed direction (along a box seen side-on) over many frames without
+            penalising a steady acceleration or braking, as a stiffer acceleration term would.
+            None (default): off. 5 still follows a car braking hard from one frame to the next
+            (2 smooths that away) and gains much on 2 s clips with 5 cm labels, but not on 1 s or
+            4 s ones (docs/refinement.md, "Jerk"), so it is not the default.
         pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
             parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
             roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
@@ -124,6 +131,7 @@ class RefineConfig:
     accel_sigma_mps2: float = 2.0
     vertical_accel_sigma_mps2: float = 0.3
     yaw_accel_sigma_radps2: float = 1.0
+    jerk_sigma_mps3: float | None = None
     pitch_roll_sigma_deg: float | None = 1.0
     pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60
@@ -163,6 +171,9 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
+        if self.jerk_sigma_mps3 is not None and not (isinstance(self.jerk_sigma_mps3, (int, float))
+                                                     and np.isfinite(self.jerk_sigma_mps3) and self.jerk_sigma_mps3 > 0):
+            raise ValueError(f"RefineConfig.jerk_sigma_mps3 must be None or a positive number, got {self.jerk_sigma_mps3!r}")
         for name in ("extent_margin_m", "max_extent_growth_m", "candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
                      "min_improvement", "early_stop_iteration"):
             value = getattr(self, name)

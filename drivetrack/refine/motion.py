@@ -1,4 +1,5 @@
-"""The motion model: constant velocity and yaw rate in the world, as a linear residual operator."""
+"""The motion model: constant velocity and yaw rate in the world (and, softly, constant
+acceleration: the jerk term), as a linear residual operator."""
 from __future__ import annotations
 
 import numpy as np
@@ -20,14 +21,16 @@ def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, c
     """Linear motion-model residuals ``e = S x + e0`` over the stacked state x [DT].
 
     Rows: for every interior frame, the second divided difference of the world centre (3 rows,
-    over ``accel_sigma_mps2``) and of the world heading (1 row, over ``yaw_accel_sigma_radps2``).
+    over ``accel_sigma_mps2``) and of the world heading (1 row, over ``yaw_accel_sigma_radps2``);
+    then, with ``jerk_sigma_mps3`` set and T >= 4, the world centre's jerk over every four
+    consecutive frames (3 rows each, :func:`_jerk_operator`).
     World centre of frame t: ``R_t c_t + p_t``; world heading: ``psi_t + yaw(R_t)`` (unwrapped).
     With ``heading`` [T] given (the labels' headings, radians), the state has D = 6 per frame and
     two more rows: the second divided difference of the world pitch and roll (over
     ``tilt_accel_sigma_radps2``), linearised as ``tilt_t + _world_tilt_offset(t)``: the ego's own
     pitch and roll (braking, turning, bumps) are in ``world_from_vehicle`` and must not be asked of
-    the object. Returns (S scipy.sparse csr [D(T-2), DT], e0 float64 [D(T-2)]), or (None, None)
-    when T < 3.
+    the object. Returns (S scipy.sparse csr [R, DT], e0 float64 [R]) with R = D(T-2), plus 3(T-3)
+    with the jerk term, or (None, None) when T < 3.
     """
     import scipy.sparse as sp
 
@@ -71,4 +74,36 @@ def _motion_operator(world_from_vehicle: np.ndarray, timestamps_s: np.ndarray, c
     if dof == 6:
         tilt_w = _world_tilt_offset(world_from_vehicle, heading)            # [T, 2]
         e0.reshape(-1, dof)[:, 4:] = np.einsum("tk,tka->ta", coef, tilt_w[frames]) / config.pitch_roll_accel_sigma_radps2
+    if config.jerk_sigma_mps3 is not None and t_count >= 4:
+        S_jerk, e0_jerk = _jerk_operator(rotation, offset, timestamps_s, dof, config.jerk_sigma_mps3)
+        S = sp.vstack([S, S_jerk]).tocsr()
+        e0 = np.concatenate([e0, e0_jerk])
+    return S, e0
+
+
+def _jerk_operator(rotation: np.ndarray, offset: np.ndarray, timestamps_s: np.ndarray, dof: int, sigma: float):
+    """Rows ``(S [3(T-3), dof T] csr, e0 [3(T-3)])`` of the world centre's jerk over ``sigma``
+    (m/s^3): per four consecutive frames, 6 x their third divided difference (exact for a cubic
+    in time, any spacing) of ``R_t c_t + p_t`` (``rotation`` [T, 3, 3], ``offset`` [T, 3]: the
+    frames' ``world_from_vehicle``)."""
+    import scipy.sparse as sp
+
+    t_count = timestamps_s.shape[0]
+    frames = np.arange(t_count - 3)[:, None] + np.arange(4)[None, :]        # [T-3, 4]
+    times = timestamps_s[frames]
+    diff = times[:, :, None] - times[:, None, :]                             # [T-3, 4, 4]
+    diff[:, np.arange(4), np.arange(4)] = 1.0
+    coef = 6.0 / diff.prod(axis=2)                                           # [T-3, 4]
+    base_row = 3 * np.arange(t_count - 3)
+    rows, cols, vals = [], [], []
+    for k in range(4):
+        fk = frames[:, k]
+        for a in range(3):
+            for b in range(3):
+                rows.append(base_row + a)
+                cols.append(dof * fk + b)
+                vals.append(coef[:, k] * rotation[fk, a, b] / sigma)
+    S = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(3 * (t_count - 3), dof * t_count))
+    e0 = (np.einsum("tk,tki->ti", coef, offset[frames]) / sigma).reshape(-1)
     return S, e0
