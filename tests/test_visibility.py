@@ -490,7 +490,8 @@ def test_own_surface_point_on_the_ray():
     size = np.array([[4.0, 2.0, 1.5], [4.0, 2.0, 1.5]])
     centres = np.array([[-20.0, 0.0, 0.8], [-20.0, 0.0, 0.8]])              # camera 20 m behind the box
     own = own_box_parameters(centres, size, 0.2)
-    assert own.shape == (2, 7) and np.allclose(own[:, 3:6], [2.2, 1.2, 0.95]) and np.isinf(own[:, 6]).all()
+    assert own.shape == (2, 8) and np.allclose(own[:, 3:6], [2.2, 1.2, 0.95]) and np.isinf(own[:, 6]).all()
+    assert np.allclose(own[:, 7], 0.2)
     far = np.array([[1.9, 0.0, 0.7], [1.9, 0.5, -0.3]])                        # on the far end of the box
     ratio = np.array([[20.0 / 21.9, 17.9 / 21.9],                              # the near face: own
                       [10.0 / 21.9, np.nan]])                                   # a car halfway: not own; unknown
@@ -508,6 +509,15 @@ def test_own_surface_point_on_the_ray():
     np.testing.assert_array_equal(own_surface(far, ratio, gap), [[False, False], [False, False]])
     near = np.array([[21.4 / 21.9], [21.4 / 21.9]]).reshape(2, 1)
     np.testing.assert_array_equal(own_surface(far[:1], near, gap), [[True], [True]])
+    # ... but only where the ray passes through the box itself: a roof point seen at a grazing
+    # angle (the camera 5 cm above the roof) whose map surface is the nearer roof's spread, 1.5 m
+    # in front on the ray, runs 2-3.5 mm above the roof, in the margin, where no part of the
+    # object is: not hidden
+    roof_far = np.array([[1.5, 0.0, 0.75]])
+    spread = np.full((2, 1), 20.0 / 21.5)
+    np.testing.assert_array_equal(own_surface(roof_far, spread, gap), [[True], [True]])
+    np.testing.assert_array_equal(own_surface(roof_far, spread, own_box_parameters(centres, size, 0.0, 1.0)),
+                                  [[False], [False]])   # no margin: not the object's surface at all
 
 
 def test_own_returns_smeared_over_the_objects_far_points_hide_nothing(hard_scene, tmp_path):

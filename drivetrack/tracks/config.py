@@ -65,11 +65,14 @@ class TrackConfig:
             (:func:`drivetrack.visibility.own_surface`), at points whose normal is reliable (the
             depth map still decides for the others). None: every surface counts (before).
         own_surface_max_gap_m: ... only when that surface point lies at most this far (metres)
-            in front of the tracked point along its ray; farther, it is a part of the object
-            itself in front of the point (a cabin in front of a bonnet or boot, a mirror, a
-            truck's cab), which a box never has but real vehicles do, and the map hides the
-            point. None: no limit (before). Measured in docs/visibility.md ("Vehicles are not
-            boxes").
+            in front of the tracked point along its ray, or farther but with the ray from it to
+            this far in front of the point running outside the box itself (through the margin:
+            the map's spread over a roof seen at a grazing angle); where that stretch of the ray
+            passes through the box, it is a part of the object itself in front of the point (a
+            cabin in front of a bonnet or boot, a mirror, a truck's cab), which a box never has
+            but real vehicles do, and the map hides the point. None: no limit. Measured in
+            docs/visibility.md ("Vehicles are not boxes", "The gap limit only where the ray
+            passes through the box itself").
         depth_defers_to_zbuffer: under ``occlusion="surface"``, with the z-buffer of other objects
             and the own-box rule on, the depth-map test also ignores a surface whose point on the
             ray lies inside another labelled object's box (posed for the image, grown by

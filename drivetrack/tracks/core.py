@@ -833,8 +833,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # them too (off by (1 - depth ratio) x the camera's motion relative to the object between the
     # image pose and the row's time: centimetres, inside the margin). Only within
     # ``own_surface_max_gap_m`` in front of the point: farther, a part of the object itself (a
-    # cabin in front of a bonnet) hides it. [0, 7]: off.
-    own_box, own_points = np.zeros((0, 7)), np.zeros(n, dtype=bool)
+    # cabin in front of a bonnet) hides it, if the surface lies inside the box itself and not in
+    # its margin (where no part of it is: a roof seen at a grazing angle). [0, 8]: off.
+    own_box, own_points = np.zeros((0, 8)), np.zeros(n, dtype=bool)
     if surfels is not None and config.own_surface_margin_m is not None:
         from drivetrack.visibility import own_box_parameters
 
@@ -1114,7 +1115,7 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     ``clip_maps`` float32 [T, H, W] the clip's depth maps; ``project(points_box [k, 3])`` returns
     ``(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k])`` as the track path projected
     them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
-    candidates, None when that test is off; ``own_box`` float64 [T, 7] or [0, 7] (off) and
+    candidates, None when that test is off; ``own_box`` float64 [T, 8] or [0, 8] (off) and
     ``own_points`` bool [n]: where the depth map's surface is the object's own
     (:func:`drivetrack.visibility.own_surface`) at a point it applies to, or another labelled
     object's spread beyond its outline (``others`` float64 [T, K, 18],

@@ -45,11 +45,12 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
              px, py, pz):
     """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
 
-    ``own`` float64 [T, 7] (or [0, 7]: off): per frame the camera centre in the box frame, the
-    half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m`` and
-    ``own_surface_max_gap_m``; when ``own_point`` (the point has a reliable normal), a surface
-    whose point on the ray to the box-frame point (px, py, pz) lies in that box, at most the gap
-    in front of the point, does not hide it
+    ``own`` float64 [T, 8] (or [0, 8]: off): per frame the camera centre in the box frame, the
+    half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``,
+    ``own_surface_max_gap_m`` and the margin; when ``own_point`` (the point has a reliable
+    normal), a surface whose point on the ray to the box-frame point (px, py, pz) lies in that
+    grown box, at most the gap in front of the point or farther with the ray from it to the gap
+    outside the box itself, does not hide it
     (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the
@@ -91,8 +92,15 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     qy = e[1] + scale * (py - e[1])
     qz = e[2] + scale * (pz - e[2])
     if own_point and abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]:
-        # ... unless it lies farther in front of the point than e[6] (a part of the object itself)
-        if np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2) <= e[6]:
+        # ... unless it lies farther in front of the point than e[6] and the ray from it to e[6]
+        # in front of the point passes through the box itself (a part of the object; through the
+        # margin only the map's spread)
+        gap = np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
+        if gap <= e[6]:
+            return True
+        w = e[6] / gap
+        if not _ray_enters_own_box(qx, qy, qz, px + (qx - px) * w, py + (qy - py) * w, pz + (qz - pz) * w,
+                                   e[3] - e[7], e[4] - e[7], e[5] - e[7]):
             return True
     for k in range(others.shape[1]):
         o = others[tau, k]
@@ -104,6 +112,25 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
         if abs(ox) <= o[12] and abs(oy) <= o[13] and abs(oz) <= o[14] and not _segment_enters_box(o, e, px, py, pz):
             return True
     return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ray_enters_own_box(sx, sy, sz, fx, fy, fz, hx, hy, hz):
+    """The segment from (sx, sy, sz) to (fx, fy, fz) (box frame) passes through the box of half
+    extents (hx, hy, hz) before its end (slab test, t in [0, 1); as
+    ``drivetrack.visibility.facing._segment_enters_box``)."""
+    enter, leave = 0.0, np.inf
+    for s, f, h in ((sx, fx, hx), (sy, fy, hy), (sz, fz, hz)):
+        d = f - s
+        if abs(d) < 1e-12:
+            if abs(s) > h:
+                return False
+            continue
+        t1 = (-h - s) / d
+        t2 = (h - s) / d
+        enter = max(enter, min(t1, t2))
+        leave = min(leave, max(t1, t2))
+    return enter <= leave and enter < 1.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -164,7 +191,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         camera: float64 [11], :func:`camera_parameters`.
         depth_maps: float32 [T, H, W], z-depth, metres, 0 = unknown.
         occlusion_ratio: occluded iff ``0 < surface < occlusion_ratio * z``.
-        own: float64 [T, 7] or [0, 7]: the object's own box for the depth test (:func:`_visible`),
+        own: float64 [T, 8] or [0, 8]: the object's own box for the depth test (:func:`_visible`),
             ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
             ``own`` is [0, 7]), the points it applies to (reliable normals).
         others: float64 [T, K, 18], the other labelled objects' boxes (:func:`_visible`).

@@ -121,16 +121,19 @@ def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) ->
 
 def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float,
                        max_gap_m: float | None = None) -> np.ndarray:
-    """float64 [T, 7]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
+    """float64 [T, 8]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
     :func:`camera_centres_box`), the half extents of the box of ``size`` float [T, 3] (metres)
-    grown by ``margin_m`` on every side, and ``max_gap_m`` (metres; None: +inf), the farthest
-    in front of the point along its ray that a surface inside that box is still taken for the
-    object's own: what :func:`own_surface` and the track kernel's depth test
+    grown by ``margin_m`` on every side, ``max_gap_m`` (metres; None: +inf), the farthest in
+    front of the point along its ray that a surface inside that box is always taken for the
+    object's own (farther, only if the ray from it runs outside the box itself), and
+    ``margin_m``: what :func:`own_surface` and the track kernel's depth test
     (``drivetrack.tracks.kernel``) take."""
     centres_box = np.asarray(centres_box, dtype=np.float64)
     half = 0.5 * np.asarray(size, dtype=np.float64) + float(margin_m)
     gap = np.full((centres_box.shape[0], 1), np.inf if max_gap_m is None else float(max_gap_m))
-    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape), gap], axis=-1))
+    margin = np.full((centres_box.shape[0], 1), float(margin_m))
+    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape), gap, margin],
+                                               axis=-1))
 
 
 def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray,
@@ -140,11 +143,14 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
     point's pixel over the point's own z-depth (the surface's point on the ray from the camera
     centre ``e`` is ``e + depth_ratio (p - e)``: the pixel is the projection of the point, so they
-    share the ray); ``own`` float64 [T, 7] from :func:`own_box_parameters`. True where that
-    surface point lies inside the grown box and at most ``own[:, 6]`` metres in front of the
-    point along the ray (farther in front, a part of the object itself hides it: a cabin in front
-    of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute
-    only there (False elsewhere; the callers ask about the few point-frames the test decides).
+    share the ray); ``own`` float64 [T, 8] from :func:`own_box_parameters`. True where that
+    surface point lies inside the grown box and either at most ``own[:, 6]`` metres in front of
+    the point along the ray, or farther but with the ray from it to ``own[:, 6]`` in front of the
+    point running outside the box itself (through the margin, where no part of the object is, only
+    the map's spread: over a roof seen at a grazing angle the ray runs a few centimetres above the
+    roof); where that stretch of the ray passes through the box, a part of the object itself
+    hides the point (a cabin in front of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute only there (False elsewhere; the callers ask
+    about the few point-frames the test decides).
     """
     points_box = np.asarray(points_box, dtype=np.float64)
     depth_ratio = np.asarray(depth_ratio, dtype=np.float64)
@@ -155,7 +161,17 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     with np.errstate(invalid="ignore"):
         surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)
         gap = np.linalg.norm(points_box[n_idx] - surface, axis=-1)
-        out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:6], axis=-1) & (gap <= own[t_idx, 6])
+        limit = own[t_idx, 6]
+        far = gap > limit
+        # farther than the gap: the object's own only if the ray from the surface to the gap's
+        # start runs outside the box itself (through the margin: the map's spread)
+        through = np.zeros(gap.shape, dtype=bool)
+        if far.any():
+            f = np.flatnonzero(far)
+            p = points_box[n_idx[f]]
+            stop = p + (surface[f] - p) * (limit[f] / gap[f])[:, None]
+            through[f] = _segment_enters_box(surface[f], stop, own[t_idx[f], 3:6] - own[t_idx[f], 7:8])
+        out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:6], axis=-1) & ~through
     return out
 
 
