@@ -116,8 +116,8 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
 
 @njit(cache=True, nogil=True, inline="always")
 def _ray_enters_own_box(sx, sy, sz, fx, fy, fz, hx, hy, hz):
-    """The segment from (sx, sy, sz) to (fx, fy, fz) (box frame) passes through the box of half
-    extents (hx, hy, hz) before its end (slab test, t in [0, 1); as
+    """The segment from (sx, sy, sz) to (fx, fy, fz) (a box's frame) passes through the box of
+    half extents (hx, hy, hz) before its end (slab test, t in [0, 1); as
     ``drivetrack.visibility.facing._segment_enters_box``)."""
     enter, leave = 0.0, np.inf
     for s, f, h in ((sx, fx, hx), (sy, fy, hy), (sz, fz, hz)):
@@ -138,21 +138,12 @@ def _segment_enters_box(o, e, px, py, pz):
     """The segment from the camera centre ``e[:3]`` to the point (px, py, pz) (this object's box
     frame) passes through the box of ``o`` (:func:`_visible`'s slot: rotation, translation, grown
     and plain half extents) before the point (slab test, t in [0, 1))."""
-    enter, leave = 0.0, np.inf
-    for a in range(3):
-        s = o[3 * a] * e[0] + o[3 * a + 1] * e[1] + o[3 * a + 2] * e[2] + o[9 + a]
-        f = o[3 * a] * px + o[3 * a + 1] * py + o[3 * a + 2] * pz + o[9 + a]
-        d = f - s
-        half = o[15 + a]
-        if abs(d) < 1e-12:
-            if abs(s) > half:
-                return False
-            continue
-        t1 = (-half - s) / d
-        t2 = (half - s) / d
-        enter = max(enter, min(t1, t2))
-        leave = min(leave, max(t1, t2))
-    return enter <= leave and enter < 1.0
+    return _ray_enters_own_box(o[0] * e[0] + o[1] * e[1] + o[2] * e[2] + o[9],
+                               o[3] * e[0] + o[4] * e[1] + o[5] * e[2] + o[10],
+                               o[6] * e[0] + o[7] * e[1] + o[8] * e[2] + o[11],
+                               o[0] * px + o[1] * py + o[2] * pz + o[9],
+                               o[3] * px + o[4] * py + o[5] * pz + o[10],
+                               o[6] * px + o[7] * py + o[8] * pz + o[11], o[15], o[16], o[17])
 
 
 @njit(cache=True, nogil=True, inline="always")
