@@ -485,14 +485,14 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
 def test_own_surface_point_on_the_ray():
     """The depth map's surface in front of a point is placed on the ray from the camera centre;
     inside the object's own (grown) box it is the object's own surface."""
-    from drivetrack.visibility import own_box_parameters, own_surface
+    from drivetrack.visibility import OWN_BOX_DEPTH_M, own_box_parameters, own_surface
 
     size = np.array([[4.0, 2.0, 1.5], [4.0, 2.0, 1.5]])
     centres = np.array([[-20.0, 0.0, 0.8], [-20.0, 0.0, 0.8]])              # camera 20 m behind the box
     own = own_box_parameters(centres, size, 0.2)
     assert own.shape == (2, 8) and np.allclose(own[:, 3:6], [2.2, 1.2, 0.95]) and np.isinf(own[:, 6]).all()
-    assert np.allclose(own[:, 7], 0.2)
-    far = np.array([[1.9, 0.0, 0.7], [1.9, 0.5, -0.3]])                        # on the far end of the box
+    assert np.allclose(own[:, 7], 0.2 + OWN_BOX_DEPTH_M)
+    far = np.array([[1.9, 0.0, 0.3], [1.9, 0.5, -0.3]])                        # on the far end of the box
     ratio = np.array([[20.0 / 21.9, 17.9 / 21.9],                              # the near face: own
                       [10.0 / 21.9, np.nan]])                                   # a car halfway: not own; unknown
     np.testing.assert_array_equal(own_surface(far, ratio, own), [[True, True], [False, False]])

@@ -47,10 +47,11 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
 
     ``own`` float64 [T, 8] (or [0, 8]: off): per frame the camera centre in the box frame, the
     half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``,
-    ``own_surface_max_gap_m`` and the margin; when ``own_point`` (the point has a reliable
-    normal), a surface whose point on the ray to the box-frame point (px, py, pz) lies in that
-    grown box, at most the gap in front of the point or farther with the ray from it to the gap
-    outside the box itself, does not hide it
+    ``own_surface_max_gap_m`` and the depth inside the grown box's faces at which a ray passes
+    through the box itself; when ``own_point`` (the point has a reliable normal), a surface whose
+    point on the ray to the box-frame point (px, py, pz) lies in that grown box, at most the gap
+    in front of the point or farther with the ray from it to the gap not passing through the box
+    itself, does not hide it
     (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the

@@ -37,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask", "other_boxes", "other_surface", "own_box_parameters", "own_surface"]
+           "facing_cosine", "facing_mask", "other_boxes", "other_surface", "own_box_parameters", "own_surface",
+           "OWN_BOX_DEPTH_M"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -119,19 +120,26 @@ def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) ->
     return -np.einsum("tji,tj->ti", rotation, translation)
 
 
+#: The own-box gap limit counts a ray as passing through the box itself only where it runs this
+#: deep inside it (metres): a few centimetres of label or extent error put a grazing roof's smear
+#: inside the box, a cabin in front of a bonnet lies decimetres deep.
+OWN_BOX_DEPTH_M = 0.1
+
+
 def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float,
                        max_gap_m: float | None = None) -> np.ndarray:
     """float64 [T, 8]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
     :func:`camera_centres_box`), the half extents of the box of ``size`` float [T, 3] (metres)
     grown by ``margin_m`` on every side, ``max_gap_m`` (metres; None: +inf), the farthest in
     front of the point along its ray that a surface inside that box is always taken for the
-    object's own (farther, only if the ray from it runs outside the box itself), and
-    ``margin_m``: what :func:`own_surface` and the track kernel's depth test
+    object's own (farther, only if the ray from it does not run through the box itself), and
+    ``margin_m`` + :data:`OWN_BOX_DEPTH_M`, how far inside the grown box's faces a ray must run
+    to pass through the box itself: what :func:`own_surface` and the track kernel's depth test
     (``drivetrack.tracks.kernel``) take."""
     centres_box = np.asarray(centres_box, dtype=np.float64)
     half = 0.5 * np.asarray(size, dtype=np.float64) + float(margin_m)
     gap = np.full((centres_box.shape[0], 1), np.inf if max_gap_m is None else float(max_gap_m))
-    margin = np.full((centres_box.shape[0], 1), float(margin_m))
+    margin = np.full((centres_box.shape[0], 1), float(margin_m) + OWN_BOX_DEPTH_M)
     return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape), gap, margin],
                                                axis=-1))
 
@@ -146,10 +154,10 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     share the ray); ``own`` float64 [T, 8] from :func:`own_box_parameters`. True where that
     surface point lies inside the grown box and either at most ``own[:, 6]`` metres in front of
     the point along the ray, or farther but with the ray from it to ``own[:, 6]`` in front of the
-    point running outside the box itself (through the margin, where no part of the object is, only
-    the map's spread: over a roof seen at a grazing angle the ray runs a few centimetres above the
-    roof); where that stretch of the ray passes through the box, a part of the object itself
-    hides the point (a cabin in front of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute only there (False elsewhere; the callers ask
+    point not running through the box itself, :data:`OWN_BOX_DEPTH_M` deep (through the margin,
+    where no part of the object is, only the map's spread: over a roof seen at a grazing angle the
+    ray runs a few centimetres above the roof); where that stretch of the ray passes through the
+    box, a part of the object itself hides the point (a cabin in front of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute only there (False elsewhere; the callers ask
     about the few point-frames the test decides).
     """
     points_box = np.asarray(points_box, dtype=np.float64)
