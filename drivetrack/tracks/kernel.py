@@ -100,7 +100,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
         if gap <= e[6]:
             return True
         w = e[6] / gap
-        if not _ray_enters_own_box(qx, qy, qz, px + (qx - px) * w, py + (qy - py) * w, pz + (qz - pz) * w,
+        if not _segment_in_box(qx, qy, qz, px + (qx - px) * w, py + (qy - py) * w, pz + (qz - pz) * w,
                                    e[3] - e[7], e[4] - e[7], e[5] - e[7]):
             return True
     for k in range(others.shape[1]):
@@ -116,7 +116,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ray_enters_own_box(sx, sy, sz, fx, fy, fz, hx, hy, hz):
+def _segment_in_box(sx, sy, sz, fx, fy, fz, hx, hy, hz):
     """The segment from (sx, sy, sz) to (fx, fy, fz) (a box's frame) passes through the box of
     half extents (hx, hy, hz) before its end (slab test, t in [0, 1); as
     ``drivetrack.visibility.facing._segment_enters_box``)."""
@@ -139,7 +139,7 @@ def _segment_enters_box(o, e, px, py, pz):
     """The segment from the camera centre ``e[:3]`` to the point (px, py, pz) (this object's box
     frame) passes through the box of ``o`` (:func:`_visible`'s slot: rotation, translation, grown
     and plain half extents) before the point (slab test, t in [0, 1))."""
-    return _ray_enters_own_box(o[0] * e[0] + o[1] * e[1] + o[2] * e[2] + o[9],
+    return _segment_in_box(o[0] * e[0] + o[1] * e[1] + o[2] * e[2] + o[9],
                                o[3] * e[0] + o[4] * e[1] + o[5] * e[2] + o[10],
                                o[6] * e[0] + o[7] * e[1] + o[8] * e[2] + o[11],
                                o[0] * px + o[1] * py + o[2] * pz + o[9],
