@@ -30,15 +30,21 @@ are) and the block ``bench_visibility_rolling`` is written instead; ``--variants
 entries of :data:`VARIANTS` or :data:`EXTRA_VARIANTS` (comma-separated names, default every
 :data:`VARIANTS` entry). With ``--car-shape cabin`` every vehicle is a body and a cabin inside its
 label box (``SynthConfig(car_shape="cabin")``: real cars are not boxes) and the block
-``bench_visibility_cabin`` is written.
+``bench_visibility_cabin`` is written; with ``--label-noise M`` the written boxes carry M metres
+of centre noise and 1 deg of heading noise per 5 cm (``SynthConfig(box_noise_m=M)``: real labels
+are drawn by hand around their returns) and the block ``bench_visibility_noise`` is written. Each
+block counts the wrong calls by kind (truly visible called hidden, back faces called visible,
+hidden by another object called visible).
 
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ depth map defers to the z-buffer (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ label-box faces at unreliable normals (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ depth map defers to the z-buffer (default),own-box rule without a gap limit (before),\
++ label-box faces at unreliable normals (default),own-box rule without a gap limit (before),\
 default without the own-box rule"   # ~15 min
+    .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
++ depth map defers to the z-buffer,+ label-box faces at unreliable normals (default)"   # ~12 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -125,6 +131,10 @@ def summarise(pf: dict[str, np.ndarray], clips) -> dict:
         "occluded_by_other_point_frames": int(other.sum()),
         "occluded_by_other_false_visible": _rate(pf["pred_visible"][other]),
         "visible_point_frames": int((m & pf["truth_visible"]).sum()),
+        "wrong": int((m & ~correct).sum()),
+        "visible_called_hidden": int((m & pf["truth_visible"] & ~pf["pred_visible"]).sum()),
+        "back_face_called_visible": int((back & pf["pred_visible"]).sum()),
+        "occluded_by_other_called_visible": int((other & pf["pred_visible"]).sum()),
         "visible_recall": _rate(pf["pred_visible"][m & pf["truth_visible"]]),
         "by_distance": [], "by_role": [], "by_camera_motion": [],
     }
@@ -166,24 +176,31 @@ _OLD_TOLERANCE = {"occluder_tolerance_m": 0.3, "occluder_tolerance_rel": 0.02}
 #: (before 2026-11-26, fifth session).
 _BEFORE_FILL = {"occluder_fill_px": 0, "depth_defers_to_zbuffer": False}
 
+#: Unreliable normals left unreliable (before 2026-11-27, tenth session). The own-box rule's ray
+#: test at such points has no switch: the variants with the own-box rule carry it.
+_BEFORE_FACES = {"box_face_normals_m": None}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
-                                 "own_surface_margin_m": None, **_BEFORE_FILL},
+                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES},
     "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
-                                             **_OLD_TOLERANCE, **_BEFORE_FILL},
-    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL},
+                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
+    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL,
+                                           **_BEFORE_FACES},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES},
     # holes between an occluder's splats closed by 4 px
-    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False},
+    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES},
     # a depth-map surface inside another labelled object's box is left to the z-buffer
-    "+ depth map defers to the z-buffer (default)": {},
+    "+ depth map defers to the z-buffer": {**_BEFORE_FACES},
+    # unreliable normals on one face of the label box take that face's normal
+    "+ label-box faces at unreliable normals (default)": {},
 }
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
@@ -193,6 +210,7 @@ EXTRA_VARIANTS = {
 COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- bench_visibility_compare:end -->"
 ROLLING_START, ROLLING_END = "<!-- bench_visibility_rolling:start -->", "<!-- bench_visibility_rolling:end -->"
 CABIN_START, CABIN_END = "<!-- bench_visibility_cabin:start -->", "<!-- bench_visibility_cabin:end -->"
+NOISE_START, NOISE_END = "<!-- bench_visibility_noise:start -->", "<!-- bench_visibility_noise:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
@@ -200,15 +218,21 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     names = list(results)
     rolling = setup.get("rolling_shutter", False)
     cabin = setup.get("car_shape", "box") == "cabin"
+    noise = float(setup.get("label_noise_m", 0.0))
     title = ("## Visibility on the hard world read out by a rolling shutter" if rolling
              else "## Visibility on the hard world with cabin-shaped cars" if cabin
+             else f"## Visibility on the hard world with {noise * 100:g} cm label noise" if noise
              else "## Visibility on the hard world: back faces from each object's own surface")
     world = ("the hard world of the block above rendered with rolling-shutter cameras "
              "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
              else "the hard world of the block above with every vehicle a body and a cabin inside its label "
                   "box (`SynthConfig(world=\"hard\", car_shape=\"cabin\")`), same scoring: preset " if cabin
+             else f"the hard world of the block above with its written boxes' centres moved by {noise * 100:g} cm "
+                  f"(sigma, per axis) and their headings by {noise / 0.05:g} deg "
+                  f"(`SynthConfig(world=\"hard\", box_noise_m={noise:g})`), same scoring: preset " if noise
              else "same segment and scoring as the block above: preset ")
-    options = (" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
+    options = ((" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
+               + (f" --label-noise {noise:g}" if noise else ""))
     lines = [title, "",
              f"`bench/bench_visibility.py{options}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
@@ -227,6 +251,11 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
         lines.append(f"| {label} | " + " | ".join(_f(get(results[n]), digits) for n in names) + " |")
 
     row("pooled OA", lambda r: r["pooled_oa"], 4)
+    lines.append("| wrong calls: visible called hidden / back faces called visible / hidden by another called "
+                 "visible | " + " | ".join(
+                     f"{results[n]['wrong']:,}: {results[n]['visible_called_hidden']:,} / "
+                     f"{results[n]['back_face_called_visible']:,} / {results[n]['occluded_by_other_called_visible']:,}"
+                     if "wrong" in results[n] else "-" for n in names) + " |")
     row("back-face point-frames called visible", lambda r: r["back_face_false_visible"])
     row("point-frames occluded by another object called visible", lambda r: r["occluded_by_other_false_visible"])
     row("truly visible point-frames called visible", lambda r: r["visible_recall"], 4)
@@ -258,9 +287,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--car-shape", choices=["box", "cabin"], default="box",
                     help="cabin: every vehicle a body and a cabin inside its label box (writes the "
                          "bench_visibility_cabin block)")
+    ap.add_argument("--label-noise", type=float, default=0.0, metavar="M",
+                    help="sigma (metres, per axis) of the noise on the written boxes' centres, with 1 deg of "
+                         "heading noise per 5 cm (SynthConfig.box_noise_m; writes the bench_visibility_noise block)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
+    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0)) > 1:
+        ap.error("--rolling-shutter, --car-shape cabin and --label-noise: one at a time (one block each)")
+    if args.label_noise < 0:
+        ap.error(f"--label-noise must be >= 0 metres, got {args.label_noise}")
     variants = VARIANTS
     if args.variants:
         names = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -275,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
                                                          cameras=CAMERAS, world="hard",
                                                          rolling_shutter=args.rolling_shutter,
-                                                         car_shape=args.car_shape),
+                                                         car_shape=args.car_shape, box_noise_m=args.label_noise),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
@@ -299,14 +335,15 @@ def main(argv: list[str] | None = None) -> int:
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
              "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
-             "car_shape": args.car_shape}
+             "car_shape": args.car_shape, "label_noise_m": args.label_noise}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
     print(markdown)
     if not args.no_docs:
         start, end = ((ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
-                      if args.car_shape == "cabin" else (COMPARE_START, COMPARE_END))
+                      if args.car_shape == "cabin" else (NOISE_START, NOISE_END) if args.label_noise
+                      else (COMPARE_START, COMPARE_END))
         replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
     return 0
 

@@ -42,8 +42,9 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
     """The shared source annotated as the golden npz were (before the z-buffer of other objects,
     issue 15: the same defaults with ``occluder_tolerance_m`` no occluder exceeds, the labelled
     returns of the depth maps left at their capture time, back-face normals from the clip's
-    returns, yaw-only labels' tilt a straight line in time and the object's own returns in the
-    depth maps hiding its points like any other surface), exported."""
+    returns, yaw-only labels' tilt a straight line in time, the object's own returns in the
+    depth maps hiding its points like any other surface and unreliable normals never taken from
+    the label box's faces), exported."""
     from drivetrack.annotate import AnnotateConfig, annotate
     from drivetrack.compact.export import FORMATS, export_clips
     from drivetrack.tracks import TrackConfig
@@ -54,7 +55,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
                                                                     depth_object_motion=False,
                                                                     normals_from="clip",
                                                                     label_tilt="linear",
-                                                                    own_surface_margin_m=None)), threads=2)
+                                                                    own_surface_margin_m=None,
+                                                                    box_face_normals_m=None)), threads=2)
     assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
     exported = tmp_path_factory.mktemp("exported_before_zbuffer")
     export_clips(str(out), list(FORMATS), str(exported))

@@ -290,14 +290,17 @@ def test_kernel_own_and_other_boxes_equal_the_numpy_rules(max_gap_m):
     occluded = ok & (surface > 0) & (surface < ratio * points_camera_x)
     with np.errstate(invalid="ignore", divide="ignore"):
         depth_ratio = surface / points_camera_x
-    mine = own_surface(p, depth_ratio, own, where=occluded & own_points[None])
+    mine = own_surface(p, depth_ratio, own, where=occluded, reliable=own_points)
+    # at points without a reliable normal only the ray test: fewer surfaces are their own
+    assert (own_surface(p, depth_ratio, own, where=occluded) & ~mine & ~own_points[None]).sum() > 5
+    assert (mine & ~own_points[None]).sum() > 5
     theirs = other_surface(p, depth_ratio, own, others, where=occluded)
     grown_only = other_surface(p, depth_ratio, own, np.concatenate([others[..., :15], np.full(others[..., 15:].shape, -1.0)], -1),
                                where=occluded)
     assert mine.sum() > 20 and (theirs & ~mine).sum() > 20
     if max_gap_m is not None:        # the gap limit decides some: surfaces in the box but far in front
         unlimited = own_surface(p, depth_ratio, own_box_parameters(camera_centres_box(cam, shift),
-                                np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2), where=occluded & own_points[None])
+                                np.tile([4.0, 2.0, 1.6], (t_count, 1)), 0.2), where=occluded, reliable=own_points)
         assert (unlimited & ~mine).sum() > 5, (unlimited.sum(), mine.sum())
     assert (grown_only & ~theirs).sum() > 5        # rays through a box: the map still hides (10 here)
     expected = (ok & ~(occluded & ~mine & ~theirs)).T

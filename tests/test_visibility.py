@@ -414,7 +414,8 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
 def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_scene, tmp_path):
     """Measured on this scene (its objects kept clear of each other): 554 matched back-face
     point-frames inside the image, the depth-ratio test calls 75% of them visible; ``occlusion=
-    "surface"`` 22% of its 356 (normals too thin to trust). 8,000 point-frames facing the camera
+    "surface"`` 17% of its 290 (normals too thin to trust; 22% of 356 before such points on one
+    face of their label box took its normal: points hidden at every frame make no track). 8,000 point-frames facing the camera
     but hidden by another object: depth ratio 26% called visible, surface (z-buffer) 12.9%. Truly
     visible point-frames called visible 0.9908 (depth ratio) -> 0.9960 (surface). On the world
     whose cars drove through each other it was 805 back-face point-frames, 55% -> 12%, and 9,730
@@ -444,7 +445,7 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     right_old, right_new = both["pred_old"] == both["visible_old"], both["pred_new"] == both["visible_old"]
     assert (right_old & ~right_new).sum() * 3 < (~right_old & right_new).sum()
     old_others, new_others = np.concatenate(old_others), np.concatenate(new_others)
-    assert old_back.size > 300 and new_back.size > 300
+    assert old_back.size > 300 and new_back.size > 250
     assert old_back.mean() > 0.4
     assert new_back.mean() < 0.3
     # hidden by another object (cars behind cars, pedestrians behind cars): the z-buffer of the
@@ -520,14 +521,69 @@ def test_own_surface_point_on_the_ray():
                                   [[False], [False]])   # no margin: not the object's surface at all
 
 
+def test_own_surface_at_points_without_a_reliable_normal():
+    """Where a point's normal is unreliable the back-face test cannot decide, so no gap is taken for
+    the object's own without the ray test: a map surface inside the box is the object's own smear
+    only where the ray from it to the point itself runs outside the box itself (0.1 m deep)."""
+    from drivetrack.visibility import own_box_parameters, own_surface
+
+    size = np.array([[4.0, 2.0, 1.5]])
+    centres = np.array([[-20.0, 0.0, 0.8]])                                    # 5 cm above the roof, 20 m behind
+    own = own_box_parameters(centres, size, 0.2, 1.0)
+    # a roof point seen at a grazing angle, its map surface the nearer roof's spread 1.5 m in
+    # front (the ray runs millimetres above the roof): the object's own smear, reliable or not
+    roof_far = np.array([[1.5, 0.0, 0.75]])
+    spread = np.full((1, 1), 20.0 / 21.5)
+    for reliable in (True, False):
+        assert own_surface(roof_far, spread, own, reliable=np.array([reliable])).all()
+    # the far face's point 0.3 m in front of the near face's surface: within the gap limit the
+    # reliable point's surface is its own (the back-face test decides), the unreliable point's ray
+    # runs through the box, so the map hides it
+    far = np.array([[1.9, 0.0, 0.3]])
+    near = np.full((1, 1), 21.6 / 21.9)
+    assert own_surface(far, near, own, reliable=np.array([True])).all()
+    assert not own_surface(far, near, own, reliable=np.array([False])).any()
+    # None: every point reliable (as before)
+    assert own_surface(far, near, own).all()
+
+
+def test_box_face_normals_only_on_one_face_away_from_its_edges():
+    """Unreliable normals of points on exactly one face of the label box take that face's outward
+    normal; points at an edge, a corner, inside or beyond the skin keep theirs (unreliable)."""
+    from drivetrack.visibility import SurfelNormals, box_face_normals, with_box_face_normals
+
+    size = np.array([4.0, 2.0, 1.5])
+    points = np.array([[2.0, 0.3, 0.1],       # front face
+                       [-1.95, -0.2, 0.0],    # rear face, 5 cm inside
+                       [0.5, -1.08, 0.2],     # right side, 8 cm outside
+                       [0.0, 0.0, 0.75],      # roof
+                       [1.98, 0.97, 0.0],     # the front-left edge
+                       [2.0, 1.0, 0.75],      # a corner
+                       [0.0, 0.0, 0.0],       # inside
+                       [0.0, 1.2, 0.0]])      # 0.2 m beyond the left side
+    normal, on_face = box_face_normals(points, size, 0.1)
+    np.testing.assert_array_equal(on_face, [True, True, True, True, False, False, False, False])
+    np.testing.assert_array_equal(normal[:4], [[1, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1]])
+    assert not normal[4:].any()
+    surfel = np.tile([0.0, 0.6, 0.8], (len(points), 1))
+    reliable = np.zeros(len(points), bool)
+    reliable[0] = True                         # a reliable normal is kept even on a face
+    filled = with_box_face_normals(SurfelNormals(surfel, reliable), points, size, 0.1)
+    np.testing.assert_array_equal(filled.reliable, [True, True, True, True, False, False, False, False])
+    np.testing.assert_array_equal(filled.normal[0], surfel[0])
+    np.testing.assert_array_equal(filled.normal[1:4], normal[1:4])
+    np.testing.assert_array_equal(filled.normal[4:], surfel[4:])
+    assert not reliable[1:].any()              # the input is not modified
+
+
 def test_own_returns_smeared_over_the_objects_far_points_hide_nothing(hard_scene, tmp_path):
     """The depth maps are completed by nearest neighbour: near an object's own depth edges (a roof
     above its rear face, the far end of a side seen obliquely) its nearer returns are smeared over
     its farther, visible points and the depth-ratio test hid them. Measured on this scene (default
     ``own_surface_margin_m`` 0.2 against None): truly visible point-frames called hidden 874 ->
     479; of the 400 point-frames it frees, 395 are truly visible; back-face point-frames called
-    visible 0.118 -> 0.122 (the rule applies to points with reliable normals only: the back-face
-    test decides for them)."""
+    visible 0.118 -> 0.122 (the rule frees points with reliable normals, where the back-face test
+    decides, and the others only where the ray from the map's surface misses the box itself)."""
     root, segment = hard_scene
     before_calls, after_calls = [], []
     before_back, before_visible, _ = _back_face_calls(root, segment, str(tmp_path / "before"), 90.0, "numba",

@@ -85,6 +85,14 @@ class TrackConfig:
             ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
             clip's otherwise), or ``clip`` the clip's returns. ``normal_neighbours``: k of the
             k-nearest-neighbour PCA.
+        box_face_normals_m: a point whose normal is unreliable (too few or too collinear
+            neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
+            this distance (metres) of exactly one face of its label box, away from its edges,
+            takes that face's outward normal for the back-face test and the own-box rule
+            (:func:`drivetrack.visibility.with_box_face_normals`). None: such points stay
+            unreliable and the depth map decides for them, the own-box rule only where the ray
+            from the map's surface to the point misses the box itself (docs/visibility.md,
+            "Unreliable normals").
         occlusion: how occlusion is decided (:data:`OCCLUSION_METHODS`). ``surface`` (default):
             the depth-map test, plus back faces (``back_face_max_deg``), plus the z-buffer of the
             other labelled objects' returns (:mod:`drivetrack.visibility.zbuffer`: hidden when
@@ -171,6 +179,7 @@ class TrackConfig:
     depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
     normal_neighbours: int = 12
+    box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
     occluder_tolerance_rel: float = 0.0
@@ -242,6 +251,10 @@ class TrackConfig:
                              f"got {self.own_surface_max_gap_m!r}")
         if self.normals_from not in ("segment", "clip"):
             raise ValueError(f"TrackConfig.normals_from must be 'segment' or 'clip', got {self.normals_from!r}")
+        if self.box_face_normals_m is not None and not (
+                isinstance(self.box_face_normals_m, (int, float)) and 0 <= self.box_face_normals_m < 10):
+            raise ValueError(f"TrackConfig.box_face_normals_m must be None or metres in [0, 10), "
+                             f"got {self.box_face_normals_m!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
             raise ValueError(f"TrackConfig.normal_neighbours must be an integer >= 3, got {self.normal_neighbours!r}")
         if self.occlusion not in OCCLUSION_METHODS:

@@ -95,8 +95,9 @@ class ObjectTracks:
         time_residual_m: mean distance (metres) outside the box of the clip's candidate returns,
             each with the box at its capture time (0 when every return lies inside).
         num_unreliable_normals: candidates whose surface normal is too poorly supported for the
-            back-face test (:mod:`drivetrack.visibility.facing`; the depth test alone decides for
-            them); 0 when ``TrackConfig.back_face_max_deg`` is None.
+            back-face test and not on a single face of their label box
+            (``TrackConfig.box_face_normals_m``; :mod:`drivetrack.visibility.facing`; the depth
+            test decides for them); 0 when ``TrackConfig.back_face_max_deg`` is None.
         num_ambiguous_occlusion: (track, frame) pairs of the kept tracks, inside the image, whose
             occlusion decision was close to flipping: ``|occlusion_margin| < 1`` (below).
         occlusion_margin: float16 [N, T] or None (only with ``TrackConfig.occlusion_margins``):
@@ -814,7 +815,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     by_surface = config.occlusion == "surface"
     surfels = centres_box = None
     if by_surface and config.back_face_max_deg is not None:
-        from drivetrack.visibility import camera_centres_box, sensor_positions, surfel_normals
+        from drivetrack.visibility import camera_centres_box, sensor_positions, surfel_normals, with_box_face_normals
 
         sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
         sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
@@ -824,11 +825,17 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         cloud = (segment_surface(plan, job.object_id, poses)
                  if poses.trajectory is not None and config.normals_from == "segment" else None)
         surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
+        if config.box_face_normals_m is not None:
+            # too thinly sampled for a plane, but on one face of the label box: that face's normal
+            # (a roof or a side seen at a grazing angle by the lidar; docs/visibility.md)
+            surfels = with_box_face_normals(surfels, p_box, np.median(boxes.size[rows], axis=0),
+                                            float(config.box_face_normals_m))
         centres_box = camera_centres_box(camera_from_box, shift_camera)
     # The object's own box for the depth-map test (drivetrack.visibility.own_surface): with the
     # back-face test on, a depth-map surface inside it hides nothing at a point whose normal is
-    # reliable (``own_points``; where it is not, the back-face test cannot decide and the depth map
-    # still does: measured, docs/visibility.md). Its camera centres are the
+    # reliable (``own_points``); where it is not, the back-face test cannot decide, and the surface
+    # is the object's own smear only where the ray from it to the point runs outside the box
+    # itself (no gap limit: measured, docs/visibility.md "Unreliable normals"). Its camera centres are the
     # global-shutter image pose's; on the rolling-shutter path the surface point is placed with
     # them too (off by (1 - depth ratio) x the camera's motion relative to the object between the
     # image pose and the row's time: centimetres, inside the margin). Only within
@@ -1024,8 +1031,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
             if own_box.shape[0]:
-                occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box,
-                                         where=occluded & own_points[None, start:start + chunk.shape[0]])
+                occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box, where=occluded,
+                                         reliable=own_points[start:start + chunk.shape[0]])
                 occluded &= ~other_surface(chunk, surface / points_camera[..., 0], own_box, others, where=occluded)
             visible = ok & ~occluded
             faces = facing(start, start + chunk.shape[0])
@@ -1134,10 +1141,10 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
         margin = _scaled(margin, float(config.ambiguity_m))
         face = None if face_margin is None else _scaled(face_margin[:, idx], float(config.ambiguity_deg))
         if own_box.shape[0]:
-            # own points have reliable normals, so a finite back-face term: the depth-map term
-            # only matters where it is the smaller (exact, and few point-frames to place)
-            own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box,
-                              where=(margin < face) & own_points[None, idx])
+            # the depth-map term only matters where it is smaller than the back-face term (+inf
+            # at an unreliable normal; exact, and few point-frames to place)
+            own = own_surface(p_box[idx], surface / points_camera[..., 0], own_box, where=margin < face,
+                              reliable=own_points[idx])
             margin[own] = np.inf
         zbuffer = None if zbuffer_margin is None else _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m))
         if own_box.shape[0] and others is not None and others.shape[1]:

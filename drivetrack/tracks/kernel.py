@@ -48,10 +48,11 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     ``own`` float64 [T, 8] (or [0, 8]: off): per frame the camera centre in the box frame, the
     half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``,
     ``own_surface_max_gap_m`` and the depth inside the grown box's faces at which a ray passes
-    through the box itself; when ``own_point`` (the point has a reliable normal), a surface whose
-    point on the ray to the box-frame point (px, py, pz) lies in that grown box, at most the gap
-    in front of the point or farther with the ray from it to the gap not passing through the box
-    itself, does not hide it
+    through the box itself; a surface whose point on the ray to the box-frame point (px, py, pz)
+    lies in that grown box, at most the gap in front of the point or farther with the ray from it
+    to the gap not passing through the box itself, does not hide it; where not ``own_point`` (the
+    point's normal is unreliable, so the back-face test cannot decide) the gap is 0: only the ray
+    test
     (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the
@@ -84,7 +85,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
             best = max(best, depth_maps[tau, r1, c1])
     if not (best > 0 and best < occlusion_ratio * x):
         return True
-    if own.shape[0] == 0 or not (own_point or others.shape[1] > 0):
+    if own.shape[0] == 0:
         return False
     # the surface's point on the ray from the camera centre e through p: e + (best / x) (p - e)
     scale = best / x
@@ -92,14 +93,15 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     qx = e[0] + scale * (px - e[0])
     qy = e[1] + scale * (py - e[1])
     qz = e[2] + scale * (pz - e[2])
-    if own_point and abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]:
-        # ... unless it lies farther in front of the point than e[6] and the ray from it to e[6]
-        # in front of the point passes through the box itself (a part of the object; through the
-        # margin only the map's spread)
+    if abs(qx) <= e[3] and abs(qy) <= e[4] and abs(qz) <= e[5]:
+        # ... unless it lies farther in front of the point than the gap limit (e[6]; 0 at a point
+        # without a reliable normal) and the ray from it to that far in front of the point passes
+        # through the box itself (a part of the object; through the margin only the map's spread)
+        limit = e[6] if own_point else 0.0
         gap = np.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
-        if gap <= e[6]:
+        if gap <= limit:
             return True
-        w = e[6] / gap
+        w = limit / gap
         if not _segment_in_box(qx, qy, qz, px + (qx - px) * w, py + (qy - py) * w, pz + (qz - pz) * w,
                                    e[3] - e[7], e[4] - e[7], e[5] - e[7]):
             return True

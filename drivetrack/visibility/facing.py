@@ -16,8 +16,10 @@ scene has none). The position matters for objects beside the ego: a car 1.5 m aw
 below the roof lidar and above a point at bumper height, so one stand-in point for every lidar
 turned its roof normals inwards and called the roof a back face. A normal is *unreliable* when
 its neighbourhood is too thin to fix a plane: fewer than ``k`` returns, the ``k``-th neighbour
-farther than ``max_neighbour_m``, or planarity below ``min_planarity``; unreliable points are
-never called back faces (the depth test alone decides for them).
+farther than ``max_neighbour_m``, or planarity below ``min_planarity``. An unreliable point on
+exactly one face of its label box takes that face's normal (:func:`with_box_face_normals`,
+``TrackConfig.box_face_normals_m``); the other unreliable points are never called back faces (the
+depth test decides for them).
 
 Own surface in the depth map (:func:`own_surface`): the depth maps are completed from sparse
 returns by nearest neighbour in the image, so near an object's own depth edges (a roof seen at a
@@ -26,7 +28,8 @@ its farther, visible points, and the depth-ratio test hid them. A depth-map surf
 the ray to the tracked point lies inside the object's own box (grown by
 ``TrackConfig.own_surface_margin_m``) is the object itself: whether the object hides its own
 point is the back-face test's question, so that surface hides nothing at a point whose normal is
-reliable (where it is not, the back-face test cannot decide and the depth map still does).
+reliable (where it is not, the back-face test cannot decide: there the surface is the object's
+own only where the ray from it to the point runs outside the box itself).
 
 Shapes: n points, T frames; metres, box frame unless named otherwise.
 """
@@ -37,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask", "other_boxes", "other_surface", "own_box_parameters", "own_surface",
+           "facing_cosine", "facing_mask", "box_face_normals", "with_box_face_normals", "other_boxes", "other_surface", "own_box_parameters", "own_surface",
            "OWN_BOX_DEPTH_M"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
@@ -110,6 +113,41 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
     return SurfelNormals(normal, reliable)
 
 
+def box_face_normals(points_box: np.ndarray, size: np.ndarray, skin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The label box's face normal at each point that lies on exactly one of its faces.
+
+    ``points_box`` float [n, 3] (box frame, metres), ``size`` float [3] (length, width, height).
+    Returns (normal float64 [n, 3] unit outward, zero where undefined; on_face bool [n]): a point
+    is on a face when it lies within ``skin_m`` of that face's plane (either side) and more than
+    ``skin_m`` inside the box's extent along both other axes (not at an edge or a corner, where
+    the face is ambiguous).
+    """
+    p = np.asarray(points_box, dtype=np.float64)
+    half = 0.5 * np.asarray(size, dtype=np.float64)
+    near = np.abs(np.abs(p) - half) <= skin_m                                              # [n, 3]
+    inner = np.abs(p) < half - skin_m                                                      # [n, 3]
+    on_face = np.zeros(p.shape[0], dtype=bool)
+    normal = np.zeros_like(p)
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        sel = near[:, axis] & inner[:, others[0]] & inner[:, others[1]]
+        normal[sel, axis] = np.sign(p[sel, axis])
+        on_face |= sel
+    return normal, on_face
+
+
+def with_box_face_normals(surfels: SurfelNormals, points_box: np.ndarray, size: np.ndarray,
+                          skin_m: float) -> SurfelNormals:
+    """``surfels`` with each unreliable normal of a point on exactly one face of the label box
+    (:func:`box_face_normals`, ``points_box`` float [n, 3], ``size`` float [3], metres) replaced
+    by that face's outward normal, and that point counted reliable."""
+    face_normal, on_face = box_face_normals(points_box, size, skin_m)
+    fill = on_face & ~surfels.reliable
+    normal = surfels.normal.copy()
+    normal[fill] = face_normal[fill]
+    return SurfelNormals(normal, surfels.reliable | fill)
+
+
 def camera_centres_box(camera_from_box: np.ndarray, shift_camera: np.ndarray) -> np.ndarray:
     """float64 [T, 3]: the camera centre in the box frame of each frame.
 
@@ -145,7 +183,7 @@ def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: floa
 
 
 def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray,
-                where: np.ndarray | None = None) -> np.ndarray:
+                where: np.ndarray | None = None, reliable: np.ndarray | None = None) -> np.ndarray:
     """bool [T, n]: the depth-map surface in front of each point-frame is the object's own.
 
     ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
@@ -157,8 +195,14 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     point not running through the box itself, :data:`OWN_BOX_DEPTH_M` deep (through the margin,
     where no part of the object is, only the map's spread: over a roof seen at a grazing angle the
     ray runs a few centimetres above the roof); where that stretch of the ray passes through the
-    box, a part of the object itself hides the point (a cabin in front of a bonnet; a box has no such part). NaN ratios give False. ``where`` bool [T, n]: compute only there (False elsewhere; the callers ask
-    about the few point-frames the test decides).
+    box, a part of the object itself hides the point (a cabin in front of a bonnet; a box has no
+    such part). NaN ratios give False. ``where`` bool [T, n]: compute only there (False
+    elsewhere; the callers ask about the few point-frames the test decides). ``reliable`` bool
+    [n] (None: all): the points whose normal the back-face test can use; at the others no gap is
+    taken for the object's own without the ray test (the limit is 0): the surface is its own
+    smear only where the ray from it to the point itself runs outside the box itself, so a face
+    the object turns away (the ray crosses its body) is still hidden by the map, and a roof seen
+    at a grazing angle, too thinly sampled for a normal, is not.
     """
     points_box = np.asarray(points_box, dtype=np.float64)
     depth_ratio = np.asarray(depth_ratio, dtype=np.float64)
@@ -169,7 +213,7 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     with np.errstate(invalid="ignore"):
         surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)
         gap = np.linalg.norm(points_box[n_idx] - surface, axis=-1)
-        limit = own[t_idx, 6]
+        limit = own[t_idx, 6] if reliable is None else np.where(np.asarray(reliable, bool)[n_idx], own[t_idx, 6], 0.0)
         far = gap > limit
         # farther than the gap: the object's own only if the ray from the surface to the gap's
         # start runs outside the box itself (through the margin: the map's spread)

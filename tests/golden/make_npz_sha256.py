@@ -24,7 +24,8 @@ def main(src: str, out_json: str) -> int:
             generate_segment(src, SynthConfig(seed=7, frames=30, preset="small"), i)
         Path(src, "ok").write_text("1")
     config = AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9, depth_object_motion=False, normals_from="clip",
-                                              label_tilt="linear", own_surface_margin_m=None))
+                                              label_tilt="linear", own_surface_margin_m=None,
+                                              box_face_normals_m=None))
     gold = tempfile.mkdtemp()
     for i in range(2):
         seg = segment_name(7, i)
