@@ -52,6 +52,34 @@ def test_normals_point_outward_and_back_faces_turn_away():
     assert facing[front].mean() > 0.97 and facing[back].mean() < 0.03
 
 
+def test_normals_of_a_face_seen_at_a_grazing_angle_turn_away_from_the_box_centre():
+    """A lidar 10 m behind a car sees its sides at a grazing angle; a few centimetres of pose error
+    put the sensor on the wrong side of a side's plane, and turning the normal towards it pointed
+    it inwards. The box centre is the more decisive cue there; head-on faces keep the sensor's."""
+    from drivetrack.visibility import orient_outward
+
+    rng = np.random.default_rng(3)
+    points, true_normal = _box_cloud(rng, per_face=300)
+    side = true_normal[:, 1] != 0
+    # behind the car, 0.03 m inside the plane of each side (the left side from the left, ...)
+    sensor = np.where(side[:, None], np.c_[np.full(len(points), -12.0), np.sign(true_normal[:, 1]) * 0.87,
+                                           np.zeros(len(points))], points + 20.0 * true_normal)
+    assert (np.einsum("ni,ni->n", true_normal, sensor - points)[side] < 0).all()   # the sensor's cue is wrong
+    surfels = surfel_normals(points, sensor)
+    cosine = np.einsum("ni,ni->n", surfels.normal, true_normal)
+    assert (cosine[surfels.reliable] > 0).mean() > 0.97
+    assert (cosine[side & surfels.reliable] > 0).mean() > 0.97      # outward, though the sensor is inside
+    # the cue alone: every inward normal flipped, every outward kept, the sensor's side or not
+    flip = orient_outward(-true_normal, points, sensor)
+    assert flip.all() and not orient_outward(true_normal, points, sensor).any()
+    # a head-on face near the centre's plane (a bonnet-like face: the centre's cue weak) keeps
+    # the sensor's: the roof of a low box seen from above
+    bonnet = np.array([[1.5, 0.0, 0.05]])
+    up = np.array([[0.0, 0.0, 1.0]])
+    assert not orient_outward(up, bonnet, np.array([[-5.0, 0.0, 3.0]])).any()
+    assert orient_outward(-up, bonnet, np.array([[-5.0, 0.0, 3.0]])).all()
+
+
 def test_thin_neighbourhoods_are_unreliable_and_never_back_faces():
     points = np.column_stack([np.linspace(0, 3, 40), np.zeros(40), np.zeros(40)])    # a line: no plane
     surfels = surfel_normals(points, points + np.array([0.0, 10.0, 0.0]))

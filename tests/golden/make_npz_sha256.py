@@ -1,7 +1,9 @@
 """Regenerate tests/golden/npz_sha256.json: the sha256 of the npz the writers write straight from
 ObjectTracks (``drivetrack.tracks.write_object_outputs``) for the shared scene of tests/conftest.py
 annotated as tests/test_compact.py's ``exported_before_zbuffer``; the export of the release tables
-must reproduce them byte for byte. Run after an intended change of the synthetic scene:
+must reproduce them byte for byte. Run after an intended change of the synthetic scene (or of
+what that configuration computes: the normals' orientation, 2026-11-27, tenth session), first on
+the code before it (it must reproduce the committed file), then on the new code:
 ``.venv/bin/python tests/golden/make_npz_sha256.py /tmp/shared_scene``. (Before the world's
 placement this script reproduced the digests the pre-v2 writers had recorded, byte for byte.)"""
 import hashlib
