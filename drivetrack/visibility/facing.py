@@ -9,11 +9,11 @@ hides, at any distance.
 
 Normals: PCA over each return's ``k`` nearest neighbours among the object's returns in its box
 frame, the clip's or (``cloud``) all of the segment's (``drivetrack.refine.kernel.knn`` /
-``normals``, the refinement's estimator),
-oriented towards the lidar that saw the return (a lidar sees the outside of a surface), placed
-by its ``lidar_calibration`` extrinsic (:func:`sensor_positions`; :data:`SENSOR_VEHICLE_M` where a
-scene has none), or away from the box centre where that is the more decisive cue
-(:func:`orient_outward`: a face the lidar saw at a grazing angle). The position matters for objects beside the ego: a car 1.5 m away has its roof
+``normals``, the refinement's estimator), oriented towards the lidar that saw the return (a lidar
+sees the outside of a surface), placed by its ``lidar_calibration`` extrinsic
+(:func:`sensor_positions`; :data:`SENSOR_VEHICLE_M` where a scene has none), or away from the box
+centre where that is the more decisive cue (:func:`orient_outward`: a face the lidar saw at a
+grazing angle). The position matters for objects beside the ego: a car 1.5 m away has its roof
 below the roof lidar and above a point at bumper height, so one stand-in point for every lidar
 turned its roof normals inwards and called the roof a back face. A normal is *unreliable* when
 its neighbourhood is too thin to fix a plane: fewer than ``k`` returns, the ``k``-th neighbour
@@ -40,9 +40,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SENSOR_VEHICLE_M", "SurfelNormals", "sensor_positions", "surfel_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask", "box_face_normals", "orient_outward", "with_box_face_normals", "other_boxes", "other_surface", "own_box_parameters", "own_surface",
-           "OWN_BOX_DEPTH_M"]
+__all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SurfelNormals", "box_face_normals", "camera_centres_box",
+           "facing_cosine", "facing_mask", "orient_outward", "other_boxes", "other_surface", "own_box_parameters",
+           "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
