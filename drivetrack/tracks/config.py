@@ -126,6 +126,9 @@ class TrackConfig:
             they are). The capped footprints of near occluders and the parts of an object no
             lidar sweep sampled leave such holes, through which hidden points were called
             visible. Default 4; 0: off (before 2026-11-26, fifth session; docs/visibility.md).
+            Each object's splats are closed on their own, so a gap between two objects stays.
+        occluder_subpixels: the z-buffer's resolution, buffer pixels per image pixel along each
+            axis (1-4; default 2: outlines placed to half a pixel; 1 before 2026-11-27).
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -188,6 +191,7 @@ class TrackConfig:
     surfel_radius_m: float = 0.05
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
+    occluder_subpixels: int = 2
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -271,6 +275,9 @@ class TrackConfig:
         if not isinstance(self.depth_defers_to_zbuffer, bool):
             raise ValueError(f"TrackConfig.depth_defers_to_zbuffer must be true or false, got "
                              f"{self.depth_defers_to_zbuffer!r}")
+        if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
+            raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
+                             f"{self.occluder_subpixels!r}")
         if not (isinstance(self.occluder_fill_px, int) and 0 <= self.occluder_fill_px <= 64):
             raise ValueError(f"TrackConfig.occluder_fill_px must be an integer number of pixels in [0, 64], got "
                              f"{self.occluder_fill_px!r}")

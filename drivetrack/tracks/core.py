@@ -690,7 +690,8 @@ def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.n
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
                shutter=None):
     """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
-    radius float64 [m], metres) of the other labelled objects' returns, and the boxes of those
+    radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
+    0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
     added to the translation, size float64 [k, 3]).
 
@@ -734,7 +735,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     if shutter is not None:
         # only returns near the target in the image at its pose are solved for their capture time
         near_target = [_near_disc(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
-    for object_id in np.unique(boxes.object_id[in_clip]).tolist():
+    for label, object_id in enumerate(np.unique(boxes.object_id[in_clip]).tolist()):
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
@@ -767,14 +768,15 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         for k, t in enumerate(obj_frames.tolist()):
             ok = valid[k]
             if shutter is None:
-                per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
+                splats = (pixels[k][ok], points_camera[k, ok, 0], radius_m[ok])
             else:
-                per_frame[slot[t]].append(_captured_splats(shutter, t, poses, k, points_box, radius_m,
-                                                           ok & near_target[slot[t]](pixels[k])))
+                splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, ok & near_target[slot[t]](pixels[k]))
+            per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
+                np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+                np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
                       np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
 
@@ -901,7 +903,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             points_camera, pixels, valid, occluders, int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-            int(config.occluder_fill_px))
+            int(config.occluder_fill_px), int(config.occluder_subpixels))
 
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
