@@ -39,12 +39,11 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ label-box faces at unreliable normals (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ z-buffer outlines to half a pixel (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ label-box faces at unreliable normals (default),own-box rule without a gap limit (before),\
-default without the own-box rule"   # ~15 min
++ label-box faces at unreliable normals,+ z-buffer outlines to half a pixel (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ depth map defers to the z-buffer,+ label-box faces at unreliable normals (default)"   # ~12 min
++ label-box faces at unreliable normals,+ z-buffer outlines to half a pixel (default)"   # ~12 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -180,27 +179,34 @@ _BEFORE_FILL = {"occluder_fill_px": 0, "depth_defers_to_zbuffer": False}
 #: test at such points has no switch: the variants with the own-box rule carry it.
 _BEFORE_FACES = {"box_face_normals_m": None}
 
+#: The z-buffer at one buffer pixel per image pixel (before 2026-11-27, eleventh session). Each
+#: object's holes closed on their own (the same session) has no switch: every variant with the
+#: z-buffer carries it.
+_BEFORE_SUBPIXELS = {"occluder_subpixels": 1}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
-                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES},
+                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
-                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
+                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL,
-                                           **_BEFORE_FACES},
+                                           **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     # holes between an occluder's splats closed by 4 px
-    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES},
+    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     # a depth-map surface inside another labelled object's box is left to the z-buffer
-    "+ depth map defers to the z-buffer": {**_BEFORE_FACES},
+    "+ depth map defers to the z-buffer": {**_BEFORE_FACES, **_BEFORE_SUBPIXELS},
     # unreliable normals on one face of the label box take that face's normal
-    "+ label-box faces at unreliable normals (default)": {},
+    "+ label-box faces at unreliable normals": {**_BEFORE_SUBPIXELS},
+    # the z-buffer at two buffer pixels per image pixel: outlines placed to half a pixel
+    "+ z-buffer outlines to half a pixel (default)": {},
 }
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
