@@ -242,9 +242,13 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
         radius[inside] = np.maximum(radius[inside], footprint[row[inside] - r0, col[inside] - c0])
         farthest = np.full(n, np.inf, dtype=np.float64)
+        # the windows grow in turn: a square maximum of r + s is that of s over that of r (also at
+        # the image's edges), so each size costs only its growth over the last
+        covered, done = buffer, 0
         for r in np.unique(radius[inside]).tolist():
+            if r > done:
+                covered, done = _square_max(covered, r - done), r
             sel = inside & (radius == r)
-            covered = buffer if r == 0 else _square_max(buffer, r)
             farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
         threshold = z - (abs_m + rel * z)
         hidden[tau] = inside & (farthest < threshold)
