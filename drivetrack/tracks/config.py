@@ -83,8 +83,10 @@ class TrackConfig:
         normals_from: where the back-face normals' neighbourhoods come from: ``segment`` (default)
             all the object's returns over the segment in its box frame, thinned to cubes of half
             ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
-            clip's otherwise), or ``clip`` the clip's returns. ``normal_neighbours``: k of the
-            k-nearest-neighbour PCA.
+            clip's otherwise; each cube's mean, :func:`drivetrack.tracks.core.segment_normals_cloud`),
+            or ``clip`` the clip's returns. ``normal_neighbours``: k of the k-nearest-neighbour PCA
+            (default 30; 12 before 2026-11-27, eleventh session: with 2 cm of lidar range noise
+            the normals of 12 scattered by tens of degrees, docs/visibility.md).
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -181,7 +183,7 @@ class TrackConfig:
     own_surface_max_gap_m: float | None = 1.0
     depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
-    normal_neighbours: int = 12
+    normal_neighbours: int = 30
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15

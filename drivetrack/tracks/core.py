@@ -552,23 +552,39 @@ def _surfel_cube_m(config) -> float:
     return 0.5 * float(config.surfel_radius_m)
 
 
-def segment_surface(plan, object_id: str, poses) -> np.ndarray:
-    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
-    to one per cube of half ``surfel_radius_m``; computed once per object and segment
-    (``plan.occluder_cache``). ``poses``: any :func:`clip_poses` of the object on the segment's
-    trajectory (the returns' box-frame positions do not depend on the camera or the clip)."""
-    from drivetrack.visibility.zbuffer import surfel_subsample
+def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
+    """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
+    both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
+    from drivetrack.visibility.zbuffer import surfel_means, surfel_subsample
 
-    points_box = plan.occluder_cache.get(object_id)
-    if points_box is None:
+    clouds = plan.occluder_cache.get(object_id)
+    if clouds is None:
         boxes = plan.scene.boxes
         all_rows = np.flatnonzero(boxes.object_id == object_id)
         all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
         lidar_rows, source = plan.box_points(all_rows)
         points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
-        points_box = points_box[surfel_subsample(points_box, _surfel_cube_m(plan.config))]
-        plan.occluder_cache[object_id] = points_box
-    return points_box
+        cube_m = _surfel_cube_m(plan.config)
+        clouds = (points_box[surfel_subsample(points_box, cube_m)], surfel_means(points_box, cube_m))
+        plan.occluder_cache[object_id] = clouds
+    return clouds
+
+
+def segment_surface(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
+    to one per cube of half ``surfel_radius_m`` (the first, a return itself: the z-buffer's
+    surface); computed once per object and segment (``plan.occluder_cache``). ``poses``: any
+    :func:`clip_poses` of the object on the segment's trajectory (the returns' box-frame
+    positions do not depend on the camera or the clip)."""
+    return _segment_clouds(plan, object_id, poses)[0]
+
+
+def segment_normals_cloud(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: the same returns as :func:`segment_surface`, each cube's *mean* instead
+    of its first return (:func:`drivetrack.visibility.zbuffer.surfel_means`): the neighbourhoods
+    of the back-face normals. A return's range carries centimetres of noise; the mean of the
+    returns of a 2.5 cm cube carries less, and the cubes keep a sharp edge sharp."""
+    return _segment_clouds(plan, object_id, poses)[1]
 
 
 def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
@@ -824,7 +840,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                       + box_from_vehicle[source_clip, :3, 3])
         # neighbourhoods among all the object's returns over the segment (on the trajectory): denser
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
-        cloud = (segment_surface(plan, job.object_id, poses)
+        cloud = (segment_normals_cloud(plan, job.object_id, poses)
                  if poses.trajectory is not None and config.normals_from == "segment" else None)
         surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
         if config.box_face_normals_m is not None:

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 __all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "surfel_cells",
-           "surfel_subsample"]
+           "surfel_means", "surfel_subsample"]
 
 
 def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -49,6 +49,20 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     cells = surfel_cells(points_box, radius_m)
     order = np.argsort(cells, kind="stable")
     return np.sort(order[first_of_cells(cells[order])])
+
+
+def surfel_means(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """float64 [k, 3]: the mean of the points of ``points_box`` float64 [m, 3] in each cube of side
+    ``radius_m`` (a voxel grid's centroids), in the order of the cubes' keys
+    (:func:`surfel_cells`). Range noise moves each return along its ray; the mean of a cube's
+    returns (many, where an object was seen over a whole segment) carries less of it."""
+    if points_box.shape[0] == 0:
+        return np.zeros((0, 3))
+    cells = surfel_cells(points_box, radius_m)
+    order = np.argsort(cells, kind="stable")
+    starts = first_of_cells(cells[order])
+    counts = np.diff(np.append(starts, order.size))
+    return np.add.reduceat(points_box[order], starts, axis=0) / counts[:, None]
 
 
 def _square_min(image: np.ndarray, r: int) -> np.ndarray:
