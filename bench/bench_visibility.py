@@ -32,19 +32,23 @@ entries of :data:`VARIANTS` or :data:`EXTRA_VARIANTS` (comma-separated names, de
 label box (``SynthConfig(car_shape="cabin")``: real cars are not boxes) and the block
 ``bench_visibility_cabin`` is written; with ``--label-noise M`` the written boxes carry M metres
 of centre noise and 1 deg of heading noise per 5 cm (``SynthConfig(box_noise_m=M)``: real labels
-are drawn by hand around their returns) and the block ``bench_visibility_noise`` is written. Each
+are drawn by hand around their returns) and the block ``bench_visibility_noise`` is written; with
+``--range-noise M`` every written lidar range carries M metres of noise
+(``SynthConfig(range_noise_m=M)``: real returns do) and the block ``bench_visibility_range`` is
+written. Each
 block counts the wrong calls by kind (truly visible called hidden, back faces called visible,
 hidden by another object called visible).
 
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ label-box faces at unreliable normals (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ normals among 30 neighbours (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ label-box faces at unreliable normals (default),own-box rule without a gap limit (before),\
-default without the own-box rule"   # ~15 min
++ label-box faces at unreliable normals,+ normals among 30 neighbours (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ depth map defers to the z-buffer,+ label-box faces at unreliable normals (default)"   # ~12 min
++ label-box faces at unreliable normals,+ normals among 30 neighbours (default)"   # ~12 min
+    .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
++ z-buffer outlines to half a pixel,+ normals among 30 neighbours (default)"   # ~12 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -180,27 +184,42 @@ _BEFORE_FILL = {"occluder_fill_px": 0, "depth_defers_to_zbuffer": False}
 #: test at such points has no switch: the variants with the own-box rule carry it.
 _BEFORE_FACES = {"box_face_normals_m": None}
 
+#: The z-buffer at one buffer pixel per image pixel (before 2026-11-27, eleventh session). Each
+#: object's holes closed on their own (the same session) has no switch: every variant with the
+#: z-buffer carries it.
+_BEFORE_SUBPIXELS = {"occluder_subpixels": 1}
+
+#: The normals' 12 neighbours (before 2026-11-27, eleventh session). Their neighbourhoods among
+#: each cube's mean instead of its first return (the same session) has no switch: every variant
+#: with the back-face test carries it.
+_BEFORE_NEIGHBOURS = {"normal_neighbours": 12}
+_BEFORE_ELEVENTH = {**_BEFORE_SUBPIXELS, **_BEFORE_NEIGHBOURS}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
-                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES},
+                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
-                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
+                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL,
-                                           **_BEFORE_FACES},
+                                           **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     # holes between an occluder's splats closed by 4 px
-    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES},
+    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
     # a depth-map surface inside another labelled object's box is left to the z-buffer
-    "+ depth map defers to the z-buffer": {**_BEFORE_FACES},
+    "+ depth map defers to the z-buffer": {**_BEFORE_FACES, **_BEFORE_ELEVENTH},
     # unreliable normals on one face of the label box take that face's normal
-    "+ label-box faces at unreliable normals (default)": {},
+    "+ label-box faces at unreliable normals": {**_BEFORE_ELEVENTH},
+    # the z-buffer at two buffer pixels per image pixel: outlines placed to half a pixel
+    "+ z-buffer outlines to half a pixel": {**_BEFORE_NEIGHBOURS},
+    # normals among 30 neighbours (each cube's mean): robust to range noise
+    "+ normals among 30 neighbours (default)": {},
 }
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
@@ -211,6 +230,7 @@ COMPARE_START, COMPARE_END = "<!-- bench_visibility_compare:start -->", "<!-- be
 ROLLING_START, ROLLING_END = "<!-- bench_visibility_rolling:start -->", "<!-- bench_visibility_rolling:end -->"
 CABIN_START, CABIN_END = "<!-- bench_visibility_cabin:start -->", "<!-- bench_visibility_cabin:end -->"
 NOISE_START, NOISE_END = "<!-- bench_visibility_noise:start -->", "<!-- bench_visibility_noise:end -->"
+RANGE_START, RANGE_END = "<!-- bench_visibility_range:start -->", "<!-- bench_visibility_range:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
@@ -219,9 +239,11 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     rolling = setup.get("rolling_shutter", False)
     cabin = setup.get("car_shape", "box") == "cabin"
     noise = float(setup.get("label_noise_m", 0.0))
+    range_noise = float(setup.get("range_noise_m", 0.0))
     title = ("## Visibility on the hard world read out by a rolling shutter" if rolling
              else "## Visibility on the hard world with cabin-shaped cars" if cabin
              else f"## Visibility on the hard world with {noise * 100:g} cm label noise" if noise
+             else f"## Visibility on the hard world with {range_noise * 100:g} cm lidar range noise" if range_noise
              else "## Visibility on the hard world: back faces from each object's own surface")
     world = ("the hard world of the block above rendered with rolling-shutter cameras "
              "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
@@ -230,9 +252,12 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              else f"the hard world of the block above with its written boxes' centres moved by {noise * 100:g} cm "
                   f"(sigma, per axis) and their headings by {noise / 0.05:g} deg "
                   f"(`SynthConfig(world=\"hard\", box_noise_m={noise:g})`), same scoring: preset " if noise
+             else f"the hard world of the block above with {range_noise * 100:g} cm (sigma) of noise on every written lidar "
+                  f"range (`SynthConfig(world=\"hard\", range_noise_m={range_noise:g})`), same scoring: preset "
+             if range_noise
              else "same segment and scoring as the block above: preset ")
     options = ((" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
-               + (f" --label-noise {noise:g}" if noise else ""))
+               + (f" --label-noise {noise:g}" if noise else "") + (f" --range-noise {range_noise:g}" if range_noise else ""))
     lines = [title, "",
              f"`bench/bench_visibility.py{options}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
@@ -290,13 +315,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label-noise", type=float, default=0.0, metavar="M",
                     help="sigma (metres, per axis) of the noise on the written boxes' centres, with 1 deg of "
                          "heading noise per 5 cm (SynthConfig.box_noise_m; writes the bench_visibility_noise block)")
+    ap.add_argument("--range-noise", type=float, default=0.0, metavar="M",
+                    help="sigma (metres) of the noise on every written lidar range (SynthConfig.range_noise_m; "
+                         "writes the bench_visibility_range block)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
-    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0)) > 1:
-        ap.error("--rolling-shutter, --car-shape cabin and --label-noise: one at a time (one block each)")
+    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0, args.range_noise > 0)) > 1:
+        ap.error("--rolling-shutter, --car-shape cabin, --label-noise and --range-noise: one at a time (one block each)")
     if args.label_noise < 0:
         ap.error(f"--label-noise must be >= 0 metres, got {args.label_noise}")
+    if not 0 <= args.range_noise <= 0.5:
+        ap.error(f"--range-noise must be in [0, 0.5] metres, got {args.range_noise}")
     variants = VARIANTS
     if args.variants:
         names = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -311,7 +341,8 @@ def main(argv: list[str] | None = None) -> int:
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
                                                          cameras=CAMERAS, world="hard",
                                                          rolling_shutter=args.rolling_shutter,
-                                                         car_shape=args.car_shape, box_noise_m=args.label_noise),
+                                                         car_shape=args.car_shape, box_noise_m=args.label_noise,
+                                                         range_noise_m=args.range_noise),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
@@ -335,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
              "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
-             "car_shape": args.car_shape, "label_noise_m": args.label_noise}
+             "car_shape": args.car_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
@@ -343,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_docs:
         start, end = ((ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
                       if args.car_shape == "cabin" else (NOISE_START, NOISE_END) if args.label_noise
-                      else (COMPARE_START, COMPARE_END))
+                      else (RANGE_START, RANGE_END) if args.range_noise else (COMPARE_START, COMPARE_END))
         replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
     return 0
 

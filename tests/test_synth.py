@@ -265,6 +265,35 @@ def test_determinism_and_box_noise_changes_labels_only(tmp_path):
         assert (a != c) if labels else (a == c), rel
 
 
+def test_range_noise_moves_the_returns_along_their_rays_and_keeps_the_truth(tmp_path):
+    """``range_noise_m``: every written range is the true one plus Gaussian noise of that sigma
+    (same returns, zero mean); the cameras, the labels' boxes and the ground truth (where each ray
+    hit the surface, its pixels and visibility) stay as without it."""
+    exact = SynthConfig(seed=5, frames=2, preset="small", cameras=("FRONT",))
+    noisy = SynthConfig(seed=5, frames=2, preset="small", cameras=("FRONT",), range_noise_m=0.03)
+    seg = generate_segment(str(tmp_path / "a"), exact, 0)["segment"]
+    generate_segment(str(tmp_path / "b"), noisy, 0)
+    li = COMPONENTS["lidar"]
+    diffs = []
+    for ra, rb in zip(_read(str(tmp_path / "a"), "lidar", seg).to_pylist(), _read(str(tmp_path / "b"), "lidar", seg).to_pylist()):
+        for ret in (1, 2):
+            a = np.array(ra[li.col(f"range_image_return{ret}.values")]).reshape(-1, 4)[:, 0]
+            b = np.array(rb[li.col(f"range_image_return{ret}.values")]).reshape(-1, 4)[:, 0]
+            np.testing.assert_array_equal(a > 0, b > 0)
+            diffs.append((b - a)[a > 0])
+    diff = np.concatenate(diffs)
+    assert diff.size > 10000
+    assert abs(diff.mean()) < 0.002 and 0.028 < diff.std() < 0.032
+    ta, tb = (load_ground_truth(str(tmp_path / d), "training", seg) for d in "ab")
+    for key in ("point_box", "point_vehicle", "pixels", "visible"):
+        np.testing.assert_array_equal(ta.hits[key], tb.hits[key])
+    for name in ("camera_image", "lidar_calibration", "vehicle_pose"):
+        assert (tmp_path / "a" / "training" / name / f"{seg}.parquet").read_bytes() == \
+            (tmp_path / "b" / "training" / name / f"{seg}.parquet").read_bytes(), name
+    with pytest.raises(ValueError, match="range_noise_m"):
+        SynthConfig(range_noise_m=-0.01)
+
+
 def test_cli_writes_segments_and_rejects_bad_camera(tmp_path, capsys):
     from drivetrack.cli import main
 

@@ -54,6 +54,10 @@ def add_parser(sub) -> None:
     p.add_argument("--speed-changes", type=float, default=0.0, metavar="MPS2",
                    help="moving vehicles and cyclists brake and speed up with accelerations up to "
                         "this (m/s^2, periods of 4-8 s); 0 (default): every mover keeps its speed")
+    p.add_argument("--range-noise", type=float, default=0.0, metavar="M",
+                   help="sigma (metres) of Gaussian noise on every written lidar range, as real "
+                        "returns carry (each return moves along its ray; the ground truth keeps the "
+                        "point where the ray hit); 0 (default): exact ranges")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -80,6 +84,9 @@ def run(args) -> int:
     if args.box_noise < 0:
         console.print(f"[red]error:[/] --box-noise must be >= 0 (got {args.box_noise})")
         return 2
+    if not 0 <= args.range_noise <= 0.5:
+        console.print(f"[red]error:[/] --range-noise must be in [0, 0.5] m (got {args.range_noise})")
+        return 2
     if not 0 <= args.speed_changes < 20:
         console.print(f"[red]error:[/] --speed-changes must be in [0, 20) m/s^2 (got {args.speed_changes})")
         return 2
@@ -87,7 +94,7 @@ def run(args) -> int:
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
         box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
         camera_trigger=args.camera_trigger, label_time=args.label_time, car_shape=args.car_shape,
-        speed_changes_mps2=args.speed_changes, heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
+        speed_changes_mps2=args.speed_changes, range_noise_m=args.range_noise, heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
         for index in range(args.segments):
@@ -112,5 +119,6 @@ def run(args) -> int:
              if config.extended_truth else "")
           + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "")
           + (f", speed changes up to {config.speed_changes_mps2:g} m/s^2" if config.speed_changes_mps2 else "")
+          + (f", {config.range_noise_m * 100:g} cm range noise" if config.range_noise_m else "")
           + ")", file=sys.stdout)
     return 0

@@ -47,7 +47,9 @@ class SynthConfig:
     :func:`drivetrack.synth.world.cabin_parts`). ``speed_changes_mps2``: 0 (every mover keeps its
     speed, the worlds before) or the largest along-track acceleration (m/s^2) with which moving
     vehicles and cyclists brake and speed up (:func:`drivetrack.synth.world.make_world`); the
-    world is otherwise the same."""
+    world is otherwise the same. ``range_noise_m``: 0 (exact ranges) or the sigma (metres) of
+    Gaussian noise on every written lidar range, as real returns carry (each return moves along
+    its ray; the ground truth keeps the point where the ray hit the surface)."""
     seed: int = 7
     frames: int = 40
     preset: str = "small"
@@ -61,6 +63,7 @@ class SynthConfig:
     label_time: str = "frame"
     car_shape: str = "box"
     speed_changes_mps2: float = 0.0
+    range_noise_m: float = 0.0
 
     def __post_init__(self):
         from drivetrack.synth.world import CAR_SHAPES, WORLDS
@@ -71,6 +74,9 @@ class SynthConfig:
                                      ("car_shape", self.car_shape, CAR_SHAPES)):
             if value not in allowed:
                 raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
+        if not (isinstance(self.range_noise_m, (int, float)) and 0 <= self.range_noise_m <= 0.5):
+            raise ValueError(f"SynthConfig.range_noise_m: expected a sigma in metres in [0, 0.5], "
+                             f"found {self.range_noise_m!r}")
         if not (isinstance(self.speed_changes_mps2, (int, float)) and 0 <= self.speed_changes_mps2 < 20):
             raise ValueError(f"SynthConfig.speed_changes_mps2: expected a number of m/s^2 in [0, 20), "
                              f"found {self.speed_changes_mps2!r}")

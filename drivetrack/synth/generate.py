@@ -86,11 +86,14 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
     hit_records = []
     points_vehicle_all = {}   # (t) -> list of (laser, points_vehicle)
     lasers = sorted(g.lidars)
+    # its own stream: the other draws (box noise, ids) stay the same with or without range noise
+    range_noise = ((np.random.default_rng(np.random.SeedSequence([config.seed, index, 5])), config.range_noise_m)
+                   if config.range_noise_m > 0 else None)
     for t in range(T):
         vehicle_from_world_t = invert_rigid(g.world_from_vehicle[t])
         for laser in lasers:
             spec = g.lidars[laser]
-            res = g.cast_lidar(spec, t)
+            res = g.cast_lidar(spec, t, range_noise)
             H, W = spec.height, spec.width
             ri = np.stack([res["range"], res["intensity"], res["elongation"],
                            np.where(res["range"] > 0, -1.0, 0.0).astype(np.float32)], axis=-1)  # [2,H,W,4]
@@ -101,12 +104,13 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
             proj = np.zeros((2, H, W, 6), np.float32)
             for r in range(2):
                 valid = res["range"][r] > 0
-                pw = res["points_world"][r][valid]
+                pw = res["points_world"][r][valid]            # where the rays hit (the truth)
+                pm = res["measured_world"][r][valid]          # the returns as written
                 slot = np.zeros(pw.shape[0], np.int64)
                 vals = proj[r][valid]
                 for cam, model in cams:
                     camera_from_world = invert_rigid(g.world_from_vehicle[t] @ model.vehicle_from_camera)
-                    px, ok = model.pixels_from_camera(_apply(camera_from_world, pw))
+                    px, ok = model.pixels_from_camera(_apply(camera_from_world, pm))
                     ok &= model.inside_image(px)
                     for s in (0, 1):
                         put = ok & (slot == s)
@@ -117,7 +121,7 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
                         ok &= ~put
                 proj[r][valid] = vals
                 pv = _apply(vehicle_from_world_t, pw)
-                points_vehicle_all.setdefault(t, []).append((laser, pv))
+                points_vehicle_all.setdefault(t, []).append((laser, _apply(vehicle_from_world_t, pm)))
                 obj = res["obj"][r][valid]
                 hit = obj >= 0
                 if hit.any():

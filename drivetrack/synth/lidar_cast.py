@@ -31,12 +31,16 @@ class _LidarCasting:
         cols = np.flatnonzero(np.abs(diff) <= half)
         return cols if cols.size else None
 
-    def cast_lidar(self, spec: LidarSpec, t: int):
+    def cast_lidar(self, spec: LidarSpec, t: int, range_noise=None):
         """Cast both returns of one lidar at frame t.
 
         Returns a dict with ``range`` float32 [2, H, W], ``intensity``, ``elongation``,
-        ``obj`` int32 [2, H, W], ``points_world`` float64 [2, H, W, 3], ``capture_time`` [W],
-        ``pose`` float64 [W, 6] (world_from_vehicle per column, TOP only).
+        ``obj`` int32 [2, H, W], ``points_world`` float64 [2, H, W, 3] (where each ray hit the
+        surface), ``measured_world`` float64 [2, H, W, 3] (the return as measured, at the written
+        range), ``capture_time`` [W], ``pose`` float64 [W, 6] (world_from_vehicle per column, TOP
+        only). ``range_noise``: None, or ``(rng, sigma_m)``: each written range is the true one
+        plus Gaussian noise of ``sigma_m`` metres (the return moves along its ray; the truth keeps
+        the surface point).
         """
         H, W = spec.height, spec.width
         incl = lidar_geometry.beam_inclinations(H, spec.inclination_values, spec.inclination_min,
@@ -96,16 +100,23 @@ class _LidarCasting:
                 getattr(second, name)[second_local] = getattr(sub, name)
         out = {"range": np.zeros((2, H, W), np.float32), "intensity": np.zeros((2, H, W), np.float32),
                "elongation": np.zeros((2, H, W), np.float32), "obj": np.full((2, H, W), -2, np.int32),
-               "points_world": np.zeros((2, H, W, 3)), "capture_time": col_time, "pose": pose}
+               "points_world": np.zeros((2, H, W, 3)), "measured_world": np.zeros((2, H, W, 3)),
+               "capture_time": col_time, "pose": pose}
         for r, hits in enumerate((first, second)):
             ok = np.isfinite(hits.t)
             albedo, normal = surface_albedo_normal(hits, o_all, d_all, self.world, pose_of)
             cos_inc = np.abs(np.sum(normal * d_all, axis=-1))
             flat = rays_idx[ok]
-            out["range"][r].reshape(-1)[flat] = hits.t[ok]
+            measured = hits.t[ok]
+            if range_noise is not None:
+                rng, sigma_m = range_noise
+                # at least 1 cm: a return never moves behind the sensor
+                measured = np.maximum(measured + rng.normal(0.0, sigma_m, size=measured.shape), 0.01)
+            out["range"][r].reshape(-1)[flat] = measured
             out["intensity"][r].reshape(-1)[flat] = (0.02 + albedo[ok].mean(-1) * cos_inc[ok]
                                                      * (0.6 if r else 1.0))
             out["elongation"][r].reshape(-1)[flat] = 0.05 + 0.3 * (1.0 - cos_inc[ok])
             out["obj"][r].reshape(-1)[flat] = hits.obj[ok]
             out["points_world"][r].reshape(-1, 3)[flat] = o_all[ok] + hits.t[ok, None] * d_all[ok]
+            out["measured_world"][r].reshape(-1, 3)[flat] = o_all[ok] + measured[:, None] * d_all[ok]
         return out

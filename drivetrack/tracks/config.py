@@ -83,8 +83,10 @@ class TrackConfig:
         normals_from: where the back-face normals' neighbourhoods come from: ``segment`` (default)
             all the object's returns over the segment in its box frame, thinned to cubes of half
             ``surfel_radius_m`` (the z-buffer's surface; needs ``time_model="trajectory"``, the
-            clip's otherwise), or ``clip`` the clip's returns. ``normal_neighbours``: k of the
-            k-nearest-neighbour PCA.
+            clip's otherwise; each cube's mean, :func:`drivetrack.tracks.core.segment_normals_cloud`),
+            or ``clip`` the clip's returns. ``normal_neighbours``: k of the k-nearest-neighbour PCA
+            (default 30; 12 before 2026-11-27, eleventh session: with 2 cm of lidar range noise
+            the normals of 12 scattered by tens of degrees, docs/visibility.md).
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -126,6 +128,9 @@ class TrackConfig:
             they are). The capped footprints of near occluders and the parts of an object no
             lidar sweep sampled leave such holes, through which hidden points were called
             visible. Default 4; 0: off (before 2026-11-26, fifth session; docs/visibility.md).
+            Each object's splats are closed on their own, so a gap between two objects stays.
+        occluder_subpixels: the z-buffer's resolution, buffer pixels per image pixel along each
+            axis (1-4; default 2: outlines placed to half a pixel; 1 before 2026-11-27).
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -178,7 +183,7 @@ class TrackConfig:
     own_surface_max_gap_m: float | None = 1.0
     depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
-    normal_neighbours: int = 12
+    normal_neighbours: int = 30
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
@@ -188,6 +193,7 @@ class TrackConfig:
     surfel_radius_m: float = 0.05
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
+    occluder_subpixels: int = 2
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -271,6 +277,9 @@ class TrackConfig:
         if not isinstance(self.depth_defers_to_zbuffer, bool):
             raise ValueError(f"TrackConfig.depth_defers_to_zbuffer must be true or false, got "
                              f"{self.depth_defers_to_zbuffer!r}")
+        if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
+            raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
+                             f"{self.occluder_subpixels!r}")
         if not (isinstance(self.occluder_fill_px, int) and 0 <= self.occluder_fill_px <= 64):
             raise ValueError(f"TrackConfig.occluder_fill_px must be an integer number of pixels in [0, 64], got "
                              f"{self.occluder_fill_px!r}")

@@ -552,23 +552,39 @@ def _surfel_cube_m(config) -> float:
     return 0.5 * float(config.surfel_radius_m)
 
 
-def segment_surface(plan, object_id: str, poses) -> np.ndarray:
-    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
-    to one per cube of half ``surfel_radius_m``; computed once per object and segment
-    (``plan.occluder_cache``). ``poses``: any :func:`clip_poses` of the object on the segment's
-    trajectory (the returns' box-frame positions do not depend on the camera or the clip)."""
-    from drivetrack.visibility.zbuffer import surfel_subsample
+def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
+    """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
+    both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
+    from drivetrack.visibility.zbuffer import surfel_means, surfel_subsample
 
-    points_box = plan.occluder_cache.get(object_id)
-    if points_box is None:
+    clouds = plan.occluder_cache.get(object_id)
+    if clouds is None:
         boxes = plan.scene.boxes
         all_rows = np.flatnonzero(boxes.object_id == object_id)
         all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
         lidar_rows, source = plan.box_points(all_rows)
         points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
-        points_box = points_box[surfel_subsample(points_box, _surfel_cube_m(plan.config))]
-        plan.occluder_cache[object_id] = points_box
-    return points_box
+        cube_m = _surfel_cube_m(plan.config)
+        clouds = (points_box[surfel_subsample(points_box, cube_m)], surfel_means(points_box, cube_m))
+        plan.occluder_cache[object_id] = clouds
+    return clouds
+
+
+def segment_surface(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
+    to one per cube of half ``surfel_radius_m`` (the first, a return itself: the z-buffer's
+    surface); computed once per object and segment (``plan.occluder_cache``). ``poses``: any
+    :func:`clip_poses` of the object on the segment's trajectory (the returns' box-frame
+    positions do not depend on the camera or the clip)."""
+    return _segment_clouds(plan, object_id, poses)[0]
+
+
+def segment_normals_cloud(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: the same returns as :func:`segment_surface`, each cube's *mean* instead
+    of its first return (:func:`drivetrack.visibility.zbuffer.surfel_means`): the neighbourhoods
+    of the back-face normals. A return's range carries centimetres of noise; the mean of the
+    returns of a 2.5 cm cube carries less, and the cubes keep a sharp edge sharp."""
+    return _segment_clouds(plan, object_id, poses)[1]
 
 
 def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
@@ -690,7 +706,8 @@ def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.n
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
                shutter=None):
     """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
-    radius float64 [m], metres) of the other labelled objects' returns, and the boxes of those
+    radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
+    0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
     added to the translation, size float64 [k, 3]).
 
@@ -734,7 +751,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     if shutter is not None:
         # only returns near the target in the image at its pose are solved for their capture time
         near_target = [_near_disc(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
-    for object_id in np.unique(boxes.object_id[in_clip]).tolist():
+    for label, object_id in enumerate(np.unique(boxes.object_id[in_clip]).tolist()):
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
@@ -767,14 +784,15 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         for k, t in enumerate(obj_frames.tolist()):
             ok = valid[k]
             if shutter is None:
-                per_frame[slot[t]].append((pixels[k][ok], points_camera[k, ok, 0], radius_m[ok]))
+                splats = (pixels[k][ok], points_camera[k, ok, 0], radius_m[ok])
             else:
-                per_frame[slot[t]].append(_captured_splats(shutter, t, poses, k, points_box, radius_m,
-                                                           ok & near_target[slot[t]](pixels[k])))
+                splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, ok & near_target[slot[t]](pixels[k]))
+            per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                np.concatenate([p[2] for p in parts]) if parts else np.empty(0)) for parts in per_frame]
+                np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+                np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
                       np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
 
@@ -822,7 +840,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                       + box_from_vehicle[source_clip, :3, 3])
         # neighbourhoods among all the object's returns over the segment (on the trajectory): denser
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
-        cloud = (segment_surface(plan, job.object_id, poses)
+        cloud = (segment_normals_cloud(plan, job.object_id, poses)
                  if poses.trajectory is not None and config.normals_from == "segment" else None)
         surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
         if config.box_face_normals_m is not None:
@@ -901,7 +919,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             points_camera, pixels, valid, occluders, int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-            int(config.occluder_fill_px))
+            int(config.occluder_fill_px), int(config.occluder_subpixels))
 
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others

@@ -17,7 +17,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "surfel_cells", "surfel_subsample"]
+__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "surfel_cells",
+           "surfel_means", "surfel_subsample"]
 
 
 def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -48,6 +49,20 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     cells = surfel_cells(points_box, radius_m)
     order = np.argsort(cells, kind="stable")
     return np.sort(order[first_of_cells(cells[order])])
+
+
+def surfel_means(points_box: np.ndarray, radius_m: float) -> np.ndarray:
+    """float64 [k, 3]: the mean of the points of ``points_box`` float64 [m, 3] in each cube of side
+    ``radius_m`` (a voxel grid's centroids), in the order of the cubes' keys
+    (:func:`surfel_cells`). Range noise moves each return along its ray; the mean of a cube's
+    returns (many, where an object was seen over a whole segment) carries less of it."""
+    if points_box.shape[0] == 0:
+        return np.zeros((0, 3))
+    cells = surfel_cells(points_box, radius_m)
+    order = np.argsort(cells, kind="stable")
+    starts = first_of_cells(cells[order])
+    counts = np.diff(np.append(starts, order.size))
+    return np.add.reduceat(points_box[order], starts, axis=0) / counts[:, None]
 
 
 def _square_min(image: np.ndarray, r: int) -> np.ndarray:
@@ -127,22 +142,68 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
     return buffer, footprint
 
 
+def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np.ndarray | None, width: int,
+                    height: int, focal: float, max_px: int, fill_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(buffer float32 [height, width], footprint int8 [height, width])``: the other objects'
+    nearest splatted depth and the footprint of the return holding it (:func:`nearest_depth`), each
+    object's holes closed by ``fill_px`` (:func:`close_holes`) on its own.
+
+    ``objects`` int [m] says which object each return is of (None: all one). Closing each
+    object's splats apart fills the gaps between its own returns but not the gap between two
+    objects: a pole a few pixels beside a pedestrian, or a sign beside its pole, leaves the
+    surface behind them visible between them. Each object is splatted in its own part of the
+    image (its returns' pixels grown by the footprint and the closing), then the nearest of all
+    is kept.
+    """
+    if objects is None or fill_px <= 0:
+        buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
+        return close_holes(buffer, fill_px), footprint
+    buffer = np.full((height, width), np.inf, dtype=np.float32)
+    footprint = np.zeros((height, width), dtype=np.int8)
+    pad = int(max_px) + 2 * int(fill_px) + 1
+    radius_m = np.broadcast_to(np.asarray(radius_m, dtype=np.float64), depth.shape)
+    order = np.argsort(objects, kind="stable")
+    starts = np.flatnonzero(np.concatenate([[True], objects[order][1:] != objects[order][:-1]]))
+    for part in np.split(order, starts[1:]):
+        col, row = np.floor(pixels[part, 0]), np.floor(pixels[part, 1])
+        c0, c1 = max(0, int(col.min()) - pad), min(width, int(col.max()) + 1 + pad)
+        r0, r1 = max(0, int(row.min()) - pad), min(height, int(row.max()) + 1 + pad)
+        if c0 >= c1 or r0 >= r1:
+            continue
+        own, own_footprint = nearest_depth(pixels[part] - (c0, r0), depth[part], c1 - c0, r1 - r0, focal,
+                                           radius_m[part], max_px, with_radius=True)
+        own = close_holes(own, fill_px)
+        window = buffer[r0:r1, c0:c1]
+        nearer = own < window
+        window[nearer] = own[nearer]
+        footprint[r0:r1, c0:c1][nearer] = own_footprint[nearer]
+    return buffer, footprint
+
+
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
-                     radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0):
+                     radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0,
+                     subpixels: int = 1):
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
         points_camera: float64 [T, n, 3], the tracked points in the camera frame.
         pixels: float64 [T, n, 2] their pixels; ``valid`` bool [T, n] where the projection holds.
         occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t][, radius_m float64
-            [m_t]]) of the other objects' returns projected in that frame's image (only valid
-            projections in front of the camera); without the third member every return's
-            footprint radius is ``radius_m``.
+            [m_t][, object int [m_t]]]) of the other objects' returns projected in that frame's
+            image (only valid projections in front of the camera); without the third member every
+            return's footprint radius is ``radius_m``; with the fourth, each object's holes are
+            closed on their own (:func:`occluder_buffer`).
         width, height, focal: the image and its focal length (pixels).
         radius_m, max_px: the footprint (see :func:`nearest_depth`).
         abs_m, rel: the tolerance; hidden iff ``buffer < z - (abs_m + rel * z)``.
-        fill_px: close the buffer by this many pixels first (:func:`close_holes`).
+        fill_px: close the buffer by this many pixels first (:func:`close_holes`), each object
+            apart when the occluders say which object each return is of.
+        subpixels: the buffer's resolution in buffer pixels per image pixel along each axis
+            (``max_px``, ``fill_px`` and the footprints are scaled with it, so they keep their size
+            in the image). Near an occluder's outline the decision is quantised to one buffer
+            pixel: a point a fraction of a pixel outside a pole falls in the same image pixel as
+            the pole's outermost returns and was called hidden; 2 halves that band.
 
     Returns:
         ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
@@ -150,13 +211,19 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         ``z - (abs_m + rel * z)``: negative when hidden, positive when an occluder covers the
         footprint but too far in front to hide it, +inf where no occluder covers it whole.
     """
+    if subpixels != 1:
+        scale = int(subpixels)
+        return hidden_by_others(points_camera, pixels * scale, valid,
+                                [(o[0] * scale,) + tuple(o[1:]) for o in occluders], width * scale, height * scale,
+                                focal * scale, radius_m, max_px * scale, abs_m, rel, fill_px * scale)
     t_count, n = valid.shape
     hidden = np.zeros((t_count, n), dtype=bool)
     margin = np.full((t_count, n), np.inf, dtype=np.float32)
     for tau in range(t_count):                       # one image at a time: bounded memory
         occ_pixels, occ_depth = occluders[tau][:2]
-        # a footprint radius per return (metres) when the occluder list gives one
+        # a footprint radius per return (metres) and its object when the occluder list gives them
         occ_radius = occluders[tau][2] if len(occluders[tau]) > 2 else np.float64(radius_m)
+        occ_object = occluders[tau][3] if len(occluders[tau]) > 3 else None
         if occ_depth.size == 0 or n == 0:
             continue
         z = points_camera[tau, :, 0]
@@ -175,11 +242,10 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
                 & (occ_row < r1 + max_px))
         if not near.any():
             continue
-        buffer, footprint = nearest_depth(occ_pixels[near] - (c0, r0), occ_depth[near], c1 - c0, r1 - r0,
-                                          focal, occ_radius[near] if np.ndim(occ_radius) else radius_m, max_px,
-                                          with_radius=True)
-        if fill_px > 0:
-            buffer = close_holes(buffer, fill_px)
+        buffer, footprint = occluder_buffer(occ_pixels[near] - (c0, r0), occ_depth[near],
+                                            occ_radius[near] if np.ndim(occ_radius) else radius_m,
+                                            None if occ_object is None else occ_object[near], c1 - c0, r1 - r0,
+                                            focal, max_px, fill_px)
         # The same footprint rule on the point's side: it is hidden only when the occluders cover
         # its whole footprint (the farthest buffer value over it is nearer than the point), so the
         # footprints that close the gaps between an occluder's returns do not grow its outline.
@@ -190,9 +256,13 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
         radius[inside] = np.maximum(radius[inside], footprint[row[inside] - r0, col[inside] - c0])
         farthest = np.full(n, np.inf, dtype=np.float64)
+        # the windows grow in turn: a square maximum of r + s is that of s over that of r (also at
+        # the image's edges), so each size costs only its growth over the last
+        covered, done = buffer, 0
         for r in np.unique(radius[inside]).tolist():
+            if r > done:
+                covered, done = _square_max(covered, r - done), r
             sel = inside & (radius == r)
-            covered = buffer if r == 0 else _square_max(buffer, r)
             farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
         threshold = z - (abs_m + rel * z)
         hidden[tau] = inside & (farthest < threshold)
