@@ -555,7 +555,7 @@ def _surfel_cube_m(config) -> float:
 def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
     """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
     both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
-    from drivetrack.visibility.zbuffer import surfel_means, surfel_subsample
+    from drivetrack.visibility.zbuffer import surfel_first_and_means
 
     clouds = plan.occluder_cache.get(object_id)
     if clouds is None:
@@ -565,7 +565,8 @@ def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray
         lidar_rows, source = plan.box_points(all_rows)
         points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
         cube_m = _surfel_cube_m(plan.config)
-        clouds = (points_box[surfel_subsample(points_box, cube_m)], surfel_means(points_box, cube_m))
+        first, means = surfel_first_and_means(points_box, cube_m)
+        clouds = (points_box[first], means)
         plan.occluder_cache[object_id] = clouds
     return clouds
 

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 __all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "surfel_cells",
-           "surfel_means", "surfel_subsample"]
+           "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
 def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -38,6 +38,14 @@ def first_of_cells(sorted_cells: np.ndarray) -> np.ndarray:
     return np.flatnonzero(np.concatenate([[True], sorted_cells[1:] != sorted_cells[:-1]]))
 
 
+def _cube_runs(points_box: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(order int64 [m], starts int64 [k])``: ``points_box`` float64 [m, 3] (m > 0) sorted by
+    the cube of side ``radius_m`` each lies in (stable), and where each cube's run starts."""
+    cells = surfel_cells(points_box, radius_m)
+    order = np.argsort(cells, kind="stable")
+    return order, first_of_cells(cells[order])
+
+
 def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     """int64 [k] sorted indices of ``points_box`` float64 [m, 3] keeping one point per cube of side ``radius_m``.
 
@@ -46,9 +54,10 @@ def surfel_subsample(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     same surface without gaps, and the z-buffer splats (and projects) a fraction of them. The kept
     point of a cube is its first in order, so the choice is deterministic.
     """
-    cells = surfel_cells(points_box, radius_m)
-    order = np.argsort(cells, kind="stable")
-    return np.sort(order[first_of_cells(cells[order])])
+    if points_box.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    order, starts = _cube_runs(points_box, radius_m)
+    return np.sort(order[starts])
 
 
 def surfel_means(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -58,11 +67,23 @@ def surfel_means(points_box: np.ndarray, radius_m: float) -> np.ndarray:
     returns (many, where an object was seen over a whole segment) carries less of it."""
     if points_box.shape[0] == 0:
         return np.zeros((0, 3))
-    cells = surfel_cells(points_box, radius_m)
-    order = np.argsort(cells, kind="stable")
-    starts = first_of_cells(cells[order])
+    order, starts = _cube_runs(points_box, radius_m)
+    return _run_means(points_box, order, starts)
+
+
+def _run_means(points_box: np.ndarray, order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """float64 [k, 3]: the mean of ``points_box`` over each run of :func:`_cube_runs`."""
     counts = np.diff(np.append(starts, order.size))
     return np.add.reduceat(points_box[order], starts, axis=0) / counts[:, None]
+
+
+def surfel_first_and_means(points_box: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(surfel_subsample(...), surfel_means(...))`` of ``points_box`` float64 [m, 3] from one
+    sort of its cubes."""
+    if points_box.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    order, starts = _cube_runs(points_box, radius_m)
+    return np.sort(order[starts]), _run_means(points_box, order, starts)
 
 
 def _square_min(image: np.ndarray, r: int) -> np.ndarray:
@@ -163,8 +184,7 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
     pad = int(max_px) + 2 * int(fill_px) + 1
     radius_m = np.broadcast_to(np.asarray(radius_m, dtype=np.float64), depth.shape)
     order = np.argsort(objects, kind="stable")
-    starts = np.flatnonzero(np.concatenate([[True], objects[order][1:] != objects[order][:-1]]))
-    for part in np.split(order, starts[1:]):
+    for part in np.split(order, first_of_cells(objects[order])[1:]):
         col, row = np.floor(pixels[part, 0]), np.floor(pixels[part, 1])
         c0, c1 = max(0, int(col.min()) - pad), min(width, int(col.max()) + 1 + pad)
         r0, r1 = max(0, int(row.min()) - pad), min(height, int(row.max()) + 1 + pad)
