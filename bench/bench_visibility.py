@@ -42,13 +42,13 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ normals among 30 neighbours (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ shifted neighbourhoods (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ label-box faces at unreliable normals,+ normals among 30 neighbours (default)"   # ~12 min
++ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ label-box faces at unreliable normals,+ normals among 30 neighbours (default)"   # ~12 min
++ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
-+ z-buffer outlines to half a pixel,+ normals among 30 neighbours (default)"   # ~12 min
++ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -195,31 +195,39 @@ _BEFORE_SUBPIXELS = {"occluder_subpixels": 1}
 _BEFORE_NEIGHBOURS = {"normal_neighbours": 12}
 _BEFORE_ELEVENTH = {**_BEFORE_SUBPIXELS, **_BEFORE_NEIGHBOURS}
 
+#: Each cloud point's own neighbourhood (before 2026-11-27, twelfth session). Each tracked point
+#: taking its nearest cloud point's normal (the same session) has no switch: every variant with
+#: the back-face test carries it.
+_BEFORE_SHIFT = {"normal_neighbourhood": "centred"}
+_BEFORE_TWELFTH = {**_BEFORE_ELEVENTH, **_BEFORE_SHIFT}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
     "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
-                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+                                 "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
-                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+                                             **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL,
-                                           **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+                                           **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # holes between an occluder's splats closed by 4 px
-    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_ELEVENTH},
+    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # a depth-map surface inside another labelled object's box is left to the z-buffer
-    "+ depth map defers to the z-buffer": {**_BEFORE_FACES, **_BEFORE_ELEVENTH},
+    "+ depth map defers to the z-buffer": {**_BEFORE_FACES, **_BEFORE_TWELFTH},
     # unreliable normals on one face of the label box take that face's normal
-    "+ label-box faces at unreliable normals": {**_BEFORE_ELEVENTH},
+    "+ label-box faces at unreliable normals": {**_BEFORE_TWELFTH},
     # the z-buffer at two buffer pixels per image pixel: outlines placed to half a pixel
-    "+ z-buffer outlines to half a pixel": {**_BEFORE_NEIGHBOURS},
+    "+ z-buffer outlines to half a pixel": {**_BEFORE_NEIGHBOURS, **_BEFORE_SHIFT},
     # normals among 30 neighbours (each cube's mean): robust to range noise
-    "+ normals among 30 neighbours (default)": {},
+    "+ normals among 30 neighbours": {**_BEFORE_SHIFT},
+    # each point's normal from the flattest neighbourhood through it: edges kept sharp
+    "+ shifted neighbourhoods (default)": {},
 }
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {

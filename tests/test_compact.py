@@ -56,7 +56,8 @@ def exported_before_zbuffer(synth_source, synth_segments, tmp_path_factory) -> s
                                                                     normals_from="clip",
                                                                     label_tilt="linear",
                                                                     own_surface_margin_m=None,
-                                                                    box_face_normals_m=None, normal_neighbours=12)), threads=2)
+                                                                    box_face_normals_m=None, normal_neighbours=12,
+                                                                    normal_neighbourhood="centred")), threads=2)
     assert all(r.status == "done" for r in results), [(r.segment, r.error) for r in results]
     exported = tmp_path_factory.mktemp("exported_before_zbuffer")
     export_clips(str(out), list(FORMATS), str(exported))

@@ -422,14 +422,14 @@ def test_normals_of_noisy_returns_from_cube_means_and_the_default_neighbourhood(
     clip = clip[inner]
     sensors = np.broadcast_to(sensor, (clip.size, 3))
 
-    def error_deg(cloud, k):
-        surfels = surfel_normals(noisy[clip], sensors, neighbours=k, cloud=cloud)
+    def error_deg(cloud, k, neighbourhood):
+        surfels = surfel_normals(noisy[clip], sensors, neighbours=k, cloud=cloud, neighbourhood=neighbourhood)
         cosine = np.abs(np.einsum("ni,ni->n", surfels.normal, true_normal[clip]))
         return np.degrees(np.arccos(np.clip(np.median(cosine), -1, 1))), np.percentile(
             np.degrees(np.arccos(np.clip(cosine, -1, 1))), 90)
 
-    first = error_deg(noisy[surfel_subsample(noisy, 0.025)], 12)             # before (median, p90 degrees)
-    means = error_deg(surfel_means(noisy, 0.025), TrackConfig().normal_neighbours)
+    first = error_deg(noisy[surfel_subsample(noisy, 0.025)], 12, "centred")  # before (median, p90 degrees)
+    means = error_deg(surfel_means(noisy, 0.025), TrackConfig().normal_neighbours, TrackConfig().normal_neighbourhood)
     assert first[0] > 4.0 and first[1] > 40.0
     assert means[0] < 2.0 and means[1] < 0.5 * first[1]
 
@@ -445,6 +445,59 @@ def test_config_checks_the_normals():
         TrackConfig(normals_from="frame")
     with pytest.raises(ValueError, match="normal_neighbours"):
         TrackConfig(normal_neighbours=2)
+    with pytest.raises(ValueError, match="normal_neighbourhood must be 'shifted' or 'centred'"):
+        TrackConfig(normal_neighbourhood="centered")
+    assert TrackConfig().normal_neighbourhood == "shifted"
+
+
+def test_shifted_neighbourhoods_keep_a_boxs_edges_sharp():
+    """A segment's worth of returns on a car-sized box, thinned to the means of 2.5 cm cubes (the
+    normals' cloud): the 30 nearest of a point a few centimetres from an edge straddle both faces,
+    and the plane of that ``centred`` neighbourhood cuts the corner; the ``shifted`` one (the
+    flattest neighbourhood through the point among its neighbours', leaning the point's way) lies
+    on the point's own face. Away from the edges both agree; with 2 cm of range noise the shift
+    still halves the error near the edges (a centimetre or two from an edge, where the noise
+    blurs which face a return is on, neither can tell). On the hard world this took the back
+    faces called visible 1,204 -> 260 (docs/visibility.md "Shifted neighbourhoods")."""
+    from drivetrack.visibility import cloud_normals
+    from drivetrack.visibility.zbuffer import surfel_means
+
+    rng = np.random.default_rng(5)
+    half = np.array([2.0, 0.9, 0.75])
+    points, true_normal = _box_cloud(rng, half=tuple(half), per_face=40000)
+    sensor = np.array([8.0, 3.0, 1.5])
+    ray = points - sensor
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    # the distance of each point to the nearest edge of its own face
+    inside = half[None, :] - np.abs(points)                                            # [n, 3]
+    inside[np.abs(true_normal) > 0] = np.inf
+    to_edge = inside.min(axis=1)
+    for noise in (0.0, 0.02):
+        noisy = points + rng.normal(0.0, noise, size=(len(points), 1)) * ray
+        cloud = surfel_means(noisy, 0.025)
+        probe = rng.choice(len(points), 6000, replace=False)
+        errors = {}
+        for neighbourhood in ("centred", "shifted"):
+            fitted = cloud_normals(cloud, 30, neighbourhood)
+            at = fitted.nearest(noisy[probe])
+            cosine = np.abs(np.einsum("ni,ni->n", fitted.normal[at], true_normal[probe]))
+            errors[neighbourhood] = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+        near = (to_edge[probe] > 0.02) & (to_edge[probe] < 0.06)     # 2-6 cm from an edge
+        far = to_edge[probe] > 0.2
+        assert near.sum() > 100 and far.sum() > 1000
+        centred, shifted = errors["centred"], errors["shifted"]
+        # centred: the corner cut, ten degrees or more; shifted: nearer the face's own normal
+        assert np.median(centred[near]) > 10.0 and np.median(shifted[near]) < 0.5 * np.median(centred[near])
+        assert abs(np.median(shifted[far]) - np.median(centred[far])) < 1.0
+        if noise == 0:
+            assert np.median(shifted[near]) < 1.0 and np.percentile(shifted[near], 90) < 2.0
+        else:
+            # the flattest neighbourhood also averages the noise better away from the edges
+            assert np.percentile(shifted[far], 90) < np.percentile(centred[far], 90)
+    # too few points for a neighbourhood: none
+    assert cloud_normals(points[:10], 30) is None
+    with pytest.raises(ValueError, match="neighbourhood must be one of"):
+        cloud_normals(points, 30, "centered")
 
 
 def test_config_checks_the_surfel_radius():
@@ -874,20 +927,22 @@ def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     nor the z-buffer of *other* objects can hide them; only the depth map can. The own-box rule
     without a gap limit took the cabin in the map for the object's own smear and called them
     visible; limited to ``own_surface_max_gap_m`` (1 m, default) in front of the point it lets the
-    map hide them. Measured on this scene: facing-but-hidden point-frames called visible
-    0.0996 -> 0.0968 of 9,072 (most are hidden by other objects), wrong calls 1,633 -> 1,604 of
-    150,829. (On the world whose cars drove through each other, 0.149 -> 0.094 and 2,237 -> 1,680:
-    most of that gain was the other cars' returns inside a car's box, docs/synthetic.md.)"""
+    map hide them. Measured on this scene (2026-11-27, twelfth session): facing-but-hidden
+    point-frames called visible 0.102 -> 0.053 of ~50,000, wrong calls 7,392 -> 4,909 of ~617,000.
+    (Its first 10 frames no longer show it: with the shifted neighbourhoods of the normals the two
+    agree there; they showed 0.0996 -> 0.0968 of 9,072 before. On the world whose cars drove
+    through each other, 0.149 -> 0.094 and 2,237 -> 1,680: most of that gain was the other cars'
+    returns inside a car's box, docs/synthetic.md.)"""
     root = str(tmp_path / "cabin")
-    segment = generate_segment(root, SynthConfig(seed=7, frames=10, preset="small", cameras=CAMERAS,
+    segment = generate_segment(root, SynthConfig(seed=7, frames=20, preset="small", cameras=CAMERAS,
                                                  world="hard", car_shape="cabin"), 0)["segment"]
     before_calls, after_calls, before_others, after_others = [], [], [], []
     _back_face_calls(root, segment, str(tmp_path / "before"), 90.0, "numba", "surface", before_others,
                      before_calls, own_surface_max_gap_m=None)
     _back_face_calls(root, segment, str(tmp_path / "after"), 90.0, "numba", "surface", after_others, after_calls)
     before, after = np.concatenate(before_others), np.concatenate(after_others)
-    assert before.size > 5000
-    assert after.mean() < before.mean()
+    assert before.size > 20000
+    assert after.mean() < 0.8 * before.mean()
     both = pd.concat(before_calls).merge(pd.concat(after_calls), on=["camera", "point", "frame"],
                                          suffixes=("_before", "_after"))
     wrong_before = both["pred_before"] != both["visible_before"]

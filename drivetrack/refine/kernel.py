@@ -159,7 +159,7 @@ def knn(points: np.ndarray, k: int, cell_m: float = 0.15) -> tuple[np.ndarray, n
 
 
 @njit(cache=True, nogil=True)
-def _normals_kernel(model, neighbours, normal, planarity):
+def _normals_kernel(model, neighbours, normal, planarity, centroid, eigen):
     p_count, k = neighbours.shape
     cov = np.empty((3, 3))
     b = np.empty((3, 3))
@@ -171,6 +171,7 @@ def _normals_kernel(model, neighbours, normal, planarity):
             for j in range(k):
                 s += model[neighbours[i, j], a]
             mean_point[a] = s / k
+            centroid[i, a] = mean_point[a]
         for a in range(3):
             for c in range(3):
                 s = 0.0
@@ -191,6 +192,7 @@ def _normals_kernel(model, neighbours, normal, planarity):
         l3 = mean + 2.0 * p * np.cos(phi)
         l1 = mean + 2.0 * p * np.cos(phi + third)
         l2 = 3.0 * mean - l1 - l3
+        eigen[i, 0], eigen[i, 1], eigen[i, 2] = l1, l2, l3
         for a in range(3):
             cov[a, a] -= l1
         best, bx, by, bz = -1.0, 0.0, 0.0, 1.0
@@ -211,11 +213,22 @@ def _normals_kernel(model, neighbours, normal, planarity):
 def normals(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals float64 [P, 3] and planarity float64 [P] of neighbour lists int [P, k] into
     ``model`` [*, 3]; see ``drivetrack.refine.terms._normals`` (the reference)."""
+    normal, planarity, _, _ = plane_fits(model, neighbours)
+    return normal, planarity
+
+
+def plane_fits(model: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(normal float64 [P, 3], planarity float64 [P], centroid float64 [P, 3], eigen float64 [P,
+    3])``: :func:`normals` of neighbour lists int [P, k] into ``model`` [*, 3], with each
+    neighbourhood's centroid (the plane passes through it) and the eigenvalues l1 <= l2 <= l3 of
+    its covariance (square metres; l1 is the variance about the plane)."""
     neighbours = np.ascontiguousarray(neighbours, dtype=np.int64)
     normal = np.empty((neighbours.shape[0], 3))
     planarity = np.empty(neighbours.shape[0])
-    _normals_kernel(np.ascontiguousarray(model, dtype=np.float64), neighbours, normal, planarity)
-    return normal, planarity
+    centroid = np.empty((neighbours.shape[0], 3))
+    eigen = np.empty((neighbours.shape[0], 3))
+    _normals_kernel(np.ascontiguousarray(model, dtype=np.float64), neighbours, normal, planarity, centroid, eigen)
+    return normal, planarity, centroid, eigen
 
 
 @njit(cache=True, nogil=True)

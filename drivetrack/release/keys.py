@@ -36,7 +36,7 @@ OUTPUT_MODULES = (
     "drivetrack.tracks", "drivetrack.tracks.config", "drivetrack.tracks.consistency",
     "drivetrack.tracks.context", "drivetrack.tracks.core", "drivetrack.tracks.kernel", "drivetrack.tracks.plan",
     "drivetrack.tracks.stats", "drivetrack.tracks.sweep_motion", "drivetrack.tracks.trajectory", "drivetrack.tidy", "drivetrack.tracks.writers",
-    "drivetrack.visibility", "drivetrack.visibility.facing", "drivetrack.visibility.zbuffer", "drivetrack.waymo", "drivetrack.waymo.capture_time", "drivetrack.waymo.checks", "drivetrack.waymo.columns",
+    "drivetrack.visibility", "drivetrack.visibility.facing", "drivetrack.visibility.kernel", "drivetrack.visibility.zbuffer", "drivetrack.waymo", "drivetrack.waymo.capture_time", "drivetrack.waymo.checks", "drivetrack.waymo.columns",
     "drivetrack.waymo.components", "drivetrack.waymo.kernel", "drivetrack.waymo.lidar", "drivetrack.waymo.reader",
     "drivetrack.waymo.schema", "drivetrack.waymo.writer",
 )

@@ -86,7 +86,14 @@ class TrackConfig:
             clip's otherwise; each cube's mean, :func:`drivetrack.tracks.core.segment_normals_cloud`),
             or ``clip`` the clip's returns. ``normal_neighbours``: k of the k-nearest-neighbour PCA
             (default 30; 12 before 2026-11-27, eleventh session: with 2 cm of lidar range noise
-            the normals of 12 scattered by tens of degrees, docs/visibility.md).
+            the normals of 12 scattered by tens of degrees, docs/visibility.md). The normals are
+            those of the cloud's points, each tracked point taking its nearest's (since the twelfth
+            session; the tracked point's own neighbourhood among the cloud before).
+        normal_neighbourhood: ``shifted`` (default) each cloud point's normal is that of the
+            flattest of its neighbours' neighbourhoods whose plane passes through it, so a point
+            near a sharp edge takes its own face's normal; ``centred`` its own neighbourhood's,
+            which straddles the edge (before 2026-11-27, twelfth session;
+            :func:`drivetrack.visibility.cloud_normals`, docs/visibility.md "Shifted neighbourhoods").
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -184,6 +191,7 @@ class TrackConfig:
     depth_defers_to_zbuffer: bool = True
     normals_from: str = "segment"
     normal_neighbours: int = 30
+    normal_neighbourhood: str = "shifted"
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
@@ -261,6 +269,9 @@ class TrackConfig:
                 isinstance(self.box_face_normals_m, (int, float)) and 0 <= self.box_face_normals_m < 10):
             raise ValueError(f"TrackConfig.box_face_normals_m must be None or metres in [0, 10), "
                              f"got {self.box_face_normals_m!r}")
+        if self.normal_neighbourhood not in ("shifted", "centred"):
+            raise ValueError(f"TrackConfig.normal_neighbourhood must be 'shifted' or 'centred', "
+                             f"got {self.normal_neighbourhood!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
             raise ValueError(f"TrackConfig.normal_neighbours must be an integer >= 3, got {self.normal_neighbours!r}")
         if self.occlusion not in OCCLUSION_METHODS:

@@ -588,6 +588,19 @@ def segment_normals_cloud(plan, object_id: str, poses) -> np.ndarray:
     return _segment_clouds(plan, object_id, poses)[1]
 
 
+def segment_cloud_normals(plan, object_id: str, poses):
+    """The :func:`drivetrack.visibility.cloud_normals` of :func:`segment_normals_cloud` (None when
+    it has fewer points than ``normal_neighbours``), computed once per object and segment
+    (``plan.occluder_cache``): every camera's clip of the object takes its points' normals from them."""
+    from drivetrack.visibility import cloud_normals
+
+    key = f"{object_id}#normals"
+    if key not in plan.occluder_cache:
+        plan.occluder_cache[key] = cloud_normals(segment_normals_cloud(plan, object_id, poses),
+                                                 plan.config.normal_neighbours, plan.config.normal_neighbourhood)
+    return plan.occluder_cache[key]
+
+
 def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m]: the splat radius (metres) of each point of :func:`segment_surface`: from the
     local spacing, ``surfel_spacing_scale`` x the distance to the 4th nearest neighbour, within
@@ -841,9 +854,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                       + box_from_vehicle[source_clip, :3, 3])
         # neighbourhoods among all the object's returns over the segment (on the trajectory): denser
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
-        cloud = (segment_normals_cloud(plan, job.object_id, poses)
-                 if poses.trajectory is not None and config.normals_from == "segment" else None)
-        surfels = surfel_normals(p_box, sensor_box, cloud=cloud, neighbours=config.normal_neighbours)
+        if poses.trajectory is not None and config.normals_from == "segment":
+            fitted = segment_cloud_normals(plan, job.object_id, poses)
+            surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None
+                       else surfel_normals(p_box, sensor_box, cloud=np.zeros((0, 3))))    # too few: none reliable
+        else:
+            surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
+                                     neighbourhood=config.normal_neighbourhood)
         if config.box_face_normals_m is not None:
             # too thinly sampled for a plane, but on one face of the label box: that face's normal
             # (a roof or a side seen at a grazing angle by the lidar; docs/visibility.md)

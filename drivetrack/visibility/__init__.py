@@ -9,12 +9,13 @@ another labelled object's box (then the z-buffer, not the depth map, decides).
 :mod:`drivetrack.visibility.zbuffer`: the nearest-depth buffer of the other labelled objects'
 returns in each image, and the test hiding a point behind another object's surface.
 """
-from drivetrack.visibility.facing import (OWN_BOX_DEPTH_M, SENSOR_VEHICLE_M, SurfelNormals, box_face_normals,
-                                          camera_centres_box, facing_mask, orient_outward, other_boxes, other_surface,
-                                          own_box_parameters, own_surface, sensor_positions, surfel_normals,
-                                          with_box_face_normals)
+from drivetrack.visibility.facing import (OWN_BOX_DEPTH_M, SENSOR_VEHICLE_M, CloudNormals, SurfelNormals,
+                                          box_face_normals, camera_centres_box, cloud_normals, facing_mask,
+                                          orient_outward, other_boxes, other_surface, own_box_parameters,
+                                          own_surface, sensor_positions, surfel_normals, with_box_face_normals)
 from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
-__all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SurfelNormals", "box_face_normals", "camera_centres_box",
-           "facing_mask", "hidden_by_others", "nearest_depth", "orient_outward", "other_boxes", "other_surface",
-           "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
+__all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "CloudNormals", "SurfelNormals", "box_face_normals",
+           "camera_centres_box", "cloud_normals", "facing_mask", "hidden_by_others", "nearest_depth",
+           "orient_outward", "other_boxes", "other_surface", "own_box_parameters", "own_surface",
+           "sensor_positions", "surfel_normals", "with_box_face_normals"]

@@ -36,13 +36,14 @@ Shapes: n points, T frames; metres, box frame unless named otherwise.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SurfelNormals", "box_face_normals", "camera_centres_box",
-           "facing_cosine", "facing_mask", "orient_outward", "other_boxes", "other_surface", "own_box_parameters",
-           "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
+__all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
+           "SHIFT_TOLERANCE_M", "CloudNormals", "SurfelNormals", "box_face_normals", "camera_centres_box",
+           "cloud_normals", "facing_cosine", "facing_mask", "orient_outward", "other_boxes", "other_surface",
+           "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -77,9 +78,83 @@ class SurfelNormals:
         return int((~self.reliable).sum())
 
 
+#: A neighbourhood's plane passes through a point (so its normal may be the point's,
+#: :func:`cloud_normals`) when the point lies within this distance of it (metres) ...
+SHIFT_TOLERANCE_M = 0.01
+#: ... or within this many standard deviations of the neighbourhood's own spread about its plane
+#: (``sqrt(l1)``: range noise, a curved surface).
+SHIFT_SIGMAS = 3.0
+#: ... and whose normal lies within this angle (degrees) of the point's own neighbourhood's.
+SHIFT_MAX_TILT_DEG = 45.0
+NEIGHBOURHOODS = ("shifted", "centred")
+
+
+@dataclass
+class CloudNormals:
+    """Unoriented normals of an object's point cloud, one per cloud point (:func:`cloud_normals`).
+
+    Attributes:
+        cloud: float64 [m, 3], the points (box frame, metres).
+        normal: float64 [m, 3], unit, sign arbitrary.
+        planarity: float64 [m], ``(l2 - l1) / l3`` of the neighbourhood the normal is from.
+        reach_m: float64 [m], that neighbourhood's k-th neighbour's distance from its centre
+            point (metres).
+    """
+    cloud: np.ndarray
+    normal: np.ndarray
+    planarity: np.ndarray
+    reach_m: np.ndarray
+    _tree: object = field(default=None, repr=False, compare=False)
+
+    def nearest(self, points: np.ndarray) -> np.ndarray:
+        """int64 [n]: the index of the cloud point nearest each of ``points`` float [n, 3]."""
+        from scipy.spatial import cKDTree
+
+        if self._tree is None:
+            self._tree = cKDTree(self.cloud)
+        return np.asarray(self._tree.query(points, k=1)[1], dtype=np.int64).reshape(-1)
+
+
+def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shifted") -> CloudNormals | None:
+    """PCA normals of every point of ``cloud`` float64 [m, 3] (box frame) from ``neighbours``
+    nearest points (itself included; ``drivetrack.refine.kernel``'s estimator); None when the
+    cloud has fewer than ``neighbours`` points.
+
+    ``centred``: each point's own neighbourhood. Near a sharp edge it straddles both faces and
+    its plane cuts the corner (45 degrees off at a box's edge): a point on a car's side a few
+    centimetres from its front, seen from ahead at a grazing angle, got a normal that faces the
+    camera, and its back face was called visible (docs/visibility.md "Shifted neighbourhoods").
+    ``shifted``: each point takes, among the neighbourhoods of its own neighbours (its own
+    included) whose plane passes through it (within :data:`SHIFT_TOLERANCE_M`, or
+    :data:`SHIFT_SIGMAS` times the neighbourhood's spread about its plane) and whose normal lies
+    within :data:`SHIFT_MAX_TILT_DEG` of its own neighbourhood's, the flattest: the smallest
+    surface variation ``l1 / (l1 + l2 + l3)``. Near an edge that is a neighbourhood lying on the
+    point's own face (its own neighbourhood, mostly on that face, leans that way: the tilt limit
+    keeps a flat neighbourhood of the other face, whose plane passes within the noise of a point
+    near the edge, from being taken); on a flat face or a smooth surface every candidate gives
+    about the same normal; the more neighbours, the farther from an edge the shift reaches.
+    """
+    from drivetrack.refine.kernel import knn, plane_fits
+    from drivetrack.visibility.kernel import shifted_neighbourhoods
+
+    if neighbourhood not in NEIGHBOURHOODS:
+        raise ValueError(f"cloud_normals: neighbourhood must be one of {NEIGHBOURHOODS}, got {neighbourhood!r}")
+    cloud = np.ascontiguousarray(cloud, dtype=np.float64)
+    if cloud.shape[0] < max(neighbours, 1):
+        return None
+    dist, index = knn(cloud, neighbours)
+    normal, planarity, centroid, eigen = plane_fits(cloud, index)
+    choice = np.arange(cloud.shape[0])
+    if neighbourhood == "shifted":
+        choice = shifted_neighbourhoods(cloud, index, normal, centroid, eigen, SHIFT_TOLERANCE_M, SHIFT_SIGMAS,
+                                        SHIFT_MAX_TILT_DEG)
+    return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1])
+
+
 def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: int = 12,
                    max_neighbour_m: float = 0.5, min_planarity: float = 0.2,
-                   cloud: np.ndarray | None = None) -> SurfelNormals:
+                   cloud: np.ndarray | None = None, neighbourhood: str = "shifted",
+                   fitted: CloudNormals | None = None) -> SurfelNormals:
     """Normals of every point float64 [n, 3] of one object, from its own point cloud.
 
     Args:
@@ -90,27 +165,25 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
         neighbours: k of the k-nearest-neighbour PCA.
         max_neighbour_m: the k-th neighbour must lie within this distance.
         min_planarity: smallest ``(l2 - l1) / l3`` of the neighbourhood's covariance.
-        cloud: float64 [m, 3], box frame: the neighbours are taken from these points (the object's
-            returns over the whole segment, :func:`drivetrack.tracks.core.segment_surface`)
-            instead of from ``points_box`` itself.
+        cloud: float64 [m, 3], box frame: the normals are those of these points (the object's
+            returns over the whole segment, :func:`drivetrack.tracks.core.segment_normals_cloud`),
+            each point taking its nearest cloud point's, instead of those of ``points_box`` itself.
+        neighbourhood: ``shifted`` or ``centred`` (:func:`cloud_normals`).
+        fitted: :func:`cloud_normals` of ``cloud`` (or of ``points_box``) computed before (an
+            object seen by several cameras); ``cloud``, ``neighbours`` and ``neighbourhood`` are
+            then not used.
     """
-    from scipy.spatial import cKDTree
-
-    from drivetrack.refine.kernel import knn, normals
-
     points_box = np.ascontiguousarray(points_box, dtype=np.float64)
     n = points_box.shape[0]
-    model = points_box if cloud is None else np.ascontiguousarray(cloud, dtype=np.float64)
-    if model.shape[0] < neighbours:
+    own = cloud is None and fitted is None
+    if fitted is None:
+        fitted = cloud_normals(points_box if cloud is None else cloud, neighbours, neighbourhood)
+    if fitted is None:
         return SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool))
-    if cloud is None:
-        dist, index = knn(points_box, neighbours)
-    else:
-        dist, index = cKDTree(model).query(points_box, k=neighbours)
-        dist, index = dist.reshape(n, neighbours), index.reshape(n, neighbours).astype(np.int64)
-    normal, planarity = normals(model, index)
+    at = np.arange(n) if own else fitted.nearest(points_box)
+    normal = fitted.normal[at]
     normal[orient_outward(normal, points_box, sensor_box)] *= -1.0
-    reliable = (dist[:, -1] <= max_neighbour_m) & (planarity >= min_planarity)
+    reliable = (fitted.reach_m[at] <= max_neighbour_m) & (fitted.planarity[at] >= min_planarity)
     return SurfelNormals(normal, reliable)
 
 

@@ -3,7 +3,7 @@ ObjectTracks (``drivetrack.tracks.write_object_outputs``) for the shared scene o
 annotated as tests/test_compact.py's ``exported_before_zbuffer``; the export of the release tables
 must reproduce them byte for byte. Run after an intended change of the synthetic scene (or of
 what that configuration computes: the normals' orientation, 2026-11-27, tenth session; it keeps the
-normals' 12 neighbours of before the eleventh), first on
+normals' 12 centred neighbours of before the eleventh and twelfth), first on
 the code before it (it must reproduce the committed file), then on the new code:
 ``.venv/bin/python tests/golden/make_npz_sha256.py /tmp/shared_scene``. (Before the world's
 placement this script reproduced the digests the pre-v2 writers had recorded, byte for byte.)"""
@@ -28,7 +28,8 @@ def main(src: str, out_json: str) -> int:
         Path(src, "ok").write_text("1")
     config = AnnotateConfig(track=TrackConfig(occluder_tolerance_m=1e9, depth_object_motion=False, normals_from="clip",
                                               label_tilt="linear", own_surface_margin_m=None,
-                                              box_face_normals_m=None, normal_neighbours=12))
+                                              box_face_normals_m=None, normal_neighbours=12,
+                                              normal_neighbourhood="centred"))
     gold = tempfile.mkdtemp()
     for i in range(2):
         seg = segment_name(7, i)
