@@ -847,7 +847,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     by_surface = config.occlusion == "surface"
     surfels = centres_box = None
     if by_surface and config.back_face_max_deg is not None:
-        from drivetrack.visibility import camera_centres_box, sensor_positions, surfel_normals, with_box_face_normals
+        from drivetrack.visibility import (SurfelNormals, camera_centres_box, sensor_positions, surfel_normals,
+                                           with_box_face_normals)
 
         sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
         sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
@@ -856,8 +857,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
         if poses.trajectory is not None and config.normals_from == "segment":
             fitted = segment_cloud_normals(plan, job.object_id, poses)
-            surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None
-                       else surfel_normals(p_box, sensor_box, cloud=np.zeros((0, 3))))    # too few: none reliable
+            surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None    # too few: none
+                       else SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool)))
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood)
