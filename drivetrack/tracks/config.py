@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 
 from drivetrack.depth.config import DEPTH_FIELDS, DepthConfig
+from drivetrack.visibility.facing import NEIGHBOURHOODS
 from drivetrack.waymo.schema import BoxType, CameraName, LaserName
 
 __all__ = ["TrackConfig", "FOV_RUN_POLICIES", "TRACK_KERNELS"]
@@ -269,7 +270,7 @@ class TrackConfig:
                 isinstance(self.box_face_normals_m, (int, float)) and 0 <= self.box_face_normals_m < 10):
             raise ValueError(f"TrackConfig.box_face_normals_m must be None or metres in [0, 10), "
                              f"got {self.box_face_normals_m!r}")
-        if self.normal_neighbourhood not in ("shifted", "centred"):
+        if self.normal_neighbourhood not in NEIGHBOURHOODS:
             raise ValueError(f"TrackConfig.normal_neighbourhood must be 'shifted' or 'centred', "
                              f"got {self.normal_neighbourhood!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
