@@ -888,14 +888,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         own_points = np.ascontiguousarray(surfels.reliable, dtype=bool)
 
     def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
-        """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them)."""
-        if surfels is None:
+        """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them):
+        :func:`drivetrack.visibility.facing_mask`, computed once for all candidates below."""
+        if front_facing is None:
             return None
-        from drivetrack.visibility import SurfelNormals, facing_mask
-
-        idx = np.arange(start, stop) if where is None else where
-        return facing_mask(p_box[idx], SurfelNormals(surfels.normal[idx], surfels.reliable[idx]), centres_box,
-                           float(config.back_face_max_deg))
+        return front_facing[:, start:stop] if where is None else front_facing[:, where]
 
     def project_global(chunk: np.ndarray):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
@@ -922,7 +919,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # (a parked car beside the ego moves ~10 px between two rows of a side camera). The margins of
     # both surface tests, float32 [T, n] (+inf where a test cannot hide the point), go into each
     # kept point-frame's occlusion margin (:func:`_occlusion_margins`).
-    hidden_other = zbuffer_margin = face_margin = None
+    hidden_other = zbuffer_margin = face_margin = front_facing = None
     # The other labelled objects' boxes for the depth-map test (drivetrack.visibility.other_surface):
     # a map surface inside one of them (grown) on a ray that misses the box itself is that object's
     # depth spread past its outline, which the z-buffer draws from its own surface; posed like the
@@ -959,15 +956,19 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             from drivetrack.visibility.facing import facing_cosine
 
             face_margin = np.empty((t_count, n), dtype=np.float32)
+            front_facing = np.empty((t_count, n), dtype=bool)
+            min_cosine = np.cos(np.radians(float(config.back_face_max_deg)))
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             if any_occluder and not rolling:      # rolling: in the numpy path's loop, from its projection
                 zbuffer_test(start, *project_global(p_box[start:stop]))
             if surfels is not None:
-                angle = np.degrees(np.arccos(np.clip(
-                    facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box), -1.0, 1.0)))
-                face_margin[:, start:stop] = np.where(surfels.reliable[None, start:stop],
-                                                      config.back_face_max_deg - angle, np.inf)
+                # the back-face test (facing_mask's decision) and its margin from one cosine
+                cosine = facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box)
+                unreliable = ~surfels.reliable[None, start:stop]
+                front_facing[:, start:stop] = (cosine > min_cosine) | unreliable
+                angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+                face_margin[:, start:stop] = np.where(unreliable, np.inf, config.back_face_max_deg - angle)
         if not rolling:
             occluders = []
 
