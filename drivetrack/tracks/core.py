@@ -953,22 +953,20 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             hidden_other = np.zeros((t_count, n), dtype=bool)
             zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
         if surfels is not None:
-            from drivetrack.visibility.facing import facing_cosine
+            from drivetrack.visibility import SurfelNormals
+            from drivetrack.visibility.facing import facing_test
 
             face_margin = np.empty((t_count, n), dtype=np.float32)
             front_facing = np.empty((t_count, n), dtype=bool)
-            min_cosine = np.cos(np.radians(float(config.back_face_max_deg)))
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             if any_occluder and not rolling:      # rolling: in the numpy path's loop, from its projection
                 zbuffer_test(start, *project_global(p_box[start:stop]))
             if surfels is not None:
-                # the back-face test (facing_mask's decision) and its margin from one cosine
-                cosine = facing_cosine(p_box[start:stop], surfels.normal[start:stop], centres_box)
-                unreliable = ~surfels.reliable[None, start:stop]
-                front_facing[:, start:stop] = (cosine > min_cosine) | unreliable
-                angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
-                face_margin[:, start:stop] = np.where(unreliable, np.inf, config.back_face_max_deg - angle)
+                # the back-face test and its margin from one cosine per point-frame
+                front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
+                    p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                    centres_box, float(config.back_face_max_deg))
         if not rolling:
             occluders = []
 

@@ -42,7 +42,7 @@ import numpy as np
 
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
            "SHIFT_TOLERANCE_M", "CloudNormals", "SurfelNormals", "box_face_normals", "camera_centres_box",
-           "cloud_normals", "facing_cosine", "facing_mask", "orient_outward", "other_boxes", "other_surface",
+           "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward", "other_boxes", "other_surface",
            "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
@@ -414,8 +414,19 @@ def facing_mask(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.
     A face turns towards the camera when the angle between its outward normal and the direction
     to the camera centre is below ``max_angle_deg`` (90: any face not turned away).
     """
+    return facing_test(points_box, surfels, centres_box, max_angle_deg)[0]
+
+
+def facing_test(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.ndarray,
+                max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(facing bool [T, n], margin_deg float32 [T, n])`` from one :func:`facing_cosine`: the
+    decision of :func:`facing_mask` and how far (degrees) the angle to the camera lies below
+    ``max_angle_deg`` (negative: turned away; +inf at an unreliable normal)."""
     cosine = facing_cosine(points_box, surfels.normal, centres_box)
-    return (cosine > np.cos(np.radians(max_angle_deg))) | ~surfels.reliable[None]
+    unreliable = ~surfels.reliable[None]
+    facing = (cosine > np.cos(np.radians(max_angle_deg))) | unreliable
+    angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+    return facing, np.where(unreliable, np.inf, max_angle_deg - angle).astype(np.float32)
 
 
 def facing_cosine(points_box: np.ndarray, normal: np.ndarray, centres_box: np.ndarray) -> np.ndarray:
