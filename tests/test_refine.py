@@ -291,6 +291,8 @@ def test_bad_config_raises():
         RefineConfig(early_stop_iteration=-1)
     with pytest.raises(ValueError, match="jerk_sigma_mps3"):
         RefineConfig(jerk_sigma_mps3=0.0)
+    with pytest.raises(ValueError, match="sample_voxel_m"):
+        RefineConfig(sample_voxel_m=-0.1)
     with pytest.raises(ValueError, match="unknown keys"):
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
@@ -729,3 +731,32 @@ def test_the_jerk_term_steadies_a_car_seen_side_on_without_smoothing_away_its_br
         errors.append(row)
     without, with_jerk = np.mean(errors, axis=0)
     assert with_jerk < 0.95 * without, (case, without, with_jerk)
+
+
+def test_even_subsets_take_a_sparse_face_before_a_second_return_of_a_dense_one():
+    """``sample_voxel_m`` (select.spread_priority): a frame with 2,000 returns on a side face
+    seen square-on and 12 on an end face seen at a grazing angle. Uniform priorities put about
+    one end-face return among the 60 first; spread over 10 cm cubes, every cube's first return
+    comes before any cube's second, so all 12 (in 12 cubes) are among the first. The priorities
+    are per frame and do not depend on the order of the rows."""
+    from drivetrack.refine.select import spread_priority
+
+    rng = np.random.default_rng(3)
+    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 1.0), rng.uniform(0.0, 1.2, 2000)], -1)
+    end = np.stack([np.full(12, 2.0), np.linspace(-0.9, 0.9, 12), np.full(12, 0.6)], -1)
+    points = np.concatenate([side, end, side + [0.0, 0.0, 5.0]])          # a second frame: side only
+    frame = np.repeat([0, 0, 1], [2000, 12, 2000])
+    uniform = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
+    spread = spread_priority(points, frame, uniform, 0.1)
+    is_end = np.arange(points.shape[0]) >= 2000
+    is_end[2012:] = False
+    cubes0 = np.unique(np.floor(points[frame == 0] / 0.1).astype(int), axis=0).shape[0]
+    first0 = np.flatnonzero(frame == 0)[np.argsort(spread[frame == 0], kind="stable")[:cubes0]]
+    assert is_end[first0].sum() == 12
+    assert np.all(spread[first0] < 1.0) and np.all(spread[np.setdiff1d(np.flatnonzero(frame == 0), first0)] >= 1.0)
+    uniform_first = np.flatnonzero(frame == 0)[np.argsort(uniform[frame == 0])[:60]]
+    assert is_end[uniform_first].sum() <= 3
+    # frame 1 ranks on its own: its cubes' first returns also rank 0
+    assert (np.floor(spread[frame == 1]) == 0).sum() == np.unique(np.floor(points[frame == 1] / 0.1).astype(int), axis=0).shape[0]
+    order = rng.permutation(points.shape[0])
+    np.testing.assert_array_equal(spread_priority(points[order], frame[order], uniform[order], 0.1), spread[order])

@@ -52,6 +52,11 @@ class RefineConfig:
         association_neighbours: nearest model points examined to find one from another frame.
         max_points_per_frame: at most this many returns per frame take part (a fixed
             pseudo-random subset, deterministic); bounds the cost on near objects.
+        sample_voxel_m: that subset spread evenly over the object's surface: one return per cube
+            of this side (metres) before a second from any (``drivetrack.refine.select.spread_priority``).
+            None (default): uniform over the returns, so a face seen at a grazing angle, with few
+            returns, is hardly in it. 0.1 measured better on the small hard world and worse on
+            the medium one (docs/refinement.md, "Even subsets"), so it is not the default.
         label_sigma_m, label_sigma_deg: the labels' per-frame noise (prior strength).
         accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
             stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
@@ -126,6 +131,7 @@ class RefineConfig:
     min_planarity: float = 0.3
     association_neighbours: int = 12
     max_points_per_frame: int = 120
+    sample_voxel_m: float | None = None
     label_sigma_m: float = 0.05
     label_sigma_deg: float = 1.0
     accel_sigma_mps2: float = 2.0
@@ -171,6 +177,9 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
+        if self.sample_voxel_m is not None and not (isinstance(self.sample_voxel_m, (int, float))
+                                                    and np.isfinite(self.sample_voxel_m) and self.sample_voxel_m > 0):
+            raise ValueError(f"RefineConfig.sample_voxel_m must be None or a positive number, got {self.sample_voxel_m!r}")
         if self.jerk_sigma_mps3 is not None and not (isinstance(self.jerk_sigma_mps3, (int, float))
                                                      and np.isfinite(self.jerk_sigma_mps3) and self.jerk_sigma_mps3 > 0):
             raise ValueError(f"RefineConfig.jerk_sigma_mps3 must be None or a positive number, got {self.jerk_sigma_mps3!r}")
