@@ -953,7 +953,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             hidden_other = np.zeros((t_count, n), dtype=bool)
             zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
         if surfels is not None:
-            from drivetrack.visibility import SurfelNormals
             from drivetrack.visibility.facing import facing_test
 
             face_margin = np.empty((t_count, n), dtype=np.float32)
