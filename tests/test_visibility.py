@@ -551,7 +551,8 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
     ``calls`` (a list) one DataFrame per clip of its matched point-frames inside the image:
     camera, truth point, segment frame, predicted visible, truth visible, truth facing; ``margins``
     (a dict) turns ``occlusion_margins`` on and receives {(camera, object id): (occlusion_margin,
-    num_ambiguous_occlusion)}; ``overrides``: more ``TrackConfig`` fields (``cameras``: :data:`CAMERAS` unless given)."""
+    num_ambiguous_occlusion)}; ``overrides``: more ``TrackConfig`` fields (``cameras``: :data:`CAMERAS`
+    unless given)."""
     from drivetrack.evaluation import TruthIndex, clip_from_tracks
 
     overrides.setdefault("cameras", CAMERAS)
