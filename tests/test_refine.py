@@ -125,8 +125,8 @@ def test_refinement_recovers_exact_poses_far_better_than_noisy_labels(noisy):
     rel_refined = relative_error(refined.world_from_box, wfv @ exact, CORNERS)
     abs_label = absolute_error(labels, exact)
     abs_refined = absolute_error(refined.vehicle_from_box, exact)
-    # measured: corners carried between frames 12.2 cm (labels) -> 0.78 cm (refined; 0.74 with
-    # jerk_sigma_mps3=5); absolute centre 8.6 cm -> 2.1 cm, heading 0.53 deg -> 0.04 deg
+    # measured: corners carried between frames 12.2 cm (labels) -> 0.74 cm (refined, with the
+    # default jerk term; 0.78 without); absolute centre 8.6 cm -> 2.1 cm, heading 0.53 deg -> 0.04 deg
     assert rel_label > 0.06
     assert rel_refined < 0.2 * rel_label and rel_refined < 0.012
     assert abs_refined[0] < 0.35 * abs_label[0]
@@ -713,8 +713,8 @@ def test_jerk_rows_are_exact_for_a_cubic_at_any_spacing():
                                                   ("speeding up from 1 s", 4.0, 1.0), ("braking", -4.0, 0.0)])
 def test_the_jerk_term_steadies_a_car_seen_side_on_without_smoothing_away_its_braking(case, accel, start_s):
     """A car 3.2 m beside the ego seen side-on (nothing in its returns pins it along the road)
-    with 5 cm / 1 deg labels: ``jerk_sigma_mps3=5`` (off by default: docs/refinement.md, "Jerk")
-    carries its corners between frames better than the acceleration term alone, also when it
+    with 5 cm / 1 deg labels: ``jerk_sigma_mps3=5`` (the default since 2026-11-27: docs/refinement.md,
+    "Jerk") carries its corners between frames better than the acceleration term alone, also when it
     brakes hard from one frame to the next. Measured
     (mean over seeds 1-6 of the carried-corner error, cm; jerk 5 / jerk 2 / none): steady 3.4 /
     2.6 / 4.1, braking -8 m/s^2 from 0.95 s 2.4 / 3.4 / 2.8, speeding up +4 from 1 s 2.9 / 2.9 /

@@ -65,9 +65,10 @@ class RefineConfig:
             jerk (6 x the third divided difference over four frames, all three axes): it steadies
             a weakly observed direction (along a box seen side-on) over many frames without
             penalising a steady acceleration or braking, as a stiffer acceleration term would.
-            None (default): off. 5 still follows a car braking hard from one frame to the next
-            (2 smooths that away) and gains much on 2 s clips with 5 cm labels, but not on 1 s or
-            4 s ones (docs/refinement.md, "Jerk"), so it is not the default.
+            5 (default) still follows a car braking hard from one frame to the next (2 smooths
+            that away); with 5 cm labels it gains on 2 s segments and, with cars shaped as a
+            body and a cabin, on 4 s ones, and loses a little on 1 s box-car segments
+            (docs/refinement.md, "Jerk"). None: off. Exact labels are kept either way.
         pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
             parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
             roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
@@ -137,7 +138,7 @@ class RefineConfig:
     accel_sigma_mps2: float = 2.0
     vertical_accel_sigma_mps2: float = 0.3
     yaw_accel_sigma_radps2: float = 1.0
-    jerk_sigma_mps3: float | None = None
+    jerk_sigma_mps3: float | None = 5.0
     pitch_roll_sigma_deg: float | None = 1.0
     pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60
