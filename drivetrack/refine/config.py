@@ -67,8 +67,9 @@ class RefineConfig:
             penalising a steady acceleration or braking, as a stiffer acceleration term would.
             5 (default) still follows a car braking hard from one frame to the next (2 smooths
             that away); with 5 cm labels it gains on 2 s segments and, with cars shaped as a
-            body and a cabin, on 4 s ones, and loses a little on 1 s box-car segments
-            (docs/refinement.md, "Jerk"). None: off. Exact labels are kept either way.
+            body and a cabin, on 4 s ones; on 1 s box-car segments it lost on one world and
+            gained on another (docs/refinement.md, "Jerk"). None: off. Exact labels are kept
+            either way.
         pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
             parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
             roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
