@@ -894,10 +894,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             return None
         return front_facing[:, start:stop] if where is None else front_facing[:, where]
 
-    def project_global(chunk: np.ndarray):
+    def project_global(chunk: np.ndarray, tau: int | None = None):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
-        [k, 3] at the image pose (global shutter), in front of the camera."""
-        points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]
+        [k, 3] at the image pose (global shutter), in front of the camera; with ``tau`` at clip
+        frame ``tau`` alone (T = 1)."""
+        at = slice(None) if tau is None else slice(tau, tau + 1)
+        points_camera = _carry(camera_from_box[at], chunk) + shift_camera[at, None]
         pixels, valid = model.pixels_from_camera(points_camera)
         return points_camera, pixels, valid & (points_camera[..., 0] > 0)
 
@@ -927,12 +929,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     others = np.zeros((0, 0, 18))
     occluders = []
 
-    def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray) -> None:
+    def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
+                     tau: int | None = None) -> None:
         """Fills ``hidden_other`` and ``zbuffer_margin`` of candidates ``start:`` from their
-        projection float [T, k, 3] (depth) / [T, k, 2] (pixels) / bool [T, k]."""
+        projection float [T, k, 3] (depth) / [T, k, 2] (pixels) / bool [T, k]; with ``tau``, of
+        clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
-        hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
-            points_camera, pixels, valid, occluders, int(model.width), int(model.height),
+        at = slice(None) if tau is None else slice(tau, tau + 1)
+        hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
+            points_camera, pixels, valid, occluders[at], int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
             int(config.occluder_fill_px), int(config.occluder_subpixels))
@@ -957,10 +962,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
             face_margin = np.empty((t_count, n), dtype=np.float32)
             front_facing = np.empty((t_count, n), dtype=bool)
+        if any_occluder and not rolling:          # rolling: in the numpy path's loop, from its projection
+            # one image at a time over all candidates: each image's z-buffer is drawn once per clip
+            # (per chunk of candidates it was drawn once per chunk over much the same window)
+            for tau in range(t_count):
+                zbuffer_test(0, *project_global(p_box, tau), tau=tau)
         for start in range(0, n, config.chunk_points):
             stop = min(start + config.chunk_points, n)
-            if any_occluder and not rolling:      # rolling: in the numpy path's loop, from its projection
-                zbuffer_test(start, *project_global(p_box[start:stop]))
             if surfels is not None:
                 # the back-face test and its margin from one cosine per point-frame
                 front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
