@@ -684,20 +684,20 @@ def occluding_objects(plan) -> set[str]:
 _ROLLING_PAD = 0.1
 
 
-def _near_disc(model: CameraModel, centre_camera: np.ndarray, radius_m: float):
-    """``near(pixels float [m, 2]) -> bool [m]``: within the square round the image disc of the
-    sphere of centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded
-    by ``_ROLLING_PAD`` of the image; everywhere when the sphere reaches the camera or its centre
-    does not project."""
+def _near_window(model: CameraModel, centre_camera: np.ndarray, radius_m: float) -> tuple[float, float, float, float]:
+    """``(x_lo, x_hi, y_lo, y_hi)`` pixels: the square round the image disc of the sphere of
+    centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded by
+    ``_ROLLING_PAD`` of the image; infinite (everywhere) when the sphere reaches the camera or its
+    centre does not project."""
     pad = _ROLLING_PAD * max(model.width, model.height)
     distance = float(np.linalg.norm(centre_camera))
     centre_px, ok = model.pixels_from_camera(np.asarray(centre_camera, np.float64)[None])
     if distance <= 1.5 * radius_m or not ok[0] or not np.isfinite(centre_px).all():
-        return lambda pixels: np.ones(pixels.shape[0], dtype=bool)
+        return -np.inf, np.inf, -np.inf, np.inf
     # the disc's radius in pixels, generously (the distortion is not inverted here)
     half = 2.0 * max(model.f_u, model.f_v) * radius_m / max(distance - radius_m, 1e-6) + pad
-    centre_px = centre_px[0]
-    return lambda pixels: (np.abs(pixels - centre_px) <= half).all(axis=-1)
+    (x, y), = centre_px
+    return float(x - half), float(x + half), float(y - half), float(y + half)
 
 
 def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.ndarray, radius_m: np.ndarray,
@@ -718,8 +718,8 @@ def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.n
 
 
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
-               shutter=None):
-    """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
+               shutter=None, use_kernel: bool = False):
+    """``(returns, boxes, seen)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
     radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
     0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
@@ -740,7 +740,12 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     ``shutter``: the camera's frames (``scene.cameras[job.camera]``, without images) when the job
     projects with a rolling shutter: each return is then splatted at its pixel and depth at its
     capture time in its row, as the tracked points are looked up (the boxes stay at the image
-    pose); None: the global-shutter image pose.
+    pose); None: the global-shutter image pose. Only returns near the target in the image
+    (:func:`_near_window` at its pose) are kept: the z-buffer test looks no farther than the
+    footprints round the tracked points. ``seen``: some return of an object kept above projected
+    validly into some clip frame's image, near the target or not. ``use_kernel``: project with the
+    numba kernel (:func:`drivetrack.visibility.kernel.project_in_window`; the global shutter
+    only), else with numpy.
     """
     from drivetrack.visibility.zbuffer import surfel_subsample
 
@@ -762,9 +767,16 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
-    if shutter is not None:
-        # only returns near the target in the image at its pose are solved for their capture time
-        near_target = [_near_disc(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
+    # only returns near the target in the image at its pose matter (and, under a rolling shutter,
+    # are solved for their capture time)
+    windows = [_near_window(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
+    use_kernel = use_kernel and shutter is None
+    if use_kernel:
+        from drivetrack.camera.kernel import camera_parameters
+        from drivetrack.visibility.kernel import project_in_window
+
+        params = camera_parameters(model)
+    seen = False
     for label, object_id in enumerate(np.unique(boxes.object_id[in_clip]).tolist()):
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
@@ -788,19 +800,34 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             points_box = points_box[surfel_subsample(points_box, cube_m)]
         if points_box.shape[0] == 0:
             continue
-        points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
-        pixels, valid = model.pixels_from_camera(points_camera)
-        valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
+        if use_kernel:
+            points_box = np.ascontiguousarray(points_box, dtype=np.float64)
+            pixels = np.empty((points_box.shape[0], 2))
+            depth = np.empty(points_box.shape[0])
+            index = np.empty(points_box.shape[0], dtype=np.int64)
+        else:
+            points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
+            pixels, valid = model.pixels_from_camera(points_camera)
+            valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
+            seen = seen or bool(valid.any())
         for k, t in enumerate(obj_frames.tolist()):
-            ok = valid[k]
-            if shutter is None:
-                splats = (pixels[k][ok], points_camera[k, ok, 0], radius_m[ok])
+            x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
+            if use_kernel:
+                kept, valid_count = project_in_window(points_box, placed[k], params, x_lo, x_hi, y_lo, y_hi, pixels,
+                                                      depth, index)
+                seen = seen or valid_count > 0
+                splats = (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]])
             else:
-                splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, ok & near_target[slot[t]](pixels[k]))
+                near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
+                        & (pixels[k, :, 1] <= y_hi))
+                if shutter is None:
+                    splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
+                else:
+                    splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
@@ -808,7 +835,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
-                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
+                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes], seen
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -946,10 +973,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
-        occluders, occluder_boxes = _occluders(plan, job, frames, centre_camera,
-                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
-                                               shutter_meta if rolling else None)
-        any_occluder = any(o[1].size for o in occluders)
+        occluders, occluder_boxes, any_occluder = _occluders(plan, job, frames, centre_camera,
+                                                             0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
+                                                             shutter_meta if rolling else None, _use_kernel(config))
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes
 
@@ -1054,7 +1080,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         final_rows = np.flatnonzero(status == kernel.KEPT)
-        project = project_global
+        # the depth-map term of the kept point-frames' margins in one more pass of the kernel
+        depth_term = np.empty((final_rows.size, t_count), dtype=np.float32)
+        kernel.depth_margins(np.ascontiguousarray(p_box[final_rows]), camera_from_box, shift_camera, params, clip_maps,
+                             float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[final_rows]),
+                             others, float(config.ambiguity_m), depth_term)
+        margins = _with_surface_margins(config, depth_term, final_rows, zbuffer_margin, face_margin)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
@@ -1117,8 +1148,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         def project(chunk: np.ndarray):
             return projection.project(chunk, at_capture=True)
 
-    margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
-                                 own_box, own_points, others)
+        margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
+                                     own_box, own_points, others)
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
@@ -1153,6 +1184,23 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
     if unit > 0:
         return margin / np.float32(unit)
     return np.where(margin == 0, np.float32(0.0), np.sign(margin) * np.float32(np.inf)).astype(np.float32)
+
+
+def _with_surface_margins(config, depth_term: np.ndarray, rows: np.ndarray, zbuffer_margin: np.ndarray | None,
+                          face_margin: np.ndarray | None) -> np.ndarray:
+    """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] from the
+    depth-map term ``depth_term`` float32 [K, T] (in units of ``ambiguity_m``; +inf where the map
+    cannot hide the point, NaN outside the image; overwritten) and the surface tests' margins
+    ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all candidates
+    (None: that test is off): the smallest of the three, as :func:`_occlusion_margins`."""
+    for start in range(0, rows.size, config.chunk_points):
+        idx = rows[start:start + config.chunk_points]
+        out = depth_term[start:start + idx.size]
+        if zbuffer_margin is not None:
+            np.minimum(out, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)).T, out=out)
+        if face_margin is not None:
+            np.minimum(out, _scaled(face_margin[:, idx], float(config.ambiguity_deg)).T, out=out)
+    return depth_term
 
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
