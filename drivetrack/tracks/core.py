@@ -930,6 +930,24 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         pixels, valid = model.pixels_from_camera(points_camera)
         return points_camera, pixels, valid & (points_camera[..., 0] > 0)
 
+    use_kernel = _use_kernel(config)
+
+    def project_frame(chunk: np.ndarray, tau: int):
+        """:func:`project_global` of ``chunk`` at clip frame ``tau`` by the numba kernel
+        (:func:`drivetrack.visibility.kernel.project_points`): points_camera [1, k, 1] (the z-depth
+        alone), pixels [1, k, 2], valid [1, k]."""
+        from drivetrack.camera.kernel import camera_parameters
+        from drivetrack.visibility.kernel import project_points
+
+        placed = camera_from_box[tau].copy()
+        placed[:3, 3] += shift_camera[tau]
+        pixels = np.empty((1, chunk.shape[0], 2))
+        depth = np.empty((1, chunk.shape[0], 1))
+        valid = np.empty((1, chunk.shape[0]), dtype=bool)
+        project_points(np.ascontiguousarray(chunk, dtype=np.float64), placed, camera_parameters(model), pixels[0],
+                       depth[0, :, 0], valid[0])
+        return depth, pixels, valid
+
     projector = rolling_shutter_projector() if config.rolling_shutter else None
     # A camera whose shutter data say global shutter at every clip frame projects exactly like
     # the global path (rolling_shutter.shutter_state's fallback): skip the per-frame loop.
@@ -975,7 +993,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
         occluders, occluder_boxes, any_occluder = _occluders(plan, job, frames, centre_camera,
                                                              0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
-                                                             shutter_meta if rolling else None, _use_kernel(config))
+                                                             shutter_meta if rolling else None, use_kernel)
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes
 
@@ -992,14 +1010,20 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
             for tau in range(t_count):
-                zbuffer_test(0, *project_global(p_box, tau), tau=tau)
-        for start in range(0, n, config.chunk_points):
+                zbuffer_test(0, *(project_frame(p_box, tau) if use_kernel else project_global(p_box, tau)), tau=tau)
+        if surfels is not None and use_kernel:
+            from drivetrack.visibility import kernel as visibility_kernel
+
+            visibility_kernel.facing_test(np.ascontiguousarray(p_box), np.ascontiguousarray(surfels.normal, dtype=np.float64),
+                                          np.ascontiguousarray(surfels.reliable, dtype=bool),
+                                          np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
+                                          front_facing, face_margin)
+        for start in range(0, n if surfels is not None and not use_kernel else 0, config.chunk_points):
             stop = min(start + config.chunk_points, n)
-            if surfels is not None:
-                # the back-face test and its margin from one cosine per point-frame
-                front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
-                    p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
-                    centres_box, float(config.back_face_max_deg))
+            # the back-face test and its margin from one cosine per point-frame
+            front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
+                p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                centres_box, float(config.back_face_max_deg))
         if not rolling:
             occluders = []
 
@@ -1029,7 +1053,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     speed_filter = (config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean))
     max_deviation = float(config.max_speed_deviation_mps) if speed_filter else float("nan")
 
-    if not rolling and _use_kernel(config):
+    if not rolling and use_kernel:
         from drivetrack.tracks import kernel
 
         status = np.empty(n, dtype=np.int8)
@@ -1080,12 +1104,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         final_rows = np.flatnonzero(status == kernel.KEPT)
-        # the depth-map term of the kept point-frames' margins in one more pass of the kernel
-        depth_term = np.empty((final_rows.size, t_count), dtype=np.float32)
+        # the kept point-frames' margins: the surface tests' (numpy), then the depth map's where
+        # smaller, in one more pass of the kernel
+        margins = _surface_margins(config, final_rows, t_count, zbuffer_margin, face_margin)
         kernel.depth_margins(np.ascontiguousarray(p_box[final_rows]), camera_from_box, shift_camera, params, clip_maps,
                              float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[final_rows]),
-                             others, float(config.ambiguity_m), depth_term)
-        margins = _with_surface_margins(config, depth_term, final_rows, zbuffer_margin, face_margin)
+                             others, float(config.ambiguity_m), margins)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
@@ -1186,21 +1210,22 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
     return np.where(margin == 0, np.float32(0.0), np.sign(margin) * np.float32(np.inf)).astype(np.float32)
 
 
-def _with_surface_margins(config, depth_term: np.ndarray, rows: np.ndarray, zbuffer_margin: np.ndarray | None,
-                          face_margin: np.ndarray | None) -> np.ndarray:
-    """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] from the
-    depth-map term ``depth_term`` float32 [K, T] (in units of ``ambiguity_m``; +inf where the map
-    cannot hide the point, NaN outside the image; overwritten) and the surface tests' margins
+def _surface_margins(config, rows: np.ndarray, t_count: int, zbuffer_margin: np.ndarray | None,
+                     face_margin: np.ndarray | None) -> np.ndarray:
+    """float32 [K, T]: the smaller of the surface tests' margins of the kept candidates ``rows``
+    int [K] (+inf where neither can hide the point), in the units of the occlusion margin:
     ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all candidates
-    (None: that test is off): the smallest of the three, as :func:`_occlusion_margins`."""
+    (None: that test is off), as :func:`_occlusion_margins` scales them. The track kernel's
+    ``depth_margins`` adds the depth-map term."""
+    out = np.full((rows.size, t_count), np.inf, dtype=np.float32)
     for start in range(0, rows.size, config.chunk_points):
         idx = rows[start:start + config.chunk_points]
-        out = depth_term[start:start + idx.size]
+        part = out[start:start + idx.size]
         if zbuffer_margin is not None:
-            np.minimum(out, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)).T, out=out)
+            np.minimum(part, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)).T, out=part)
         if face_margin is not None:
-            np.minimum(out, _scaled(face_margin[:, idx], float(config.ambiguity_deg)).T, out=out)
-    return depth_term
+            np.minimum(part, _scaled(face_margin[:, idx], float(config.ambiguity_deg)).T, out=part)
+    return out
 
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,

@@ -320,16 +320,18 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
 @njit(cache=True, nogil=True)
 def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps, occlusion_ratio, own, own_points,
                   others, unit_m, margins):
-    """The depth-map test's occlusion margin of each point-frame, written in [K, T] order.
+    """The occlusion margin of each point-frame: the depth-map test's, unless ``margins`` holds a
+    smaller one.
 
-    ``margins`` float32 [K, T] (filled in place): ``(surface - occlusion_ratio * z) / unit_m`` with
-    the max-of-4 surface of :func:`_visible` (negative iff the map hides the point); +inf where
-    the map knows no surface there or the surface is the object's own or another labelled
-    object's spread (:func:`_surface_is_theirs`: it cannot hide the point); NaN where the
-    projection is invalid or outside the image. With ``unit_m`` 0 only the sign is left (+-inf,
-    0 stays 0). Other arguments as :func:`screen_points` (``points_box`` float64 [K, 3] and
-    ``own_points`` bool [K] of these points). The margins of ``core._occlusion_margins``' depth
-    term, from the projection :func:`fill_tracks` makes.
+    ``margins`` float32 [K, T] holds on entry the smallest margin of the other tests (+inf: none)
+    and on return the smallest of that and the depth-map test's ``(surface - occlusion_ratio * z) /
+    unit_m`` with the max-of-4 surface of :func:`_visible` (negative iff the map hides the point),
+    which is +inf where the map knows no surface there or the surface is the object's own or
+    another labelled object's spread (:func:`_surface_is_theirs`, asked only where the map's
+    margin is the smaller: it cannot hide the point); NaN where the projection is invalid or
+    outside the image. With ``unit_m`` 0 only the sign is left (+-inf, 0 stays 0). Other arguments
+    as :func:`screen_points` (``points_box`` float64 [K, 3] and ``own_points`` bool [K] of these
+    points). ``core._occlusion_margins`` computes the same in numpy.
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
@@ -349,16 +351,16 @@ def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps,
             best = _max4(depth_maps, tau, height, width, pix_x, pix_y) if valid else np.float32(-1.0)
             if best < 0:
                 margins[i, tau] = np.nan
-            elif not best > 0 or _surface_is_theirs(tau, best / x, own, own_point, others, px, py, pz):
-                margins[i, tau] = np.inf
-            else:
-                margin = np.float32(best - occlusion_ratio * x)
-                if unit > 0:
-                    margins[i, tau] = margin / unit
-                elif margin == 0:
-                    margins[i, tau] = 0.0
-                else:
-                    margins[i, tau] = np.inf if margin > 0 else -np.inf
+                continue
+            if not best > 0:
+                continue
+            margin = np.float32(best - occlusion_ratio * x)
+            if unit > 0:
+                margin = margin / unit
+            elif margin != 0:
+                margin = np.float32(np.inf) if margin > 0 else np.float32(-np.inf)
+            if margin < margins[i, tau] and not _surface_is_theirs(tau, best / x, own, own_point, others, px, py, pz):
+                margins[i, tau] = margin
 
 
 @njit(cache=True, nogil=True)

@@ -1,6 +1,7 @@
 """numba kernels of the visibility stage: the back-face normals
 (:func:`drivetrack.visibility.facing.cloud_normals`) and the projection of an occluder's surfels
-into an image window (:func:`project_in_window`).
+into an image window (:func:`project_in_window`), the tracked points' projection for the
+z-buffer test (:func:`project_points`) and the back-face test (:func:`facing_test`).
 
 Shapes: m cloud points, k neighbours; metres, box frame.
 """
@@ -11,7 +12,7 @@ import numpy as np
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 from drivetrack.numba_compat import njit
 
-__all__ = ["shifted_neighbourhoods", "project_in_window"]
+__all__ = ["shifted_neighbourhoods", "project_in_window", "project_points", "facing_test"]
 
 
 @njit(cache=True, nogil=True)
@@ -92,3 +93,43 @@ def project_in_window(points_box, camera_from_box, camera, x_lo, x_hi, y_lo, y_h
         index[kept] = i
         kept += 1
     return kept, valid_count
+
+
+@njit(cache=True, nogil=True)
+def project_points(points_box, camera_from_box, camera, pixels, depth, valid):
+    """Projects box-frame points ``points_box`` float64 [n, 3] through ``camera_from_box`` float64
+    [4, 4] (any shift in its translation) to the camera ``camera`` float64 [11], as
+    ``CameraModel.pixels_from_camera``: fills ``pixels`` float64 [n, 2] (NaN where invalid),
+    ``depth`` float64 [n] (the z-depth x, metres) and ``valid`` bool [n] (in front, trusted
+    distortion)."""
+    f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
+                                              camera[5], camera[6], camera[7], camera[8])
+    m = camera_from_box
+    for i in range(points_box.shape[0]):
+        px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+        x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
+        y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
+        z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+        pixels[i, 0], pixels[i, 1], valid[i] = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
+        depth[i] = x
+
+
+@njit(cache=True, nogil=True)
+def facing_test(points_box, normal, reliable, centres_box, max_angle_deg, facing, margin_deg):
+    """The back-face test of ``drivetrack.visibility.facing.facing_test`` in one pass: fills
+    ``facing`` bool [T, n] and ``margin_deg`` float32 [T, n] of points ``points_box`` float64
+    [n, 3] with unit normals ``normal`` float64 [n, 3] (``reliable`` bool [n]) and camera centres
+    ``centres_box`` float64 [T, 3] (box frame, metres)."""
+    min_cos = np.cos(np.radians(max_angle_deg))
+    for tau in range(centres_box.shape[0]):
+        ex, ey, ez = centres_box[tau, 0], centres_box[tau, 1], centres_box[tau, 2]
+        for i in range(points_box.shape[0]):
+            if not reliable[i]:
+                facing[tau, i] = True
+                margin_deg[tau, i] = np.inf
+                continue
+            dx, dy, dz = ex - points_box[i, 0], ey - points_box[i, 1], ez - points_box[i, 2]
+            cosine = ((dx * normal[i, 0] + dy * normal[i, 1] + dz * normal[i, 2])
+                      / max(np.sqrt(dx * dx + dy * dy + dz * dz), 1e-9))
+            facing[tau, i] = cosine > min_cos
+            margin_deg[tau, i] = max_angle_deg - np.degrees(np.arccos(min(max(cosine, -1.0), 1.0)))
