@@ -923,6 +923,56 @@ def test_square_filters_equal_scipys():
             np.testing.assert_array_equal(_square_max(img, r), maximum_filter(img, size=2 * r + 1, mode="nearest"))
 
 
+def test_visibility_kernels_equal_numpy():
+    """The numba kernels of the track stage's surface tests decide as their numpy forms: the
+    back-face test (decision and margin), the projection of the tracked points, and an
+    occluder's surfels projected into a window of the image (the rows kept, in order)."""
+    from drivetrack.camera.kernel import camera_parameters
+    from drivetrack.camera.model import CameraModel
+    from drivetrack.visibility import SurfelNormals
+    from drivetrack.visibility import kernel as vk
+    from drivetrack.visibility.facing import facing_test
+
+    rng = np.random.default_rng(5)
+    points, normals = _box_cloud(rng, per_face=200)
+    reliable = rng.uniform(size=points.shape[0]) < 0.9
+    centres = rng.uniform(-30.0, 30.0, (7, 3))
+    want_facing, want_margin = facing_test(points, SurfelNormals(normals, reliable), centres, 80.0)
+    got_facing = np.empty(want_facing.shape, dtype=bool)
+    got_margin = np.empty(want_margin.shape, dtype=np.float32)
+    vk.facing_test(points, normals, reliable, centres, 80.0, got_facing, got_margin)
+    np.testing.assert_array_equal(got_facing, want_facing)
+    np.testing.assert_allclose(got_margin, want_margin, atol=1e-4)
+    assert np.isinf(got_margin[:, ~reliable]).all() and (got_margin[:, reliable] < 0).any()
+
+    model = CameraModel(f_u=500.0, f_v=500.0, c_u=320.0, c_v=240.0, k1=-0.1, k2=0.02, k3=0.0, p1=0.001, p2=-0.001,
+                        width=640, height=480, vehicle_from_camera=np.eye(4))
+    camera_from_box = np.eye(4)
+    camera_from_box[:3, 3] = (6.0, 1.0, 0.5)                          # the box 6 m ahead, partly beside
+    cloud = points * 3.0                                               # some points behind the camera
+    want_camera = cloud @ camera_from_box[:3, :3].T + camera_from_box[:3, 3]
+    want_pixels, want_valid = model.pixels_from_camera(want_camera)
+    pixels, depth, valid = np.empty((cloud.shape[0], 2)), np.empty(cloud.shape[0]), np.empty(cloud.shape[0], bool)
+    vk.project_points(cloud, camera_from_box, camera_parameters(model), pixels, depth, valid)
+    np.testing.assert_array_equal(valid, want_valid)
+    assert 0 < valid.sum() < valid.size
+    np.testing.assert_allclose(pixels[valid], want_pixels[want_valid], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(depth, want_camera[:, 0], rtol=0, atol=1e-12)
+    index = np.empty(cloud.shape[0], dtype=np.int64)
+    for window in ((100.0, 400.0, 50.0, 300.0), (-np.inf, np.inf, -np.inf, np.inf)):
+        x_lo, x_hi, y_lo, y_hi = window
+        kept, seen = vk.project_in_window(cloud, camera_from_box, camera_parameters(model), x_lo, x_hi, y_lo, y_hi,
+                                          pixels, depth, index)
+        with np.errstate(invalid="ignore"):
+            inside = (want_valid & (want_pixels[:, 0] >= x_lo) & (want_pixels[:, 0] <= x_hi)
+                      & (want_pixels[:, 1] >= y_lo) & (want_pixels[:, 1] <= y_hi))
+        assert seen == want_valid.sum()
+        np.testing.assert_array_equal(index[:kept], np.flatnonzero(inside))
+        np.testing.assert_allclose(pixels[:kept], want_pixels[inside], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(depth[:kept], want_camera[inside, 0], rtol=0, atol=1e-12)
+    assert 0 < np.flatnonzero(inside).size and kept > 0
+
+
 def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     """Vehicles are not boxes: with ``SynthConfig(car_shape="cabin")`` a car's cabin hides its own
     bonnet and boot from some views, faces that face the camera, so neither the back-face test

@@ -110,55 +110,71 @@ def points_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, t
     kept with the plan, :func:`_labelled_motion`) they are computed once per frame; each object is
     then posed once per image, not once per return.
     """
-    return motion_at_image_time(scene, config, owner, trajectory, camera, frame, rows, points_vehicle, memo)[0]
+    return motion_at_image_time(scene, config, owner, trajectory, camera, frame, rows, points_vehicle, memo,
+                                with_velocity=False)[0]
 
 
 def motion_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, trajectory, camera: int,
                          frame: int, rows: np.ndarray, points_vehicle: np.ndarray,
-                         memo: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                         memo: dict | None = None, with_velocity: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """``(points float64 [n, 3], velocity_world float64 [n, 3])``: the points of
     :func:`points_at_image_time` and each one's world velocity (m/s) at the image's pose time, the
     rigid motion of its object (centre velocity plus yaw rate about the world z) for labelled
-    returns, 0 for the others (what a rolling-shutter projection moves them by during the readout)."""
+    returns, 0 for the others (what a rolling-shutter projection moves them by during the readout;
+    None without ``with_velocity``: a global-shutter map does not need it)."""
     from drivetrack.tracks.core import image_time_offsets
 
     out = np.array(points_vehicle, dtype=np.float64)
-    velocity_world = np.zeros_like(out)
-    box_rows = owner[rows]
-    moving = np.flatnonzero(box_rows >= 0)
-    if moving.size == 0:
+    velocity_world = np.zeros_like(out) if with_velocity else None
+    labelled = _labelled_points_box(scene, config, trajectory, frame, rows, owner, out, {} if memo is None else memo)
+    if labelled is None:
         return out, velocity_world
-    box_rows = box_rows[moving]
-    points_box = _labelled_points_box(scene, config, trajectory, frame, rows[moving], box_rows, out[moving],
-                                      {} if memo is None else memo)
-    unique_rows, which = np.unique(box_rows, return_inverse=True)
+    moving, unique_rows, starts, points_box = labelled
     image_time = trajectory.frame_time_s[unique_rows] + image_time_offsets(scene, camera, np.array([frame]))[0]
     world_from_vehicle = scene.world_from_vehicle[frame]
     world_from_box = trajectory.world_from_box(unique_rows, image_time)                            # [u, 4, 4]
     vehicle_from_box = invert_rigid(world_from_vehicle)[None] @ world_from_box
-    out[moving] = (np.einsum("nij,nj->ni", vehicle_from_box[which, :3, :3], points_box)
-                   + vehicle_from_box[which, :3, 3])
-    _, _, _, _, velocity, yaw_rate = trajectory.motion(unique_rows, image_time)
-    velocity_world[moving] = rigid_velocity_world(out[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
-                                                  world_from_box[which, :3, 3], velocity[which], yaw_rate[which])
+    moved = np.empty_like(points_box)
+    # the returns are grouped by object (the memo's order): one small product per object
+    for j in range(unique_rows.size):
+        part = slice(starts[j], starts[j + 1])
+        moved[part] = points_box[part] @ vehicle_from_box[j, :3, :3].T + vehicle_from_box[j, :3, 3]
+    out[moving] = moved
+    if with_velocity:
+        _, _, _, _, velocity, yaw_rate = trajectory.motion(unique_rows, image_time)
+        which = np.repeat(np.arange(unique_rows.size), np.diff(starts))
+        velocity_world[moving] = rigid_velocity_world(moved @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
+                                                      world_from_box[which, :3, 3], velocity[which], yaw_rate[which])
     return out, velocity_world
 
 
 def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: int, rows: np.ndarray,
-                         box_rows: np.ndarray, points_vehicle: np.ndarray, memo: dict) -> np.ndarray:
-    """float64 [k, 3]: labelled returns ``rows`` (int [k], owners ``box_rows``, at ``points_vehicle``
-    float [k, 3] in the vehicle frame of ``frame``) in their box frame at their capture time;
-    memoised in ``memo`` per frame and set of rows (the same for every camera)."""
+                         owner: np.ndarray, points_vehicle: np.ndarray, memo: dict):
+    """The labelled ones of returns ``rows`` (int [n] of ``frame``, at ``points_vehicle`` float
+    [n, 3] in the vehicle frame of ``frame``; ``owner`` their box rows, -1: none) in their box frame
+    at their capture time, grouped by box row: ``(moving int64 [k]`` (their places in ``rows``),
+    ``unique_rows int64 [u]``, ``starts int64 [u + 1]`` (each box row's returns are
+    ``starts[j]:starts[j + 1]``), ``points_box float64 [k, 3])``; None when none is labelled.
+    Memoised in ``memo`` per frame and set of rows (the same for every camera)."""
     from drivetrack.tracks.trajectory import points_box_at
 
     key = (frame, rows.tobytes())
     if key not in memo:
+        box_rows = owner[rows]
+        moving = np.flatnonzero(box_rows >= 0)
+        if moving.size == 0:
+            memo[key] = None
+            return None
+        moving = moving[np.argsort(box_rows[moving], kind="stable")]
+        box_rows = box_rows[moving]
+        unique_rows, starts = np.unique(box_rows, return_index=True)
         lidar = scene.lidar
-        offsets = (np.nan_to_num(lidar.capture_offset_s[rows].astype(np.float64))
+        offsets = (np.nan_to_num(lidar.capture_offset_s[rows[moving]].astype(np.float64))
                    if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
         world_from_vehicle = scene.world_from_vehicle[frame]
-        world = points_vehicle @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
-        memo[key] = points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world)
+        world = points_vehicle[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
+        memo[key] = (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
+                     points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world))
     return memo[key]
 
 
@@ -234,7 +250,8 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
         if motion is not None:
             rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
             points, velocity_world = motion_at_image_time(scene, config, *motion[:2], job.camera, t, rows, points,
-                                                          memo=motion[2])
+                                                          memo=motion[2],
+                                                          with_velocity=config.rolling_shutter and shutter_state(frames, t).rolling)
         subset = (None if config.blind_zone_laser is None
                   else (lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1))
         image_world_from_vehicle = frames.world_from_vehicle[t]

@@ -684,20 +684,20 @@ def occluding_objects(plan) -> set[str]:
 _ROLLING_PAD = 0.1
 
 
-def _near_disc(model: CameraModel, centre_camera: np.ndarray, radius_m: float):
-    """``near(pixels float [m, 2]) -> bool [m]``: within the square round the image disc of the
-    sphere of centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded
-    by ``_ROLLING_PAD`` of the image; everywhere when the sphere reaches the camera or its centre
-    does not project."""
+def _near_window(model: CameraModel, centre_camera: np.ndarray, radius_m: float) -> tuple[float, float, float, float]:
+    """``(x_lo, x_hi, y_lo, y_hi)`` pixels: the square round the image disc of the sphere of
+    centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded by
+    ``_ROLLING_PAD`` of the image; infinite (everywhere) when the sphere reaches the camera or its
+    centre does not project."""
     pad = _ROLLING_PAD * max(model.width, model.height)
     distance = float(np.linalg.norm(centre_camera))
     centre_px, ok = model.pixels_from_camera(np.asarray(centre_camera, np.float64)[None])
     if distance <= 1.5 * radius_m or not ok[0] or not np.isfinite(centre_px).all():
-        return lambda pixels: np.ones(pixels.shape[0], dtype=bool)
+        return -np.inf, np.inf, -np.inf, np.inf
     # the disc's radius in pixels, generously (the distortion is not inverted here)
     half = 2.0 * max(model.f_u, model.f_v) * radius_m / max(distance - radius_m, 1e-6) + pad
-    centre_px = centre_px[0]
-    return lambda pixels: (np.abs(pixels - centre_px) <= half).all(axis=-1)
+    (x, y), = centre_px
+    return float(x - half), float(x + half), float(y - half), float(y + half)
 
 
 def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.ndarray, radius_m: np.ndarray,
@@ -718,8 +718,8 @@ def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.n
 
 
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
-               shutter=None):
-    """``(returns, boxes)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
+               shutter=None, use_kernel: bool = False):
+    """``(returns, boxes, seen)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
     radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
     0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
@@ -740,7 +740,12 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     ``shutter``: the camera's frames (``scene.cameras[job.camera]``, without images) when the job
     projects with a rolling shutter: each return is then splatted at its pixel and depth at its
     capture time in its row, as the tracked points are looked up (the boxes stay at the image
-    pose); None: the global-shutter image pose.
+    pose); None: the global-shutter image pose. Only returns near the target in the image
+    (:func:`_near_window` at its pose) are kept: the z-buffer test looks no farther than the
+    footprints round the tracked points. ``seen``: some return of an object kept above projected
+    validly into some clip frame's image, near the target or not. ``use_kernel``: project with the
+    numba kernel (:func:`drivetrack.visibility.kernel.project_in_window`; the global shutter
+    only), else with numpy.
     """
     from drivetrack.visibility.zbuffer import surfel_subsample
 
@@ -762,9 +767,16 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
-    if shutter is not None:
-        # only returns near the target in the image at its pose are solved for their capture time
-        near_target = [_near_disc(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
+    # only returns near the target in the image at its pose matter (and, under a rolling shutter,
+    # are solved for their capture time)
+    windows = [_near_window(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
+    use_kernel = use_kernel and shutter is None
+    if use_kernel:
+        from drivetrack.camera.kernel import camera_parameters
+        from drivetrack.visibility.kernel import project_in_window
+
+        params = camera_parameters(model)
+    seen = False
     for label, object_id in enumerate(np.unique(boxes.object_id[in_clip]).tolist()):
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
@@ -788,19 +800,34 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             points_box = points_box[surfel_subsample(points_box, cube_m)]
         if points_box.shape[0] == 0:
             continue
-        points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
-        pixels, valid = model.pixels_from_camera(points_camera)
-        valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
+        if use_kernel:
+            points_box = np.ascontiguousarray(points_box, dtype=np.float64)
+            pixels = np.empty((points_box.shape[0], 2))
+            depth = np.empty(points_box.shape[0])
+            index = np.empty(points_box.shape[0], dtype=np.int64)
+        else:
+            points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
+            pixels, valid = model.pixels_from_camera(points_camera)
+            valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
+            seen = seen or bool(valid.any())
         for k, t in enumerate(obj_frames.tolist()):
-            ok = valid[k]
-            if shutter is None:
-                splats = (pixels[k][ok], points_camera[k, ok, 0], radius_m[ok])
+            x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
+            if use_kernel:
+                kept, valid_count = project_in_window(points_box, placed[k], params, x_lo, x_hi, y_lo, y_hi, pixels,
+                                                      depth, index)
+                seen = seen or valid_count > 0
+                splats = (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]])
             else:
-                splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, ok & near_target[slot[t]](pixels[k]))
+                near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
+                        & (pixels[k, :, 1] <= y_hi))
+                if shutter is None:
+                    splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
+                else:
+                    splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
@@ -808,7 +835,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
-                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes]
+                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes], seen
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -894,12 +921,32 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             return None
         return front_facing[:, start:stop] if where is None else front_facing[:, where]
 
-    def project_global(chunk: np.ndarray):
+    def project_global(chunk: np.ndarray, tau: int | None = None):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
-        [k, 3] at the image pose (global shutter), in front of the camera."""
-        points_camera = _carry(camera_from_box, chunk) + shift_camera[:, None]
+        [k, 3] at the image pose (global shutter), in front of the camera; with ``tau`` at clip
+        frame ``tau`` alone (T = 1)."""
+        at = slice(None) if tau is None else slice(tau, tau + 1)
+        points_camera = _carry(camera_from_box[at], chunk) + shift_camera[at, None]
         pixels, valid = model.pixels_from_camera(points_camera)
         return points_camera, pixels, valid & (points_camera[..., 0] > 0)
+
+    use_kernel = _use_kernel(config)
+
+    def project_frame(chunk: np.ndarray, tau: int):
+        """:func:`project_global` of ``chunk`` at clip frame ``tau`` by the numba kernel
+        (:func:`drivetrack.visibility.kernel.project_points`): points_camera [1, k, 1] (the z-depth
+        alone), pixels [1, k, 2], valid [1, k]."""
+        from drivetrack.camera.kernel import camera_parameters
+        from drivetrack.visibility.kernel import project_points
+
+        placed = camera_from_box[tau].copy()
+        placed[:3, 3] += shift_camera[tau]
+        pixels = np.empty((1, chunk.shape[0], 2))
+        depth = np.empty((1, chunk.shape[0], 1))
+        valid = np.empty((1, chunk.shape[0]), dtype=bool)
+        project_points(np.ascontiguousarray(chunk, dtype=np.float64), placed, camera_parameters(model), pixels[0],
+                       depth[0, :, 0], valid[0])
+        return depth, pixels, valid
 
     projector = rolling_shutter_projector() if config.rolling_shutter else None
     # A camera whose shutter data say global shutter at every clip frame projects exactly like
@@ -927,12 +974,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     others = np.zeros((0, 0, 18))
     occluders = []
 
-    def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray) -> None:
+    def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
+                     tau: int | None = None) -> None:
         """Fills ``hidden_other`` and ``zbuffer_margin`` of candidates ``start:`` from their
-        projection float [T, k, 3] (depth) / [T, k, 2] (pixels) / bool [T, k]."""
+        projection float [T, k, 3] (depth) / [T, k, 2] (pixels) / bool [T, k]; with ``tau``, of
+        clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
-        hidden_other[:, start:stop], zbuffer_margin[:, start:stop] = hidden_by_others(
-            points_camera, pixels, valid, occluders, int(model.width), int(model.height),
+        at = slice(None) if tau is None else slice(tau, tau + 1)
+        hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
+            points_camera, pixels, valid, occluders[at], int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
             int(config.occluder_fill_px), int(config.occluder_subpixels))
@@ -941,10 +991,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         from drivetrack.visibility.zbuffer import hidden_by_others
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
-        occluders, occluder_boxes = _occluders(plan, job, frames, centre_camera,
-                                               0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
-                                               shutter_meta if rolling else None)
-        any_occluder = any(o[1].size for o in occluders)
+        occluders, occluder_boxes, any_occluder = _occluders(plan, job, frames, centre_camera,
+                                                             0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
+                                                             shutter_meta if rolling else None, use_kernel)
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes
 
@@ -957,15 +1006,24 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
             face_margin = np.empty((t_count, n), dtype=np.float32)
             front_facing = np.empty((t_count, n), dtype=bool)
-        for start in range(0, n, config.chunk_points):
+        if any_occluder and not rolling:          # rolling: in the numpy path's loop, from its projection
+            # one image at a time over all candidates: each image's z-buffer is drawn once per clip
+            # (per chunk of candidates it was drawn once per chunk over much the same window)
+            for tau in range(t_count):
+                zbuffer_test(0, *(project_frame(p_box, tau) if use_kernel else project_global(p_box, tau)), tau=tau)
+        if surfels is not None and use_kernel:
+            from drivetrack.visibility import kernel as visibility_kernel
+
+            visibility_kernel.facing_test(np.ascontiguousarray(p_box), np.ascontiguousarray(surfels.normal, dtype=np.float64),
+                                          np.ascontiguousarray(surfels.reliable, dtype=bool),
+                                          np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
+                                          front_facing, face_margin)
+        for start in range(0, n if surfels is not None and not use_kernel else 0, config.chunk_points):
             stop = min(start + config.chunk_points, n)
-            if any_occluder and not rolling:      # rolling: in the numpy path's loop, from its projection
-                zbuffer_test(start, *project_global(p_box[start:stop]))
-            if surfels is not None:
-                # the back-face test and its margin from one cosine per point-frame
-                front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
-                    p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
-                    centres_box, float(config.back_face_max_deg))
+            # the back-face test and its margin from one cosine per point-frame
+            front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
+                p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                centres_box, float(config.back_face_max_deg))
         if not rolling:
             occluders = []
 
@@ -995,7 +1053,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     speed_filter = (config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean))
     max_deviation = float(config.max_speed_deviation_mps) if speed_filter else float("nan")
 
-    if not rolling and _use_kernel(config):
+    if not rolling and use_kernel:
         from drivetrack.tracks import kernel
 
         status = np.empty(n, dtype=np.int8)
@@ -1046,7 +1104,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
         final_rows = np.flatnonzero(status == kernel.KEPT)
-        project = project_global
+        # the kept point-frames' margins: the surface tests' (numpy), then the depth map's where
+        # smaller, in one more pass of the kernel
+        margins = _surface_margins(config, final_rows, t_count, zbuffer_margin, face_margin)
+        kernel.depth_margins(np.ascontiguousarray(p_box[final_rows]), camera_from_box, shift_camera, params, clip_maps,
+                             float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[final_rows]),
+                             others, float(config.ambiguity_m), margins)
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
@@ -1109,8 +1172,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         def project(chunk: np.ndarray):
             return projection.project(chunk, at_capture=True)
 
-    margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
-                                 own_box, own_points, others)
+        margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
+                                     own_box, own_points, others)
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
@@ -1145,6 +1208,24 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
     if unit > 0:
         return margin / np.float32(unit)
     return np.where(margin == 0, np.float32(0.0), np.sign(margin) * np.float32(np.inf)).astype(np.float32)
+
+
+def _surface_margins(config, rows: np.ndarray, t_count: int, zbuffer_margin: np.ndarray | None,
+                     face_margin: np.ndarray | None) -> np.ndarray:
+    """float32 [K, T]: the smaller of the surface tests' margins of the kept candidates ``rows``
+    int [K] (+inf where neither can hide the point), in the units of the occlusion margin:
+    ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all candidates
+    (None: that test is off), as :func:`_occlusion_margins` scales them. The track kernel's
+    ``depth_margins`` adds the depth-map term."""
+    out = np.full((rows.size, t_count), np.inf, dtype=np.float32)
+    for start in range(0, rows.size, config.chunk_points):
+        idx = rows[start:start + config.chunk_points]
+        part = out[start:start + idx.size]
+        if zbuffer_margin is not None:
+            np.minimum(part, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)).T, out=part)
+        if face_margin is not None:
+            np.minimum(part, _scaled(face_margin[:, idx], float(config.ambiguity_deg)).T, out=part)
+    return out
 
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,

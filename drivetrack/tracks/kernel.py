@@ -31,7 +31,7 @@ import numpy as np
 from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 
-__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "fill_positions",
+__all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "depth_margins", "fill_positions",
            "fill_points3d_frames", "summarise_tracks", "path_speeds"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
@@ -61,8 +61,20 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     the map, and the z-buffer decides instead (:func:`drivetrack.visibility.other_surface`)."""
     if not valid:
         return False
-    if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
+    best = _max4(depth_maps, tau, height, width, pix_x, pix_y)
+    if best < 0:
         return False
+    if not (best > 0 and best < occlusion_ratio * x):
+        return True
+    return _surface_is_theirs(tau, best / x, own, own_point, others, px, py, pz)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _max4(depth_maps, tau, height, width, pix_x, pix_y):
+    """The max-of-4 surface (float32, metres; 0: unknown) of ``depth_maps[tau]`` at pixel (pix_x,
+    pix_y), ``drivetrack.depth.lookup_max4``; -1 outside the image."""
+    if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
+        return np.float32(-1.0)
     # columns floor(x - 0.5) and ceil(x - 0.5), rows likewise; neighbours outside count as unknown
     cx = pix_x - 0.5
     cy = pix_y - 0.5
@@ -83,12 +95,17 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
             best = max(best, depth_maps[tau, r1, c0])
         if c1_ok:
             best = max(best, depth_maps[tau, r1, c1])
-    if not (best > 0 and best < occlusion_ratio * x):
-        return True
+    return best
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _surface_is_theirs(tau, scale, own, own_point, others, px, py, pz):
+    """The depth map's surface at ``scale`` (its depth over the point's) on the ray to the box-frame
+    point (px, py, pz) is the object's own or another labelled object's spread, so it hides
+    nothing (:func:`_visible`; False when ``own`` is [0, 8]: off)."""
     if own.shape[0] == 0:
         return False
     # the surface's point on the ray from the camera centre e through p: e + (best / x) (p - e)
-    scale = best / x
     e = own[tau]
     qx = e[0] + scale * (px - e[0])
     qy = e[1] + scale * (py - e[1])
@@ -298,6 +315,52 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
             points3d[i, tau, 0] = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3]
             points3d[i, tau, 1] = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3]
             points3d[i, tau, 2] = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3]
+
+
+@njit(cache=True, nogil=True)
+def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps, occlusion_ratio, own, own_points,
+                  others, unit_m, margins):
+    """The occlusion margin of each point-frame: the depth-map test's, unless ``margins`` holds a
+    smaller one.
+
+    ``margins`` float32 [K, T] holds on entry the smallest margin of the other tests (+inf: none)
+    and on return the smallest of that and the depth-map test's ``(surface - occlusion_ratio * z) /
+    unit_m`` with the max-of-4 surface of :func:`_visible` (negative iff the map hides the point),
+    which is +inf where the map knows no surface there or the surface is the object's own or
+    another labelled object's spread (:func:`_surface_is_theirs`, asked only where the map's
+    margin is the smaller: it cannot hide the point); NaN where the projection is invalid or
+    outside the image. With ``unit_m`` 0 only the sign is left (+-inf, 0 stays 0). Other arguments
+    as :func:`screen_points` (``points_box`` float64 [K, 3] and ``own_points`` bool [K] of these
+    points). ``core._occlusion_margins`` computes the same in numpy.
+    """
+    n = points_box.shape[0]
+    t_count = camera_from_box.shape[0]
+    f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2 = (camera[0], camera[1], camera[2], camera[3], camera[4],
+                                              camera[5], camera[6], camera[7], camera[8])
+    height, width = depth_maps.shape[1], depth_maps.shape[2]
+    unit = np.float32(unit_m)
+    for i in range(n):
+        px, py, pz = points_box[i, 0], points_box[i, 1], points_box[i, 2]
+        own_point = own.shape[0] > 0 and own_points[i]
+        for tau in range(t_count):
+            m = camera_from_box[tau]
+            x = m[0, 0] * px + m[0, 1] * py + m[0, 2] * pz + m[0, 3] + shift_camera[tau, 0]
+            y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] + shift_camera[tau, 1]
+            z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
+            pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
+            best = _max4(depth_maps, tau, height, width, pix_x, pix_y) if valid else np.float32(-1.0)
+            if best < 0:
+                margins[i, tau] = np.nan
+                continue
+            if not best > 0:
+                continue
+            margin = np.float32(best - occlusion_ratio * x)
+            if unit > 0:
+                margin = margin / unit
+            elif margin != 0:
+                margin = np.float32(np.inf) if margin > 0 else np.float32(-np.inf)
+            if margin < margins[i, tau] and not _surface_is_theirs(tau, best / x, own, own_point, others, px, py, pz):
+                margins[i, tau] = margin
 
 
 @njit(cache=True, nogil=True)

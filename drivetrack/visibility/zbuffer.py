@@ -207,7 +207,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
-        points_camera: float64 [T, n, 3], the tracked points in the camera frame.
+        points_camera: float64 [T, n, 3], the tracked points in the camera frame (only the first
+            column, the z-depth, is read: [T, n, 1] will do).
         pixels: float64 [T, n, 2] their pixels; ``valid`` bool [T, n] where the projection holds.
         occluders: per frame, (pixels float64 [m_t, 2], depth float64 [m_t][, radius_m float64
             [m_t][, object int [m_t]]]) of the other objects' returns projected in that frame's

@@ -1,0 +1,144 @@
+"""The cost of the surface visibility test (issue 15): depth + track stages, ours against the paper's.
+
+Issue 15 bounds the track stage plus visibility at 1.5x the paper's track stage plus depth
+completion, on the same segment in one run. This benchmark generates the hard-world segment of
+``bench_visibility`` (preset ``medium``, 20 frames, seed 7, five cameras, every object type,
+``min_frames`` 8, ``max_camera_distance_m`` 75), annotates it once to compile and load the numba
+kernels, then ``--repeats`` times with each method in turn, in one thread
+(``drivetrack.annotate.run_segment_stages(threads=1)``):
+
+- ``depth-ratio (paper)``: ``occlusion="depth-ratio"`` with the labelled objects' returns left at
+  their capture time in the depth maps (``depth_object_motion=False``), the paper's method;
+- ``surface (default)``: the defaults.
+
+Each stage's wall time and this process's CPU time (OpenCV may use a second thread) are recorded;
+the figures are the minimum and the median over the repeats (this machine's stage times move by
+15-30% between runs of the same code: the minimum is the least disturbed), and the ratio is of
+depth + track stages.
+
+    .venv/bin/python bench/bench_visibility_cost.py                 # ~9 min
+    .venv/bin/python bench/bench_visibility_cost.py --repeats 5 --no-docs
+    .venv/bin/python -m bench.run visibility_cost
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.run import add_hard_world_arguments, machine_description, replace_doc_block  # noqa: E402
+
+DOC = ROOT / "docs" / "benchmarks.md"
+DOC_START, DOC_END = "<!-- bench_visibility_cost:start -->", "<!-- bench_visibility_cost:end -->"
+CAMERAS = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
+METHODS = {"depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
+           "surface (default)": {}}
+#: The issue's bound on surface / paper, depth + track stages.
+BOUND = 1.5
+
+
+def annotate_once(src: str, segment: str, out: str, overrides: dict) -> dict[str, float]:
+    """Wall and process CPU seconds of the depth and track stages of one single-threaded run:
+    {"depth_s", "tracks_s", "depth_cpu_s", "tracks_cpu_s"}."""
+    from drivetrack.annotate import AnnotateConfig, run_segment_stages
+    from drivetrack.tracks import TrackConfig
+
+    config = AnnotateConfig(track=TrackConfig(cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"),
+                                              min_frames=8, max_camera_distance_m=75.0, **overrides))
+    started, cpu = {}, {}
+
+    def on_stage(stage, state, info):
+        if state == "running":
+            started[str(stage)] = time.process_time()
+        elif state == "done":
+            cpu[str(stage)] = time.process_time() - started[str(stage)]
+
+    result = run_segment_stages(src, "training", segment, out, config, on_stage=on_stage, threads=1)
+    if result.status != "done":
+        raise RuntimeError(f"annotation of {segment} failed at {result.stage}: {result.error}")
+    wall = {str(k): float(v) for k, v in result.timings_s.items()}
+    return {"depth_s": wall["depth"], "tracks_s": wall["tracks"], "depth_cpu_s": cpu["depth"],
+            "tracks_cpu_s": cpu["tracks"]}
+
+
+def summarise(runs: dict[str, list[dict[str, float]]]) -> dict:
+    """Per method the minimum and median of each figure and of depth + tracks (wall and CPU), and
+    the ratios surface / paper."""
+    out = {}
+    for name, rows in runs.items():
+        figures = {}
+        for key in ("depth_s", "tracks_s", "depth_cpu_s", "tracks_cpu_s"):
+            values = [r[key] for r in rows]
+            figures[key] = {"min": min(values), "median": statistics.median(values)}
+        for key, parts in (("total_s", ("depth_s", "tracks_s")), ("total_cpu_s", ("depth_cpu_s", "tracks_cpu_s"))):
+            values = [r[parts[0]] + r[parts[1]] for r in rows]
+            figures[key] = {"min": min(values), "median": statistics.median(values)}
+        out[name] = figures
+    paper, ours = (out[n] for n in METHODS)
+    out["ratio"] = {f"{key} {stat}": ours[key][stat] / paper[key][stat]
+                    for key in ("total_s", "total_cpu_s") for stat in ("min", "median")}
+    return out
+
+
+def markdown(summary: dict, setup: dict, machine: str) -> str:
+    ratio = summary["ratio"]
+    lines = [
+        "## Visibility cost: depth + track stages, surface against the paper's test (issue 15)", "",
+        f"`bench/bench_visibility_cost.py` (the segment of `bench_visibility`: preset `{setup['preset']}`, "
+        f"{setup['frames']} frames, seed {setup['seed']}, five cameras, every object type; one warm-up run, then "
+        f"{setup['repeats']} runs of each method in turn, one thread). Minimum / median over the runs, seconds. "
+        f"Machine: {machine}.", "",
+        "| stage | " + " | ".join(METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+    for key, label in (("depth_s", "depth (wall)"), ("tracks_s", "tracks (wall)"), ("total_s", "depth + tracks (wall)"),
+                       ("total_cpu_s", "depth + tracks (process CPU)")):
+        lines.append(f"| {label} | " + " | ".join(
+            f"{summary[n][key]['min']:.2f} / {summary[n][key]['median']:.2f}" for n in METHODS) + " |")
+    lines += ["", f"Surface / paper, depth + tracks: **{ratio['total_s min']:.2f}x** by the minimum wall time "
+              f"({ratio['total_s median']:.2f}x by the median; process CPU {ratio['total_cpu_s min']:.2f}x / "
+              f"{ratio['total_cpu_s median']:.2f}x); the issue's bound is {BOUND}x.", ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_hard_world_arguments(ap)
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs of each method (default 3)")
+    args = ap.parse_args(argv if argv is not None else [])
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    from bench.bench_visibility import CAMERAS as VISIBILITY_CAMERAS
+    from drivetrack.synth import SynthConfig, generate_segment
+
+    assert VISIBILITY_CAMERAS == CAMERAS
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in METHODS}
+    with tempfile.TemporaryDirectory() as tmp:
+        segment = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
+                                                             cameras=CAMERAS, world="hard"),
+                                   0, workers=args.workers)["segment"]
+        annotate_once(f"{tmp}/src", segment, f"{tmp}/warm", {})
+        for k in range(args.repeats):
+            for name, overrides in METHODS.items():
+                runs[name].append(annotate_once(f"{tmp}/src", segment, f"{tmp}/out_{k}_{len(runs[name])}_{name[:5]}",
+                                                overrides))
+                print(name, json.dumps({key: round(v, 3) for key, v in runs[name][-1].items()}), flush=True)
+    summary = summarise(runs)
+    setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "repeats": args.repeats}
+    if args.json:
+        Path(args.json).write_text(json.dumps({"setup": setup, "runs": runs, "summary": summary}, indent=1))
+    text = markdown(summary, setup, machine_description())
+    print(text)
+    if not args.no_docs:
+        replace_doc_block(DOC, DOC_START, DOC_END, f"{DOC_START}\n{text}{DOC_END}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
