@@ -274,19 +274,27 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         # pixel: splatting grows an outline by the occluder's footprint, and looking as far round
         # the point takes that back (a morphological closing), also for a far point whose own
         # footprint is smaller than a near occluder's.
-        radius = np.minimum(np.rint(focal * radius_m / np.where(z > 0, z, np.inf)), max_px).astype(np.int64)
-        radius[inside] = np.maximum(radius[inside], footprint[row[inside] - r0, col[inside] - c0])
-        farthest = np.full(n, np.inf, dtype=np.float64)
+        # Only a point whose own pixel holds an occluder's depth can be covered whole (its window
+        # includes that pixel): the others stay visible to this test with an infinite margin.
+        on = np.flatnonzero(inside)
+        on = on[np.isfinite(buffer[row[on] - r0, col[on] - c0])]
+        if on.size == 0:
+            continue
+        z_on, row_on, col_on = z[on], row[on] - r0, col[on] - c0
+        radius = np.minimum(np.rint(focal * radius_m / np.where(z_on > 0, z_on, np.inf)), max_px).astype(np.int64)
+        radius = np.maximum(radius, footprint[row_on, col_on])
+        farthest = np.full(on.size, np.inf, dtype=np.float64)
         # the windows grow in turn: a square maximum of r + s is that of s over that of r (also at
         # the image's edges), so each size costs only its growth over the last
+        sizes, size_of = np.unique(radius, return_inverse=True)
         covered, done = buffer, 0
-        for r in np.unique(radius[inside]).tolist():
+        for k, r in enumerate(sizes.tolist()):
             if r > done:
                 covered, done = _square_max(covered, r - done), r
-            sel = inside & (radius == r)
-            farthest[sel] = covered[row[sel] - r0, col[sel] - c0]
-        threshold = z - (abs_m + rel * z)
-        hidden[tau] = inside & (farthest < threshold)
-        covered = inside & np.isfinite(farthest)
-        margin[tau, covered] = (farthest[covered] - threshold[covered]).astype(np.float32)
+            sel = size_of == k
+            farthest[sel] = covered[row_on[sel], col_on[sel]]
+        threshold = z_on - (abs_m + rel * z_on)
+        hidden[tau, on] = farthest < threshold
+        covered = np.isfinite(farthest)
+        margin[tau, on[covered]] = (farthest[covered] - threshold[covered]).astype(np.float32)
     return hidden, margin
