@@ -14,7 +14,8 @@ Two passes keep memory at what is kept: :func:`screen_points` decides for every 
 it survives (visible at some frame, and the optional speed filter) and computes its speed; it stops
 at a point's first visible frame. :func:`fill_tracks` then computes the kept points' tracks,
 holding the nearest valid position where the projection is invalid (as
-``core.fill_invalid_positions``), a chunk of points at a time.
+``core.fill_invalid_positions``), a chunk of points at a time. :func:`depth_margins` then gives
+the kept point-frames' occlusion margins (the depth map's term where it is the smallest).
 
 The writers stream the outputs without the depth maps (visibility is known by then):
 :func:`fill_positions` gives exactly ``fill_tracks``' ``tracks`` and ``points3d`` of a chunk of
