@@ -985,7 +985,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             points_camera, pixels, valid, occluders[at], int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-            int(config.occluder_fill_px), int(config.occluder_subpixels))
+            int(config.occluder_fill_px), int(config.occluder_subpixels), use_kernel=use_kernel)
 
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
