@@ -12,7 +12,8 @@ import numpy as np
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 from drivetrack.numba_compat import njit
 
-__all__ = ["shifted_neighbourhoods", "project_in_window", "project_points", "facing_test", "zbuffer_points",
+__all__ = ["shifted_neighbourhoods", "project_in_window", "project_points", "facing_test", "facing_test_rows",
+           "zbuffer_points",
            "zbuffer_near", "splat_groups", "scatter_min", "merge_spread", "merge_nearer", "zbuffer_on", "zbuffer_decide"]
 
 
@@ -121,10 +122,18 @@ def facing_test(points_box, normal, reliable, centres_box, max_angle_deg, facing
     ``facing`` bool [T, n] and ``margin_deg`` float32 [T, n] of points ``points_box`` float64
     [n, 3] with unit normals ``normal`` float64 [n, 3] (``reliable`` bool [n]) and camera centres
     ``centres_box`` float64 [T, 3] (box frame, metres)."""
+    facing_test_rows(points_box, normal, reliable, centres_box, max_angle_deg,
+                     np.arange(points_box.shape[0]), facing, margin_deg)
+
+
+@njit(cache=True, nogil=True)
+def facing_test_rows(points_box, normal, reliable, centres_box, max_angle_deg, rows, facing, margin_deg):
+    """:func:`facing_test` of the points ``rows`` (int64 [k]) alone: their columns of ``facing``
+    and ``margin_deg`` are written, the others left as they are."""
     min_cos = np.cos(np.radians(max_angle_deg))
     for tau in range(centres_box.shape[0]):
         ex, ey, ez = centres_box[tau, 0], centres_box[tau, 1], centres_box[tau, 2]
-        for i in range(points_box.shape[0]):
+        for i in rows:
             if not reliable[i]:
                 facing[tau, i] = True
                 margin_deg[tau, i] = np.inf
