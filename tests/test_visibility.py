@@ -973,6 +973,37 @@ def test_visibility_kernels_equal_numpy():
     assert 0 < np.flatnonzero(inside).size and kept > 0
 
 
+def test_occluder_buffer_windows_equal_whole_image_closing():
+    """``occluder_buffer`` splats and closes each object in a window of its returns grown by its
+    largest footprint and twice the closing: the same buffer and footprints as closing each
+    object over the whole image, for near objects (footprints at ``max_px``) and far ones."""
+    from drivetrack.visibility.zbuffer import close_holes, nearest_depth, occluder_buffer
+
+    rng = np.random.default_rng(8)
+    for trial in range(20):
+        width, height = (int(v) for v in rng.integers(30, 120, 2))
+        m = int(rng.integers(1, 300))
+        objects = rng.integers(0, 5, m)
+        centre = rng.uniform(0.0, max(width, height), (5, 2))[objects]
+        pixels = centre + rng.normal(0.0, 5.0, (m, 2))
+        depth = rng.uniform(1.0, 6.0, 5)[objects] * (10.0 if trial % 2 else 1.0) + rng.uniform(0.0, 0.5, m)
+        radius_m = rng.uniform(0.02, 0.1, m)
+        focal, max_px, fill_px = float(rng.uniform(100.0, 400.0)), int(rng.integers(1, 9)), int(rng.integers(1, 5))
+        for use_kernel in (False, True):
+            buffer, footprint = occluder_buffer(pixels, depth, radius_m, objects, width, height, focal, max_px, fill_px,
+                                                use_kernel=use_kernel)
+            want = np.full((height, width), np.inf, np.float32)
+            want_r = np.zeros((height, width), np.int8)
+            for k in np.unique(objects):
+                own, own_r = nearest_depth(pixels[objects == k], depth[objects == k], width, height, focal,
+                                           radius_m[objects == k], max_px, with_radius=True)
+                own = close_holes(own, fill_px)
+                nearer = own < want
+                want[nearer], want_r[nearer] = own[nearer], own_r[nearer]
+            np.testing.assert_array_equal(buffer, want, err_msg=str(trial))
+            np.testing.assert_array_equal(footprint, want_r, err_msg=str(trial))
+
+
 def test_zbuffer_kernel_equals_numpy():
     """The z-buffer with its passes over points, returns and pixels in numba (``use_kernel``)
     decides exactly as the numpy form: ``nearest_depth``'s buffer and footprints, and

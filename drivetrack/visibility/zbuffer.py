@@ -202,8 +202,9 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
     object's splats apart fills the gaps between its own returns but not the gap between two
     objects: a pole a few pixels beside a pedestrian, or a sign beside its pole, leaves the
     surface behind them visible between them. Each object is splatted in its own part of the
-    image (its returns' pixels grown by the footprint and the closing), then the nearest of all
-    is kept. ``use_kernel``: see :func:`nearest_depth`.
+    image (its returns' pixels grown by its largest footprint, then twice the closing and a pixel:
+    beyond that its closed buffer is empty whatever the part's size), then the nearest of all is
+    kept. ``use_kernel``: see :func:`nearest_depth`.
     """
     if objects is None or fill_px <= 0:
         buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True,
@@ -211,10 +212,13 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
         return close_holes(buffer, fill_px), footprint
     buffer = np.full((height, width), np.inf, dtype=np.float32)
     footprint = np.zeros((height, width), dtype=np.int8)
-    pad = int(max_px) + 2 * int(fill_px) + 1
     radius_m = np.broadcast_to(np.asarray(radius_m, dtype=np.float64), depth.shape)
     order = np.argsort(objects, kind="stable")
     for part in np.split(order, first_of_cells(objects[order])[1:]):
+        # the object's largest footprint (nearest_depth's rule), not max_px: a far object's part
+        # is a fraction of the size
+        reach = int(np.minimum(np.rint(focal * radius_m[part] / depth[part]), max_px).max())
+        pad = reach + 2 * int(fill_px) + 1
         col, row = np.floor(pixels[part, 0]), np.floor(pixels[part, 1])
         c0, c1 = max(0, int(col.min()) - pad), min(width, int(col.max()) + 1 + pad)
         r0, r1 = max(0, int(row.min()) - pad), min(height, int(row.max()) + 1 + pad)
