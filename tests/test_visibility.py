@@ -973,6 +973,88 @@ def test_visibility_kernels_equal_numpy():
     assert 0 < np.flatnonzero(inside).size and kept > 0
 
 
+def test_occluder_buffer_windows_equal_whole_image_closing():
+    """``occluder_buffer`` splats and closes each object in a window of its returns grown by its
+    largest footprint and twice the closing: the same buffer and footprints as closing each
+    object over the whole image, for near objects (footprints at ``max_px``) and far ones."""
+    from drivetrack.visibility.zbuffer import close_holes, nearest_depth, occluder_buffer
+
+    rng = np.random.default_rng(8)
+    for trial in range(20):
+        width, height = (int(v) for v in rng.integers(30, 120, 2))
+        m = int(rng.integers(1, 300))
+        objects = rng.integers(0, 5, m)
+        centre = rng.uniform(0.0, max(width, height), (5, 2))[objects]
+        pixels = centre + rng.normal(0.0, 5.0, (m, 2))
+        depth = rng.uniform(1.0, 6.0, 5)[objects] * (10.0 if trial % 2 else 1.0) + rng.uniform(0.0, 0.5, m)
+        radius_m = rng.uniform(0.02, 0.1, m)
+        focal, max_px, fill_px = float(rng.uniform(100.0, 400.0)), int(rng.integers(1, 9)), int(rng.integers(1, 5))
+        for use_kernel in (False, True):
+            buffer, footprint = occluder_buffer(pixels, depth, radius_m, objects, width, height, focal, max_px, fill_px,
+                                                use_kernel=use_kernel)
+            want = np.full((height, width), np.inf, np.float32)
+            want_r = np.zeros((height, width), np.int8)
+            for k in np.unique(objects):
+                own, own_r = nearest_depth(pixels[objects == k], depth[objects == k], width, height, focal,
+                                           radius_m[objects == k], max_px, with_radius=True)
+                own = close_holes(own, fill_px)
+                nearer = own < want
+                want[nearer], want_r[nearer] = own[nearer], own_r[nearer]
+            np.testing.assert_array_equal(buffer, want, err_msg=str(trial))
+            np.testing.assert_array_equal(footprint, want_r, err_msg=str(trial))
+
+
+def test_zbuffer_kernel_equals_numpy():
+    """The z-buffer with its passes over points, returns and pixels in numba (``use_kernel``)
+    decides exactly as the numpy form: ``nearest_depth``'s buffer and footprints, and
+    ``hidden_by_others``' decisions and margins (bit for bit) on random images of several
+    occluding objects, with one radius or one per return, with and without each object closed on
+    its own, at one and two buffer pixels per image pixel, with points invalid, off the image or
+    with non-finite pixels."""
+    from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
+
+    rng = np.random.default_rng(11)
+    for trial in range(30):
+        width, height = (int(v) for v in rng.integers(5, 60, 2))
+        m = int(rng.integers(1, 200))
+        pixels = rng.uniform(-10.0, max(width, height) + 10.0, (m, 2))
+        depth = np.round(rng.uniform(1.0, 6.0, m)) if trial % 3 == 0 else rng.uniform(1.0, 60.0, m)
+        radius_m = 0.05 if trial % 2 else rng.uniform(0.01, 0.3, m)
+        focal, max_px = float(rng.uniform(100.0, 2000.0)), int(rng.integers(0, 9))
+        want = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
+        got = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True, use_kernel=True)
+        np.testing.assert_array_equal(got[0], want[0], err_msg=str(trial))
+        np.testing.assert_array_equal(got[1], want[1], err_msg=str(trial))
+    decided = 0
+    for trial in range(24):
+        width, height = (int(v) for v in rng.integers(20, 90, 2))
+        t_count, n = 3, int(rng.integers(1, 300))
+        focal = float(rng.uniform(50.0, 400.0))
+        z = rng.uniform(2.0, 30.0, (t_count, n, 1))
+        pixels = rng.uniform(-5.0, max(width, height) + 5.0, (t_count, n, 2))
+        pixels[rng.uniform(size=(t_count, n)) < 0.05] = np.nan
+        valid = rng.uniform(size=(t_count, n)) < 0.9
+        occluders = []
+        for tau in range(t_count):
+            m = int(rng.integers(0, 250))
+            objects = rng.integers(0, 4, m)
+            centre = rng.uniform(0.0, max(width, height), (4, 2))[objects]
+            occ = (centre + rng.normal(0.0, 6.0, (m, 2)), rng.uniform(1.0, 25.0, m))
+            if trial % 3 > 0:
+                occ = occ + (rng.uniform(0.02, 0.2, m),)
+            if trial % 3 == 2:
+                occ = occ + (objects,)
+            occluders.append(occ)
+        args = (z, pixels, valid, occluders, width, height, focal, 0.05, int(rng.integers(0, 5)), 0.15, 0.01)
+        fill_px, subpixels = int(rng.integers(0, 4)), 1 + trial % 2
+        want = hidden_by_others(*args, fill_px=fill_px, subpixels=subpixels)
+        got = hidden_by_others(*args, fill_px=fill_px, subpixels=subpixels, use_kernel=True)
+        np.testing.assert_array_equal(got[0], want[0], err_msg=str(trial))
+        np.testing.assert_array_equal(got[1], want[1], err_msg=str(trial))
+        decided += int(want[0].sum()) + int(np.isfinite(want[1]).sum())
+    assert decided > 100                       # the scenes hide points and cover others
+
+
 def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     """Vehicles are not boxes: with ``SynthConfig(car_shape="cabin")`` a car's cabin hides its own
     bonnet and boot from some views, faces that face the camera, so neither the back-face test

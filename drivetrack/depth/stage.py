@@ -155,15 +155,18 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
     at their capture time, grouped by box row: ``(moving int64 [k]`` (their places in ``rows``),
     ``unique_rows int64 [u]``, ``starts int64 [u + 1]`` (each box row's returns are
     ``starts[j]:starts[j + 1]``), ``points_box float64 [k, 3])``; None when none is labelled.
-    Memoised in ``memo`` per frame and set of rows (the same for every camera)."""
+    Memoised in ``memo`` per frame and set of rows (the same for every camera; the rows are kept
+    with the entry and compared, which costs less than hashing them)."""
     from drivetrack.tracks.trajectory import points_box_at
 
-    key = (frame, rows.tobytes())
+    key = (frame, rows.size)
+    if key in memo and not np.array_equal(memo[key][0], rows):
+        del memo[key]                                   # another set of rows of this frame
     if key not in memo:
         box_rows = owner[rows]
         moving = np.flatnonzero(box_rows >= 0)
         if moving.size == 0:
-            memo[key] = None
+            memo[key] = (rows.copy(), None)
             return None
         moving = moving[np.argsort(box_rows[moving], kind="stable")]
         box_rows = box_rows[moving]
@@ -173,9 +176,10 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
                    if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
         world_from_vehicle = scene.world_from_vehicle[frame]
         world = points_vehicle[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
-        memo[key] = (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
-                     points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world))
-    return memo[key]
+        memo[key] = (rows.copy(), (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
+                                   points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets,
+                                                 world)))
+    return memo[key][1]
 
 
 #: A rolling-shutter depth map solves the capture time of the returns within this fraction of

@@ -985,7 +985,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             points_camera, pixels, valid, occluders[at], int(model.width), int(model.height),
             float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
             float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-            int(config.occluder_fill_px), int(config.occluder_subpixels))
+            int(config.occluder_fill_px), int(config.occluder_subpixels), use_kernel=use_kernel)
 
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others
@@ -1004,14 +1004,14 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         if surfels is not None:
             from drivetrack.visibility.facing import facing_test
 
-            face_margin = np.empty((t_count, n), dtype=np.float32)
-            front_facing = np.empty((t_count, n), dtype=bool)
+            face_margin = np.full((t_count, n), np.inf, dtype=np.float32)
+            front_facing = np.ones((t_count, n), dtype=bool)
         if any_occluder and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
             for tau in range(t_count):
                 zbuffer_test(0, *(project_frame(p_box, tau) if use_kernel else project_global(p_box, tau)), tau=tau)
-        if surfels is not None and use_kernel:
+        if surfels is not None and use_kernel and rolling:   # global shutter: for the candidates kept, below
             from drivetrack.visibility import kernel as visibility_kernel
 
             visibility_kernel.facing_test(np.ascontiguousarray(p_box), np.ascontiguousarray(surfels.normal, dtype=np.float64),
@@ -1072,6 +1072,16 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         kept = int(keep.sum())
         kept_box = np.ascontiguousarray(p_box[keep])
         kept_rows = np.flatnonzero(keep)
+        if surfels is not None:
+            # the back-face test and its margin are read only at the candidates kept here (about
+            # half of them on bench_visibility_cost's segment): computed for those alone
+            from drivetrack.visibility import kernel as visibility_kernel
+
+            visibility_kernel.facing_test_rows(np.ascontiguousarray(p_box),
+                                               np.ascontiguousarray(surfels.normal, dtype=np.float64),
+                                               np.ascontiguousarray(surfels.reliable, dtype=bool),
+                                               np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
+                                               kept_rows, front_facing, face_margin)
         query_source = source_clip[keep]
         visibles = np.empty((kept, t_count), dtype=bool)
         query_pixels = np.empty((kept, 2), dtype=np.float32)

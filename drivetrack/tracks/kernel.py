@@ -33,7 +33,7 @@ from drivetrack.camera.kernel import camera_parameters
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 
 __all__ = ["NUMBA_AVAILABLE", "camera_parameters", "screen_points", "fill_tracks", "depth_margins", "fill_positions",
-           "fill_points3d_frames", "summarise_tracks", "path_speeds"]
+           "fill_points3d_frames", "summarise_tracks", "path_speeds", "points_box_at"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 
@@ -484,3 +484,29 @@ def _hold_nearest_valid(track, valid_at, before):
         else:
             track[tau, 0] = np.nan
             track[tau, 1] = np.nan
+
+
+@njit(cache=True, nogil=True)
+def points_box_at(rows, tau, points_world, centre, velocity, acceleration, cos_roll, sin_roll, cos_pitch, sin_pitch,
+                  cos_yaw, sin_yaw, out):
+    """``drivetrack.tracks.trajectory.points_box_at`` after its angles: world points
+    ``points_world`` float64 [N, 3] into the box frame of box row ``rows`` (int64 [N])'s object
+    ``tau`` (float64 [N], s) after its sample, its centre ``centre + tau v + tau^2 a / 2``
+    (``centre``, ``velocity``, ``acceleration`` float64 [K, 3], the trajectory's) and its rotation
+    ``Rz(yaw) Ry(pitch) Rx(roll)`` from the cosines and sines float64 [N] of its angles then:
+    ``out`` float64 [N, 3] = R^T (p - centre). The float64 arithmetic of ``BoxTrajectory.motion``,
+    ``geometry.rotation_from_rpy`` and the einsum, in their order (bit-identical results) without
+    their [N, 4, 4] temporaries."""
+    for i in range(rows.shape[0]):
+        k = rows[i]
+        t = tau[i]
+        cr, sr, cp, sp, cy, sy = cos_roll[i], sin_roll[i], cos_pitch[i], sin_pitch[i], cos_yaw[i], sin_yaw[i]
+        rel0 = points_world[i, 0] - (centre[k, 0] + t * velocity[k, 0] + 0.5 * t * t * acceleration[k, 0])
+        rel1 = points_world[i, 1] - (centre[k, 1] + t * velocity[k, 1] + 0.5 * t * t * acceleration[k, 1])
+        rel2 = points_world[i, 2] - (centre[k, 2] + t * velocity[k, 2] + 0.5 * t * t * acceleration[k, 2])
+        r00, r01, r02 = cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr
+        r10, r11, r12 = sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr
+        r20, r21, r22 = -sp, cp * sr, cp * cr
+        out[i, 0] = r00 * rel0 + r10 * rel1 + r20 * rel2
+        out[i, 1] = r01 * rel0 + r11 * rel1 + r21 * rel2
+        out[i, 2] = r02 * rel0 + r12 * rel1 + r22 * rel2

@@ -117,7 +117,7 @@ def close_holes(buffer: np.ndarray, fill_px: int) -> np.ndarray:
 
 
 def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int, focal: float,
-                  radius_m, max_px: int, with_radius: bool = False):
+                  radius_m, max_px: int, with_radius: bool = False, use_kernel: bool = False):
     """float32 [height, width]: the nearest splatted depth per pixel (inf where nothing lands).
 
     ``pixels`` float64 [m, 2] (x, y), ``depth`` float64 [m] (> 0; callers drop the rest). A return
@@ -129,11 +129,15 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
     Each footprint size is one pass: the returns of that size are written at their own pixels
     (the nearest per pixel) into a buffer padded by ``max_px``, which a separable minimum filter
     of side 2r+1 (OpenCV's erosion) then spreads (the cost does not grow with the square of the
-    footprint).
+    footprint). ``use_kernel``: the passes over the returns and the pixels around the erosions
+    in numba (:mod:`drivetrack.visibility.kernel`), the same buffer and footprints.
     """
     buffer = np.full((height, width), np.inf, dtype=np.float32)
     footprint = np.zeros((height, width), dtype=np.int8)
     if depth.size == 0:
+        return (buffer, footprint) if with_radius else buffer
+    if use_kernel:
+        _nearest_depth_kernel(pixels, depth, width, height, focal, radius_m, max_px, buffer, footprint)
         return (buffer, footprint) if with_radius else buffer
     pad = int(max_px)
     col = np.floor(pixels[:, 0]).astype(np.int64) + pad
@@ -163,8 +167,33 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
     return buffer, footprint
 
 
+def _nearest_depth_kernel(pixels, depth, width, height, focal, radius_m, max_px, buffer, footprint) -> None:
+    """:func:`nearest_depth` into ``buffer`` (+inf) and ``footprint`` (0): the returns grouped by
+    footprint and scattered by numba, each group spread by OpenCV's erosion, merged by numba."""
+    from drivetrack.visibility import kernel
+
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    m = depth.size
+    max_px = int(max_px)
+    order, flat = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    starts = np.empty(max_px + 2, dtype=np.int64)
+    kernel.splat_groups(np.ascontiguousarray(pixels, dtype=np.float64), depth,
+                        np.ascontiguousarray(np.broadcast_to(np.asarray(radius_m, dtype=np.float64), depth.shape)),
+                        int(width), int(height), float(focal), max_px, order, flat, starts)
+    pad = max_px
+    for r in range(max_px + 1):
+        if starts[r] == starts[r + 1]:
+            continue
+        centres = np.full((height + 2 * pad, width + 2 * pad), np.inf, dtype=np.float32)
+        kernel.scatter_min(centres, flat, order, depth, int(starts[r]), int(starts[r + 1]))
+        if r > 0:
+            centres = _square_min(centres, r)
+        kernel.merge_spread(buffer, footprint, centres[pad:pad + height, pad:pad + width], np.int8(r))
+
+
 def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np.ndarray | None, width: int,
-                    height: int, focal: float, max_px: int, fill_px: int) -> tuple[np.ndarray, np.ndarray]:
+                    height: int, focal: float, max_px: int, fill_px: int,
+                    use_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(buffer float32 [height, width], footprint int8 [height, width])``: the other objects'
     nearest splatted depth and the footprint of the return holding it (:func:`nearest_depth`), each
     object's holes closed by ``fill_px`` (:func:`close_holes`) on its own.
@@ -173,26 +202,36 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
     object's splats apart fills the gaps between its own returns but not the gap between two
     objects: a pole a few pixels beside a pedestrian, or a sign beside its pole, leaves the
     surface behind them visible between them. Each object is splatted in its own part of the
-    image (its returns' pixels grown by the footprint and the closing), then the nearest of all
-    is kept.
+    image (its returns' pixels grown by its largest footprint, then twice the closing and a pixel:
+    beyond that its closed buffer is empty whatever the part's size), then the nearest of all is
+    kept. ``use_kernel``: see :func:`nearest_depth`.
     """
     if objects is None or fill_px <= 0:
-        buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
+        buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True,
+                                          use_kernel=use_kernel)
         return close_holes(buffer, fill_px), footprint
     buffer = np.full((height, width), np.inf, dtype=np.float32)
     footprint = np.zeros((height, width), dtype=np.int8)
-    pad = int(max_px) + 2 * int(fill_px) + 1
     radius_m = np.broadcast_to(np.asarray(radius_m, dtype=np.float64), depth.shape)
     order = np.argsort(objects, kind="stable")
     for part in np.split(order, first_of_cells(objects[order])[1:]):
+        # the object's largest footprint (nearest_depth's rule), not max_px: a far object's part
+        # is a fraction of the size
+        reach = int(np.minimum(np.rint(focal * radius_m[part] / depth[part]), max_px).max())
+        pad = reach + 2 * int(fill_px) + 1
         col, row = np.floor(pixels[part, 0]), np.floor(pixels[part, 1])
         c0, c1 = max(0, int(col.min()) - pad), min(width, int(col.max()) + 1 + pad)
         r0, r1 = max(0, int(row.min()) - pad), min(height, int(row.max()) + 1 + pad)
         if c0 >= c1 or r0 >= r1:
             continue
         own, own_footprint = nearest_depth(pixels[part] - (c0, r0), depth[part], c1 - c0, r1 - r0, focal,
-                                           radius_m[part], max_px, with_radius=True)
+                                           radius_m[part], max_px, with_radius=True, use_kernel=use_kernel)
         own = close_holes(own, fill_px)
+        if use_kernel:
+            from drivetrack.visibility.kernel import merge_nearer
+
+            merge_nearer(buffer[r0:r1, c0:c1], footprint[r0:r1, c0:c1], own, own_footprint)
+            continue
         window = buffer[r0:r1, c0:c1]
         nearer = own < window
         window[nearer] = own[nearer]
@@ -203,7 +242,7 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
                      radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0,
-                     subpixels: int = 1):
+                     subpixels: int = 1, use_kernel: bool = False):
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
@@ -225,6 +264,9 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
             in the image). Near an occluder's outline the decision is quantised to one buffer
             pixel: a point a fraction of a pixel outside a pole falls in the same image pixel as
             the pole's outermost returns and was called hidden; 2 halves that band.
+        use_kernel: the passes over the points, the returns and the buffer's pixels in numba
+            (:mod:`drivetrack.visibility.kernel`; the morphology stays OpenCV's): the same
+            decisions and margins.
 
     Returns:
         ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
@@ -232,6 +274,9 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         ``z - (abs_m + rel * z)``: negative when hidden, positive when an occluder covers the
         footprint but too far in front to hide it, +inf where no occluder covers it whole.
     """
+    if use_kernel:
+        return _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m,
+                                        max_px, abs_m, rel, fill_px, subpixels)
     if subpixels != 1:
         scale = int(subpixels)
         return hidden_by_others(points_camera, pixels * scale, valid,
@@ -297,4 +342,57 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         hidden[tau, on] = farthest < threshold
         covered = np.isfinite(farthest)
         margin[tau, on[covered]] = (farthest[covered] - threshold[covered]).astype(np.float32)
+    return hidden, margin
+
+
+def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m, max_px,
+                             abs_m, rel, fill_px, subpixels):
+    """:func:`hidden_by_others` with ``use_kernel``: its steps in the same order, each pass over
+    the points, the returns or the buffer's pixels by :mod:`drivetrack.visibility.kernel`, the
+    erosions and dilations by OpenCV."""
+    from drivetrack.visibility import kernel
+
+    scale = int(subpixels)
+    width, height, focal = int(width) * scale, int(height) * scale, float(focal) * scale
+    max_px, fill_px = int(max_px) * scale, int(fill_px) * scale
+    t_count, n = valid.shape
+    hidden = np.zeros((t_count, n), dtype=bool)
+    margin = np.full((t_count, n), np.inf, dtype=np.float32)
+    col, row = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    inside = np.empty(n, dtype=bool)
+    on, size = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    for tau in range(t_count):
+        occ_pixels, occ_depth = occluders[tau][:2]
+        occ_radius = occluders[tau][2] if len(occluders[tau]) > 2 else None
+        occ_object = occluders[tau][3] if len(occluders[tau]) > 3 else None
+        if occ_depth.size == 0 or n == 0:
+            continue
+        z = np.ascontiguousarray(points_camera[tau, :, 0], dtype=np.float64)
+        c_lo, c_hi, r_lo, r_hi = kernel.zbuffer_points(np.ascontiguousarray(pixels[tau], dtype=np.float64),
+                                                       np.ascontiguousarray(valid[tau], dtype=bool), float(scale),
+                                                       width, height, col, row, inside)
+        if c_hi < 0:
+            continue
+        c0, c1 = max(0, c_lo - max_px), min(width, c_hi + 1 + max_px)
+        r0, r1 = max(0, r_lo - max_px), min(height, r_hi + 1 + max_px)
+        near_pixels = np.empty((occ_depth.size, 2))
+        near = kernel.zbuffer_near(np.ascontiguousarray(occ_pixels, dtype=np.float64), float(scale), c0, c1, r0, r1,
+                                   max_px, near_pixels)
+        if near.size == 0:
+            continue
+        buffer, footprint = occluder_buffer(near_pixels[:near.size], occ_depth[near],
+                                            np.full(near.size, float(radius_m)) if occ_radius is None
+                                            else occ_radius[near],
+                                            None if occ_object is None else occ_object[near], c1 - c0, r1 - r0,
+                                            focal, max_px, fill_px, use_kernel=True)
+        count = kernel.zbuffer_on(buffer, footprint, col, row, inside, z, c0, r0, focal, float(radius_m), max_px,
+                                  on, size)
+        if count == 0:
+            continue
+        covered, done = buffer, 0
+        for r in np.flatnonzero(np.bincount(size[:count], minlength=max_px + 1)).tolist():
+            if r > done:
+                covered, done = _square_max(covered, r - done), r
+            kernel.zbuffer_decide(covered, on[:count], size[:count], r, col, row, c0, r0, z, float(abs_m), float(rel),
+                                  hidden[tau], margin[tau])
     return hidden, margin
