@@ -1055,6 +1055,67 @@ def test_zbuffer_kernel_equals_numpy():
     assert decided > 100                       # the scenes hide points and cover others
 
 
+def test_nearest_in_grid_equals_the_kd_tree():
+    """The grid search of ``CloudNormals.nearest`` (``visibility.kernel.nearest_in_grid``) gives
+    cKDTree's nearest cloud point exactly: on a surface-like cloud thinned to cubes (the object's
+    returns) with queries beside it, on its points and far outside its box in every direction, on
+    a uniform cloud, a flat one, one point, and no queries; at the chosen cell and at cells far
+    too fine or coarse; ties go to the lower index."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.visibility import kernel as vk
+    from drivetrack.visibility.zbuffer import surfel_first_and_means
+
+    rng = np.random.default_rng(11)
+    returns, _ = _box_cloud(rng, per_face=3000)
+    returns = returns + rng.normal(0.0, 0.01, returns.shape)
+    surface = surfel_first_and_means(returns, 0.025)[1]                      # cube means, as the track stage's
+    far = rng.normal(size=(120, 3))
+    far = 40.0 * far / np.linalg.norm(far, axis=1, keepdims=True)           # outside the box, any side
+    axis_far = np.concatenate([np.eye(3), -np.eye(3)]) * 1e3 + rng.normal(0.0, 0.3, (6, 3))
+    uniform = rng.uniform(-1.0, 1.0, (2000, 3))
+    flat = np.column_stack([rng.uniform(-1.0, 1.0, (500, 2)), np.zeros(500)])
+    cases = [(surface, np.concatenate([returns[::8], surface[::7], far, axis_far])),
+             (uniform, np.concatenate([rng.uniform(-1.5, 1.5, (1500, 3)), uniform[::9], far, axis_far])),
+             (flat, np.concatenate([rng.uniform(-1.5, 1.5, (800, 3)), flat[::5], far])),
+             (np.array([[0.3, -0.2, 1.0]]), np.concatenate([far, axis_far, [[0.3, -0.2, 1.0]]])),
+             (surface, np.zeros((0, 3)))]
+    for cloud, queries in cases:
+        want = np.asarray(cKDTree(cloud).query(queries, k=1)[1], dtype=np.int64).reshape(-1)
+        for cell in (vk.grid_cell(cloud), 0.004, 0.3, 5.0):
+            got = vk.nearest_in_grid(vk.cloud_grid(cloud, cell), queries)
+            assert got.dtype == np.int64 and got.shape == (queries.shape[0],)
+            np.testing.assert_array_equal(got, want)
+    assert 0.03 < vk.grid_cell(surface) < 0.1                            # a couple of cube sides
+    # exactly equidistant cloud points: the lower index, whichever cell each lies in
+    twins = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    for cell in (0.1, 0.7, 10.0):
+        got = vk.nearest_in_grid(vk.cloud_grid(twins, cell), np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0],
+                                                                         [-0.5, 0.0, 0.0], [0.0, 0.0, 7.0]]))
+        np.testing.assert_array_equal(got, [1, 0, 1, 1])
+
+
+def test_cloud_normals_nearest_with_and_without_numba(monkeypatch):
+    """``CloudNormals.nearest`` gives the same indices from the numba grid and from cKDTree."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.visibility import cloud_normals
+    from drivetrack.visibility import kernel as vk
+
+    rng = np.random.default_rng(12)
+    cloud, _ = _box_cloud(rng, per_face=800)
+    queries = np.concatenate([cloud[::3] + rng.normal(0.0, 0.02, cloud[::3].shape), rng.normal(0.0, 20.0, (200, 3))])
+    fitted = cloud_normals(cloud, 12)
+    got = fitted.nearest(queries)
+    assert isinstance(fitted._tree, vk.CloudGrid) == vk.NUMBA_AVAILABLE
+    np.testing.assert_array_equal(fitted.nearest(queries[:5]), got[:5])          # the grid kept and reused
+    monkeypatch.setattr(vk, "NUMBA_AVAILABLE", False)
+    again = cloud_normals(cloud, 12)
+    np.testing.assert_array_equal(again.nearest(queries), got)
+    assert isinstance(again._tree, cKDTree)
+    assert again.nearest(np.zeros((0, 3))).shape == (0,) == fitted.nearest(np.zeros((0, 3))).shape
+
+
 def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     """Vehicles are not boxes: with ``SynthConfig(car_shape="cabin")`` a car's cabin hides its own
     bonnet and boot from some views, faces that face the camera, so neither the back-face test

@@ -104,13 +104,28 @@ class CloudNormals:
     normal: np.ndarray
     planarity: np.ndarray
     reach_m: np.ndarray
+    #: the search structure of :meth:`nearest`, built on its first call
     _tree: object = field(default=None, repr=False, compare=False)
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
-        """int64 [n]: the index of the cloud point nearest each of ``points`` float [n, 3]."""
+        """int64 [n]: the index of the cloud point nearest each of ``points`` float [n, 3] (finite;
+        box frame, metres), exactly ``scipy.spatial.cKDTree(cloud).query(points, k=1)``'s.
+
+        With numba, a grid over the cloud (:func:`~drivetrack.visibility.kernel.cloud_grid`,
+        :func:`~drivetrack.visibility.kernel.nearest_in_grid`: the same squared distances, ties
+        between exactly equidistant cloud points to the lower index; on the object's own returns,
+        about a fifth of the tree's time); without it (or for an empty cloud), the tree itself.
+        """
+        from drivetrack.visibility import kernel
+
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        if kernel.NUMBA_AVAILABLE and self.cloud.shape[0]:
+            if not isinstance(self._tree, kernel.CloudGrid):
+                self._tree = kernel.cloud_grid(self.cloud, kernel.grid_cell(self.cloud))
+            return kernel.nearest_in_grid(self._tree, points)
         from scipy.spatial import cKDTree
 
-        if self._tree is None:
+        if not isinstance(self._tree, cKDTree):
             self._tree = cKDTree(self.cloud)
         return np.asarray(self._tree.query(points, k=1)[1], dtype=np.int64).reshape(-1)
 
