@@ -104,6 +104,29 @@ def test_sparse_kernel_is_bit_identical_to_the_numpy_reference():
         sparse_depth_from_points(points, camera, vehicle_from_points=np.eye(3))
 
 
+def test_sparse_with_replaced_returns_equals_the_moved_copy():
+    """``replace=(rows, points, skip)``: the map (and the subset's) of the returns with ``rows``
+    moved to ``points``, as if a copy were moved, by both kernels, with the mask given or not,
+    in front of and behind the others."""
+    rng = np.random.default_rng(9)
+    camera = CameraModel(f_u=90.0, f_v=91.0, c_u=61.3, c_v=40.7, k1=-0.08, k2=0.02, p1=0.001, p2=-0.002, k3=0.001,
+                         width=120, height=80, vehicle_from_camera=np.eye(4))
+    points = rng.uniform([2, -20, -8], [40, 20, 8], size=(6000, 3))
+    subset = rng.random(len(points)) < 0.4
+    rows = np.sort(rng.choice(len(points), 900, replace=False))
+    moved = points[rows] * rng.uniform(0.7, 1.3, (rows.size, 1)) + rng.normal(0.0, 0.5, (rows.size, 3))
+    copy = points.copy()
+    copy[rows] = moved
+    skip = np.zeros(len(points), dtype=bool)
+    skip[rows] = True
+    want = sparse_depth_from_points(copy, camera, subset, kernel="numpy")
+    for kernel in ("numba", "numpy"):
+        for mask in (skip, None):
+            got = sparse_depth_from_points(points, camera, subset, kernel=kernel, replace=(rows, moved, mask))
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert not np.array_equal(sparse_depth_from_points(points, camera), want[0])
+
+
 def test_sparse_empty_and_bad_input():
     camera = make_camera()
     empty = sparse_depth_from_points(np.zeros((0, 3)), camera)

@@ -25,7 +25,7 @@ __all__ = ["NUMBA_AVAILABLE", "project_nearest", "bound_in_place", "nearest_from
 
 
 @njit(cache=True, nogil=True)
-def project_nearest(points, first, camera_from_vehicle, camera, subset, depth, depth_subset):
+def project_nearest(points, first, camera_from_vehicle, camera, subset, depth, depth_subset, skip):
     """Minimum z-depth per pixel of the returns that project into the image (in place).
 
     The maps hold float32 depths: rounding is monotonic, so the float32 of the float64 minimum is
@@ -40,6 +40,7 @@ def project_nearest(points, first, camera_from_vehicle, camera, subset, depth, d
         subset: bool [M] or an empty [0] array (no subset map).
         depth: float32 [H * W], 0 where no return yet; takes the minimum z-depth (> 0) of the returns.
         depth_subset: float32 [H * W] (or [0] without subset): the same over the subset only.
+        skip: bool [M] or an empty [0] array: returns left out (another pass places them elsewhere).
     """
     f_u, f_v, c_u, c_v = camera[0], camera[1], camera[2], camera[3]
     k1, k2, k3, p1, p2 = camera[4], camera[5], camera[6], camera[7], camera[8]
@@ -48,8 +49,11 @@ def project_nearest(points, first, camera_from_vehicle, camera, subset, depth, d
     columns = int(width)
     moved = first.shape[0] == 4
     with_subset = subset.shape[0] > 0
+    with_skip = skip.shape[0] > 0
     c = camera_from_vehicle
     for m in range(points.shape[0]):
+        if with_skip and skip[m]:
+            continue
         x0 = points[m, 0]
         y0 = points[m, 1]
         z0 = points[m, 2]

@@ -14,7 +14,9 @@ __all__ = ["sparse_depth_from_points", "sparse_depth_from_pixels", "see_through_
 
 def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
                              subset: np.ndarray | None = None, *, vehicle_from_points: np.ndarray | None = None,
-                             kernel: str = "numba") -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                             kernel: str = "numba",
+                             replace: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+                             ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Project LiDAR points into a camera and keep the minimum z-depth per pixel.
 
     Args:
@@ -28,6 +30,11 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
         kernel: ``numba`` (default: one fused pass, :func:`drivetrack.depth.kernel.project_nearest`)
             or ``numpy`` (the reference: [M, 3] temporaries and ``np.minimum.at``); the maps are
             bit-identical.
+        replace: optional ``(rows int64 [k], points float [k, 3], skip bool [M] or None)``: the
+            returns ``rows`` are at ``points`` instead (the labelled objects' returns moved to the
+            image's time, :func:`drivetrack.depth.stage.motion_at_image_time`), without a copy of
+            ``points_vehicle``: the numba pass leaves them out (``skip``: ``rows`` as a mask, kept
+            with the caller's memo) and a second pass over ``points`` adds them; the same maps.
     Returns:
         float32 [camera.height, camera.width], metres of z-depth (camera-frame x, distance along
         the optical axis from the camera centre), ``0`` where no point projects. A point at pixel
@@ -53,13 +60,29 @@ def sparse_depth_from_points(points_vehicle: np.ndarray, camera: CameraModel,
         vehicle_from_points = np.asarray(vehicle_from_points, dtype=np.float64)
         if vehicle_from_points.shape != (4, 4):
             raise ValueError(f"vehicle_from_points: expected float [4, 4], found shape {vehicle_from_points.shape}")
+    if replace is not None and not (len(points_vehicle) and kernel == "numba" and NUMBA_AVAILABLE):
+        rows, moved = replace[:2]
+        points_vehicle = np.array(points_vehicle, dtype=np.float64)
+        points_vehicle[rows] = moved
+        replace = None
     if len(points_vehicle) and kernel == "numba" and NUMBA_AVAILABLE:
         depth = np.zeros(height * width, dtype=np.float32)
         depth_subset = np.zeros(height * width if subset is not None else 0, dtype=np.float32)
-        project_nearest(np.ascontiguousarray(points_vehicle, dtype=np.float64),
-                        vehicle_from_points if vehicle_from_points is not None else np.zeros((0, 0)),
-                        np.ascontiguousarray(camera.camera_from_vehicle), camera_parameters(camera),
-                        subset if subset is not None else np.zeros(0, dtype=bool), depth, depth_subset)
+        first = vehicle_from_points if vehicle_from_points is not None else np.zeros((0, 0))
+        camera_from_vehicle, params = np.ascontiguousarray(camera.camera_from_vehicle), camera_parameters(camera)
+        skip = np.zeros(0, dtype=bool)
+        if replace is not None:
+            rows, moved, skip = replace
+            if skip is None:
+                skip = np.zeros(len(points_vehicle), dtype=bool)
+                skip[rows] = True
+            # min is order-free: the moved returns in a second pass over the same maps
+            project_nearest(np.ascontiguousarray(moved, dtype=np.float64), first, camera_from_vehicle, params,
+                            subset[rows] if subset is not None else np.zeros(0, dtype=bool), depth, depth_subset,
+                            np.zeros(0, dtype=bool))
+        project_nearest(np.ascontiguousarray(points_vehicle, dtype=np.float64), first, camera_from_vehicle, params,
+                        subset if subset is not None else np.zeros(0, dtype=bool), depth, depth_subset,
+                        np.ascontiguousarray(skip, dtype=bool))
         depth = depth.reshape(height, width)
         return depth if subset is None else (depth, depth_subset.reshape(height, width))
     if not len(points_vehicle):

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from drivetrack.tracks.plan import SegmentPlan
 
 __all__ = ["DepthJob", "DepthBatch", "needed_frames", "depth_jobs", "sparse_depth", "complete_depth", "motion_at_image_time",
-           "sparse_depth_batch", "sparse_depth_batches", "complete_depth_batch"]
+           "labelled_moves", "sparse_depth_batch", "sparse_depth_batches", "complete_depth_batch"]
 
 
 @dataclass(frozen=True)
@@ -122,14 +122,32 @@ def motion_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, t
     rigid motion of its object (centre velocity plus yaw rate about the world z) for labelled
     returns, 0 for the others (what a rolling-shutter projection moves them by during the readout;
     None without ``with_velocity``: a global-shutter map does not need it)."""
-    from drivetrack.tracks.core import image_time_offsets
-
     out = np.array(points_vehicle, dtype=np.float64)
     velocity_world = np.zeros_like(out) if with_velocity else None
-    labelled = _labelled_points_box(scene, config, trajectory, frame, rows, owner, out, {} if memo is None else memo)
+    moves = labelled_moves(scene, config, owner, trajectory, camera, frame, rows, out, memo, with_velocity)
+    if moves is not None:
+        moving, moved, velocity, _ = moves
+        out[moving] = moved
+        if with_velocity:
+            velocity_world[moving] = velocity
+    return out, velocity_world
+
+
+def labelled_moves(scene: Scene, config: TrackConfig, owner: np.ndarray, trajectory, camera: int, frame: int,
+                   rows: np.ndarray, points_vehicle: np.ndarray, memo: dict | None = None,
+                   with_velocity: bool = False):
+    """The labelled returns of :func:`motion_at_image_time` alone, without a copy of all the
+    frame's returns: ``(moving int64 [k]`` (their places in ``rows``), ``moved float64 [k, 3]``
+    (their positions at the image's pose time, vehicle frame of the frame), ``velocity_world
+    float64 [k, 3]`` (None without ``with_velocity``), ``skip bool [n]`` (``moving`` as a mask,
+    kept with the memo)``)``; None when no return is labelled."""
+    from drivetrack.tracks.core import image_time_offsets
+
+    labelled = _labelled_points_box(scene, config, trajectory, frame, rows, owner, points_vehicle,
+                                    {} if memo is None else memo)
     if labelled is None:
-        return out, velocity_world
-    moving, unique_rows, starts, points_box = labelled
+        return None
+    moving, unique_rows, starts, points_box, skip = labelled
     image_time = trajectory.frame_time_s[unique_rows] + image_time_offsets(scene, camera, np.array([frame]))[0]
     world_from_vehicle = scene.world_from_vehicle[frame]
     world_from_box = trajectory.world_from_box(unique_rows, image_time)                            # [u, 4, 4]
@@ -139,13 +157,13 @@ def motion_at_image_time(scene: Scene, config: TrackConfig, owner: np.ndarray, t
     for j in range(unique_rows.size):
         part = slice(starts[j], starts[j + 1])
         moved[part] = points_box[part] @ vehicle_from_box[j, :3, :3].T + vehicle_from_box[j, :3, 3]
-    out[moving] = moved
+    velocity_world = None
     if with_velocity:
         _, _, _, _, velocity, yaw_rate = trajectory.motion(unique_rows, image_time)
         which = np.repeat(np.arange(unique_rows.size), np.diff(starts))
-        velocity_world[moving] = rigid_velocity_world(moved @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
-                                                      world_from_box[which, :3, 3], velocity[which], yaw_rate[which])
-    return out, velocity_world
+        velocity_world = rigid_velocity_world(moved @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3],
+                                              world_from_box[which, :3, 3], velocity[which], yaw_rate[which])
+    return moving, moved, velocity_world, skip
 
 
 def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: int, rows: np.ndarray,
@@ -154,7 +172,8 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
     [n, 3] in the vehicle frame of ``frame``; ``owner`` their box rows, -1: none) in their box frame
     at their capture time, grouped by box row: ``(moving int64 [k]`` (their places in ``rows``),
     ``unique_rows int64 [u]``, ``starts int64 [u + 1]`` (each box row's returns are
-    ``starts[j]:starts[j + 1]``), ``points_box float64 [k, 3])``; None when none is labelled.
+    ``starts[j]:starts[j + 1]``), ``points_box float64 [k, 3]``, ``skip bool [n]``: ``moving`` as
+    a mask``)``; None when none is labelled.
     Memoised in ``memo`` per frame and set of rows (the same for every camera; the rows are kept
     with the entry and compared, which costs less than hashing them)."""
     from drivetrack.tracks.trajectory import points_box_at
@@ -176,9 +195,11 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
                    if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
         world_from_vehicle = scene.world_from_vehicle[frame]
         world = points_vehicle[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
+        skip = np.zeros(rows.size, dtype=bool)
+        skip[moving] = True
         memo[key] = (rows.copy(), (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
                                    points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets,
-                                                 world)))
+                                                 world), skip))
     return memo[key][1]
 
 
@@ -250,19 +271,24 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
         keep = return_mask(lasers, returns, config.depth_laser_values, config.depth_returns)
         if not keep.all():
             points, lasers, returns = points[keep], lasers[keep], returns[keep]
-        velocity_world = None
-        if motion is not None:
+        velocity_world = replace = None
+        rolling = config.rolling_shutter and shutter_state(frames, t).rolling
+        if motion is not None and rolling:
             rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
             points, velocity_world = motion_at_image_time(scene, config, *motion[:2], job.camera, t, rows, points,
-                                                          memo=motion[2],
-                                                          with_velocity=config.rolling_shutter and shutter_state(frames, t).rolling)
+                                                          memo=motion[2], with_velocity=True)
+        elif motion is not None:
+            # the map takes the moved returns in place of theirs (no copy of the frame's returns)
+            rows = np.arange(part.start, part.stop, dtype=np.int64)[keep]
+            moves = labelled_moves(scene, config, *motion[:2], job.camera, t, rows, points, memo=motion[2])
+            replace = None if moves is None else (moves[0], moves[1], moves[3])
         subset = (None if config.blind_zone_laser is None
                   else (lasers == int(LaserName[config.blind_zone_laser])) & (returns == 1))
         image_world_from_vehicle = frames.world_from_vehicle[t]
         image_vehicle_from_vehicle = None
         if np.all(np.isfinite(image_world_from_vehicle)):
             image_vehicle_from_vehicle = invert_rigid(image_world_from_vehicle) @ scene.world_from_vehicle[t]
-        if config.rolling_shutter and shutter_state(frames, t).rolling:
+        if rolling:
             # each return where the camera saw it: at its pixel's capture time in its row (the
             # ego's motion during the readout, and a labelled object's own), as the tracks are
             # projected (drivetrack.tracks.core, ``TrackConfig.rolling_shutter``); only returns
@@ -274,7 +300,8 @@ def sparse_depth(scene: Scene, config: TrackConfig, job: DepthJob, plan: Segment
             maps = sparse_depth_from_pixels(seen.pixels, seen.points_camera[:, 0], seen.valid, model,
                                             None if subset is None else subset[near])
         else:
-            maps = sparse_depth_from_points(points, model, subset=subset, vehicle_from_points=image_vehicle_from_vehicle)
+            maps = sparse_depth_from_points(points, model, subset=subset, vehicle_from_points=image_vehicle_from_vehicle,
+                                            replace=replace)
         if config.blind_zone_laser is None:
             out[i] = maps
         else:
