@@ -263,6 +263,20 @@ def test_zbuffer_does_not_grow_a_near_occluders_outline_over_far_points():
     np.testing.assert_array_equal(hidden, (columns > 90) & (columns < 110))      # the car covers 90..109
 
 
+def _random_returns(rng, trial: int, max_size: int, min_returns: int, max_returns: int):
+    """``(width, height, pixels [m, 2], depth [m], radius_m, focal, max_px)``: a random image of
+    5 to ``max_size`` pixels a side and ``min_returns`` to ``max_returns`` returns, some outside it
+    with footprints reaching in; every third trial's depths whole metres (ties), every other one
+    radius for all (else one per return)."""
+    width, height = (int(v) for v in rng.integers(5, max_size, 2))
+    m = int(rng.integers(min_returns, max_returns))
+    pixels = rng.uniform(-10.0, max(width, height) + 10.0, (m, 2))
+    depth = np.round(rng.uniform(1.0, 6.0, m)) if trial % 3 == 0 else rng.uniform(1.0, 60.0, m)
+    radius_m = 0.05 if trial % 2 else rng.uniform(0.01, 0.3, m)
+    focal, max_px = float(rng.uniform(100.0, 2000.0)), int(rng.integers(0, 9))
+    return width, height, pixels, depth, radius_m, focal, max_px
+
+
 def test_nearest_depth_equals_splatting_each_footprint():
     """``nearest_depth`` (one minimum filter per footprint size) equals writing every return's
     (2r+1)^2 square one by one: buffer and kept footprints, with one radius or one per return,
@@ -271,12 +285,8 @@ def test_nearest_depth_equals_splatting_each_footprint():
 
     rng = np.random.default_rng(3)
     for trial in range(40):
-        width, height = (int(v) for v in rng.integers(5, 40, 2))
-        m = int(rng.integers(0, 120))
-        pixels = rng.uniform(-10.0, max(width, height) + 10.0, (m, 2))
-        depth = np.round(rng.uniform(1.0, 6.0, m)) if trial % 3 == 0 else rng.uniform(1.0, 60.0, m)
-        radius_m = 0.05 if trial % 2 else rng.uniform(0.01, 0.3, m)
-        focal, max_px = float(rng.uniform(100.0, 2000.0)), int(rng.integers(0, 9))
+        width, height, pixels, depth, radius_m, focal, max_px = _random_returns(rng, trial, 40, 0, 120)
+        m = depth.size
         buffer, footprint = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
         want, want_r = np.full((height, width), np.inf, np.float32), np.zeros((height, width), np.int8)
         r = np.minimum(np.rint(focal * np.asarray(radius_m) / depth), max_px).astype(int) * np.ones(m, int)
@@ -1015,12 +1025,7 @@ def test_zbuffer_kernel_equals_numpy():
 
     rng = np.random.default_rng(11)
     for trial in range(30):
-        width, height = (int(v) for v in rng.integers(5, 60, 2))
-        m = int(rng.integers(1, 200))
-        pixels = rng.uniform(-10.0, max(width, height) + 10.0, (m, 2))
-        depth = np.round(rng.uniform(1.0, 6.0, m)) if trial % 3 == 0 else rng.uniform(1.0, 60.0, m)
-        radius_m = 0.05 if trial % 2 else rng.uniform(0.01, 0.3, m)
-        focal, max_px = float(rng.uniform(100.0, 2000.0)), int(rng.integers(0, 9))
+        width, height, pixels, depth, radius_m, focal, max_px = _random_returns(rng, trial, 60, 1, 200)
         want = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
         got = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True, use_kernel=True)
         np.testing.assert_array_equal(got[0], want[0], err_msg=str(trial))

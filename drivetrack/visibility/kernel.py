@@ -17,6 +17,7 @@ import numpy as np
 
 from drivetrack.camera.kernel import pixel_from_camera_point as _pixel
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
+from drivetrack.refine.kernel import _gap2      # squared distance to a cell's interval (the k-nearest grid's)
 
 __all__ = ["NUMBA_AVAILABLE", "CloudGrid", "cloud_grid", "grid_cell", "nearest_in_grid", "shifted_neighbourhoods",
            "project_in_window", "project_points", "facing_test", "facing_test_rows", "zbuffer_points", "zbuffer_near",
@@ -184,16 +185,6 @@ def _cell_of(v, lo, cell, dim):
     if g >= 0.0:
         return int(g)
     return 0
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _gap2(v, cell_lo, cell):
-    """Squared distance from coordinate ``v`` to the interval [cell_lo, cell_lo + cell] (0 inside)."""
-    if v < cell_lo:
-        return (cell_lo - v) ** 2
-    if v > cell_lo + cell:
-        return (v - cell_lo - cell) ** 2
-    return 0.0
 
 
 @njit(cache=True, nogil=True)
