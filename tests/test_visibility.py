@@ -615,6 +615,34 @@ def _back_face_calls(root, segment, out, back_face_max_deg, kernel, occlusion="s
     return np.concatenate(back), np.concatenate(visible), clips
 
 
+def test_occluder_poses_are_the_clip_poses_of_their_rows(hard_scene):
+    """An occluder posed once per camera (``core._occluder_poses``, cached on the plan) gives the
+    rows each clip asks for exactly the :func:`clip_poses` of those rows: subsets asked in any
+    order, rows added to the cache later, and the whole object."""
+    from drivetrack.annotate import AnnotateConfig, load_scene_for
+    from drivetrack.tracks.core import _POSE_FIELDS, _occluder_poses, clip_poses
+    from drivetrack.tracks.plan import plan_segment
+
+    root, segment = hard_scene
+    config = AnnotateConfig()
+    scene = load_scene_for(root, "training", segment, config)
+    plan = plan_segment(scene, config.track)
+    boxes = scene.boxes
+    checked = 0
+    for object_id in np.unique(boxes.object_id)[:4].tolist():
+        rows = np.flatnonzero(boxes.object_id == object_id)
+        rows = rows[np.argsort(boxes.frame[rows], kind="stable")]
+        for camera in sorted(plan.cameras)[:2]:
+            for ask in (rows[1::2], rows[:3], rows, rows[::3]):
+                frames = boxes.frame[ask].astype(np.int64)
+                got, want = _occluder_poses(plan, camera, object_id, frames, ask), clip_poses(plan, camera, frames, ask)
+                for name in _POSE_FIELDS:
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+                assert got.trajectory is want.trajectory
+                checked += ask.size
+    assert checked > 50
+
+
 def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_scene, tmp_path):
     """Measured on this scene (its objects kept clear of each other): 554 matched back-face
     point-frames inside the image, the depth-ratio test calls 75% of them visible; ``occlusion=

@@ -717,6 +717,36 @@ def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.n
     return found.pixels[ok], found.points_camera[ok, 0], radius_m[chosen[ok]]
 
 
+_POSE_FIELDS = ("vehicle_from_box", "world_from_box", "camera_from_box", "shift_camera", "shift_world",
+                "velocity_world", "yaw_rate_world")
+
+
+def _occluder_poses(plan, camera: int, object_id: str, frames: np.ndarray, rows: np.ndarray) -> ClipPoses:
+    """:func:`clip_poses` of an occluder's box ``rows`` (int [k], at ``frames``) in ``camera``'s
+    images. Under the trajectory each row's pose depends on that row and the image alone, so each
+    row is posed once per camera (``plan.occluder_cache``; an occluder is posed for every clip of
+    the camera it may hide) and later calls take the rows they need from those; under
+    ``time_model="velocity"`` the velocities are differences over ``frames``: computed here."""
+    if plan.config.time_model != "trajectory":
+        return clip_poses(plan, camera, frames, rows)
+    key = (f"{object_id}#poses", camera)
+    known, poses = plan.occluder_cache.get(key, (np.zeros(0, dtype=np.int64), None))
+    missing = np.setdiff1d(rows, known)
+    if missing.size:
+        new = clip_poses(plan, camera, plan.scene.boxes.frame[missing].astype(np.int64), missing)
+        known = np.concatenate([known, missing])
+        order = np.argsort(known, kind="stable")
+        fields = {name: getattr(new, name) if poses is None
+                  else np.concatenate([getattr(poses, name), getattr(new, name)]) for name in _POSE_FIELDS}
+        known = known[order]
+        poses = ClipPoses(**{name: value[order] for name, value in fields.items()}, trajectory=new.trajectory,
+                          decision=new.decision)
+        plan.occluder_cache[key] = (known, poses)
+    at = np.searchsorted(known, rows)
+    return ClipPoses(**{name: getattr(poses, name)[at] for name in _POSE_FIELDS}, trajectory=poses.trajectory,
+                     decision=poses.decision)
+
+
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
                shutter=None, use_kernel: bool = False):
     """``(returns, boxes, seen)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
@@ -781,7 +811,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
-        poses = clip_poses(plan, job.camera, obj_frames, obj_rows)
+        poses = _occluder_poses(plan, job.camera, object_id, obj_frames, obj_rows)
         if poses.trajectory is not None:
             # On the segment's trajectory an object's returns in its box frame do not depend on the
             # camera or the clip: all its returns over the segment, thinned to the first of each
