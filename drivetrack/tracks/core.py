@@ -684,20 +684,27 @@ def occluding_objects(plan) -> set[str]:
 _ROLLING_PAD = 0.1
 
 
-def _near_window(model: CameraModel, centre_camera: np.ndarray, radius_m: float) -> tuple[float, float, float, float]:
-    """``(x_lo, x_hi, y_lo, y_hi)`` pixels: the square round the image disc of the sphere of
-    centre ``centre_camera`` float [3] (camera frame, metres) and ``radius_m``, padded by
-    ``_ROLLING_PAD`` of the image; infinite (everywhere) when the sphere reaches the camera or its
-    centre does not project."""
+def _near_windows(model: CameraModel, centre_camera: np.ndarray,
+                 radius_m: np.ndarray) -> list[tuple[float, float, float, float]]:
+    """Per clip frame ``(x_lo, x_hi, y_lo, y_hi)`` pixels: the square round the image disc of the
+    sphere of centre ``centre_camera`` float [T, 3] (camera frame, metres) and radius ``radius_m``
+    float [T], padded by ``_ROLLING_PAD`` of the image; infinite (everywhere) when the sphere
+    reaches the camera or its centre does not project. (One projection for all T frames.)"""
     pad = _ROLLING_PAD * max(model.width, model.height)
-    distance = float(np.linalg.norm(centre_camera))
-    centre_px, ok = model.pixels_from_camera(np.asarray(centre_camera, np.float64)[None])
-    if distance <= 1.5 * radius_m or not ok[0] or not np.isfinite(centre_px).all():
-        return -np.inf, np.inf, -np.inf, np.inf
-    # the disc's radius in pixels, generously (the distortion is not inverted here)
-    half = 2.0 * max(model.f_u, model.f_v) * radius_m / max(distance - radius_m, 1e-6) + pad
-    (x, y), = centre_px
-    return float(x - half), float(x + half), float(y - half), float(y + half)
+    centre_camera = np.asarray(centre_camera, np.float64).reshape(-1, 3)
+    radius_m = np.asarray(radius_m, np.float64).reshape(-1)
+    centre_px, ok = model.pixels_from_camera(centre_camera)
+    out = []
+    for s in range(centre_camera.shape[0]):
+        distance, radius = float(np.linalg.norm(centre_camera[s])), float(radius_m[s])
+        if distance <= 1.5 * radius or not ok[s] or not np.isfinite(centre_px[s]).all():
+            out.append((-np.inf, np.inf, -np.inf, np.inf))
+            continue
+        # the disc's radius in pixels, generously (the distortion is not inverted here)
+        half = 2.0 * max(model.f_u, model.f_v) * radius / max(distance - radius, 1e-6) + pad
+        x, y = float(centre_px[s, 0]), float(centre_px[s, 1])
+        out.append((x - half, x + half, y - half, y + half))
+    return out
 
 
 def _captured_splats(shutter, t: int, poses: ClipPoses, k: int, points_box: np.ndarray, radius_m: np.ndarray,
@@ -771,7 +778,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     projects with a rolling shutter: each return is then splatted at its pixel and depth at its
     capture time in its row, as the tracked points are looked up (the boxes stay at the image
     pose); None: the global-shutter image pose. Only returns near the target in the image
-    (:func:`_near_window` at its pose) are kept: the z-buffer test looks no farther than the
+    (:func:`_near_windows` at its pose) are kept: the z-buffer test looks no farther than the
     footprints round the tracked points. ``seen``: some return of an object kept above projected
     validly into some clip frame's image, near the target or not. ``use_kernel``: project with the
     numba kernel (:func:`drivetrack.visibility.kernel.project_in_window`; the global shutter
@@ -799,7 +806,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                                        target_camera, target_radius_m)]
     # only returns near the target in the image at its pose matter (and, under a rolling shutter,
     # are solved for their capture time)
-    windows = [_near_window(model, target_camera[s], target_radius_m[s]) for s in range(t_count)]
+    windows = _near_windows(model, target_camera, target_radius_m)
     use_kernel = use_kernel and shutter is None
     if use_kernel:
         from drivetrack.camera.kernel import camera_parameters
