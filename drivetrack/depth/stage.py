@@ -179,28 +179,29 @@ def _labelled_points_box(scene: Scene, config: TrackConfig, trajectory, frame: i
     from drivetrack.tracks.trajectory import points_box_at
 
     key = (frame, rows.size)
-    if key in memo and not np.array_equal(memo[key][0], rows):
-        del memo[key]                                   # another set of rows of this frame
-    if key not in memo:
-        box_rows = owner[rows]
-        moving = np.flatnonzero(box_rows >= 0)
-        if moving.size == 0:
-            memo[key] = (rows.copy(), None)
-            return None
-        moving = moving[np.argsort(box_rows[moving], kind="stable")]
-        box_rows = box_rows[moving]
-        unique_rows, starts = np.unique(box_rows, return_index=True)
-        lidar = scene.lidar
-        offsets = (np.nan_to_num(lidar.capture_offset_s[rows[moving]].astype(np.float64))
-                   if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
-        world_from_vehicle = scene.world_from_vehicle[frame]
-        world = points_vehicle[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
-        skip = np.zeros(rows.size, dtype=bool)
-        skip[moving] = True
-        memo[key] = (rows.copy(), (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
-                                   points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets,
-                                                 world), skip))
-    return memo[key][1]
+    entry = memo.get(key)                           # one look-up: depth jobs share the memo across threads
+    if entry is not None and np.array_equal(entry[0], rows):
+        return entry[1]
+    # not yet computed, or another set of rows of this frame (replaced)
+    box_rows = owner[rows]
+    moving = np.flatnonzero(box_rows >= 0)
+    if moving.size == 0:
+        memo[key] = (rows.copy(), None)
+        return None
+    moving = moving[np.argsort(box_rows[moving], kind="stable")]
+    box_rows = box_rows[moving]
+    unique_rows, starts = np.unique(box_rows, return_index=True)
+    lidar = scene.lidar
+    offsets = (np.nan_to_num(lidar.capture_offset_s[rows[moving]].astype(np.float64))
+               if config.compensate_sweep_motion and lidar.capture_offset_s is not None else 0.0)
+    world_from_vehicle = scene.world_from_vehicle[frame]
+    world = points_vehicle[moving] @ world_from_vehicle[:3, :3].T + world_from_vehicle[:3, 3]
+    skip = np.zeros(rows.size, dtype=bool)
+    skip[moving] = True
+    labelled = (moving, unique_rows, np.append(starts, moving.size).astype(np.int64),
+                points_box_at(trajectory, box_rows, trajectory.frame_time_s[box_rows] + offsets, world), skip)
+    memo[key] = (rows.copy(), labelled)
+    return labelled
 
 
 #: A rolling-shutter depth map solves the capture time of the returns within this fraction of
