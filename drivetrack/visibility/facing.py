@@ -225,9 +225,11 @@ SNAP_MIN_INCIDENCE_COS = 0.1
 #: ... and only when the returns' range noise (:func:`range_noise_m`) is at least this (metres):
 #: exact ranges stay where they are ...
 SNAP_MIN_NOISE_M = 0.002
-#: ... estimated from at least this many returns, of an even subset of this many at most.
+#: ... estimated from at least this many returns, of an even subset of this many at most from
+#: this many of the clip's frames (evenly spaced).
 SNAP_MIN_POINTS = 100
 SNAP_NOISE_SAMPLE = 2000
+SNAP_NOISE_FRAMES = 4
 #: The surface under a return is that of the returns of its own sweep and of this many sweeps before
 #: and after it (placed by the object's trajectory: more returns, their placement's errors small).
 SNAP_WINDOW_FRAMES = 2
@@ -289,8 +291,9 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     point moves to where its ray meets that plane when the ray meets it at
     :data:`SNAP_MIN_INCIDENCE_COS` or steeper and the move is at most ``max_move_m`` (metres); the
     others stay. Nothing moves unless the returns show range noise: the noise estimated from an
-    even subset of :data:`SNAP_NOISE_SAMPLE` (:func:`range_noise_m`, at least :data:`SNAP_MIN_POINTS`
-    of them) must be :data:`SNAP_MIN_NOISE_M` or more; exact ranges stay bit for bit (the
+    even subset of :data:`SNAP_NOISE_SAMPLE` of :data:`SNAP_NOISE_FRAMES` frames
+    (:func:`range_noise_m`, at least :data:`SNAP_MIN_POINTS` of them) must be
+    :data:`SNAP_MIN_NOISE_M` or more; exact ranges stay bit for bit (the
     returns of other sweeps are placed by the object's trajectory, and a surface drawn from them
     would move an exact return by that placement's millimetres). Only a few sweeps either side:
     over a whole segment the trajectory's errors (label noise) would add up.
@@ -305,9 +308,11 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     incidence = np.einsum("ni,ni->n", ray, normal)
     candidates = np.flatnonzero(usable & (np.abs(incidence) >= SNAP_MIN_INCIDENCE_COS))
     out, moved = points_box.copy(), np.zeros(points_box.shape[0], dtype=bool)
-    # the noise first, from an even subset (exact ranges: nothing more to do)
-    subset = candidates[np.unique(np.linspace(0, candidates.size - 1, min(candidates.size, SNAP_NOISE_SAMPLE))
-                                  .astype(np.int64))] if candidates.size else candidates
+    # the noise first, from an even subset of a few frames (exact ranges: nothing more to do)
+    present = np.unique(frame[candidates])
+    some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
+    subset = candidates[np.isin(frame[candidates], some)]
+    subset = subset[np.unique(np.linspace(0, subset.size - 1, min(subset.size, SNAP_NOISE_SAMPLE)).astype(np.int64))]
     step = _steps_to_surface(points_box, frame, incidence, normal, surface, subset)
     ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
     if ok.sum() < min(SNAP_MIN_POINTS, SNAP_NOISE_SAMPLE) or not range_noise_m(step[ok]) >= SNAP_MIN_NOISE_M:
