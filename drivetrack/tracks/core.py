@@ -953,13 +953,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None    # too few: none
                        else SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool)))
             # range noise: each return moved along its ray onto its sweep's surface (exact ranges stay)
-            surface = (segment_surface_cloud(plan, job.object_id, poses)
-                       if fitted is not None and config.surface_snap_max_m is not None else None)
-            if surface is not None:
+            if fitted is not None and config.surface_snap_max_m is not None:
                 rays_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3],
                                      lidar.points_vehicle[lidar_rows] - sensor_vehicle)
                 p_box, _ = points_on_surface(p_box, boxes.frame[rows][source_clip], rays_box, surfels.normal,
-                                             surface, surfels.reliable, float(config.surface_snap_max_m))
+                                             lambda: segment_surface_cloud(plan, job.object_id, poses),
+                                             surfels.reliable, float(config.surface_snap_max_m))
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood)

@@ -228,8 +228,8 @@ SNAP_MIN_NOISE_M = 0.002
 #: ... estimated from at least this many returns, of an even subset of this many at most from
 #: this many of the clip's frames (evenly spaced).
 SNAP_MIN_POINTS = 100
-SNAP_NOISE_SAMPLE = 2000
-SNAP_NOISE_FRAMES = 4
+SNAP_NOISE_SAMPLE = 1000
+SNAP_NOISE_FRAMES = 2
 #: The surface under a return is that of the returns of its own sweep and of this many sweeps before
 #: and after it (placed by the object's trajectory: more returns, their placement's errors small).
 SNAP_WINDOW_FRAMES = 2
@@ -257,11 +257,8 @@ def surface_cloud(points_box: np.ndarray, frame: np.ndarray, fitted: CloudNormal
     """The :class:`SurfaceCloud` of an object's returns ``points_box`` float64 [r, 3] (box frame;
     selected from the label boxes *grown* by a few centimetres: see :func:`points_on_surface`),
     ``frame`` int [r] each one's segment frame; ``fitted`` the back-face normals' cloud."""
-    order = np.argsort(frame, kind="stable")
-    points = np.ascontiguousarray(points_box[order], dtype=np.float64)
-    frames, starts = np.unique(np.asarray(frame)[order], return_index=True)
-    normal = fitted.normal[fitted.nearest(points)] if points.shape[0] else np.zeros((0, 3))
-    return SurfaceCloud(points, normal, frames.astype(np.int64), np.append(starts, points.shape[0]).astype(np.int64))
+    normal = fitted.normal[fitted.nearest(points_box)] if points_box.shape[0] else np.zeros((0, 3))
+    return SurfaceCloud(*_by_frame(points_box, normal, frame))
 
 
 def range_noise_m(steps: np.ndarray) -> float:
@@ -274,26 +271,29 @@ def range_noise_m(steps: np.ndarray) -> float:
 
 
 def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.ndarray, normal: np.ndarray,
-                      surface: SurfaceCloud, usable: np.ndarray, max_move_m: float) -> tuple[np.ndarray, np.ndarray]:
+                      surface, usable: np.ndarray, max_move_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Each return moved along its own lidar ray onto the object's surface: ``(moved float64 [n,
     3], moved bool [n])``.
 
     A return's range carries centimetres of noise, along its ray; the surface under it is known
-    far better from the many returns round it, of its own sweep and the nearest few. ``points_box`` float64 [n, 3],
-    ``frame`` int [n] each one's segment frame and ``rays_box`` float64 [n, 3] (each ray's
-    direction, any length) in the box frame, ``normal`` float64 [n, 3] each point's unit normal
-    (sign arbitrary); ``surface`` the object's returns frame by frame (:func:`surface_cloud`);
-    ``usable`` bool [n]: the points whose normal is reliable. The surface under a point is the
+    far better from the many returns round it, of its own sweep and the nearest few.
+    ``points_box`` float64 [n, 3], ``frame`` int [n] each one's segment frame and ``rays_box``
+    float64 [n, 3] (each ray's direction, any length) in the box frame, ``normal`` float64 [n, 3]
+    each point's unit normal (sign arbitrary); ``surface`` the object's returns frame by frame
+    (:func:`surface_cloud`; or a function of no arguments returning it or None, called only when
+    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable. The surface under a point is the
     mean, along its normal, of the returns of its frame and :data:`SNAP_WINDOW_FRAMES` frames
     either side within :data:`SNAP_RADIUS_M` of its normal line
     and :data:`SNAP_SLAB_M` along it whose normal lies within :data:`SNAP_MAX_TILT_DEG` of it
     (:func:`drivetrack.visibility.kernel.surface_offsets`; at least :data:`SNAP_MIN_RETURNS`). The
     point moves to where its ray meets that plane when the ray meets it at
     :data:`SNAP_MIN_INCIDENCE_COS` or steeper and the move is at most ``max_move_m`` (metres); the
-    others stay. Nothing moves unless the returns show range noise: the noise estimated from an
-    even subset of :data:`SNAP_NOISE_SAMPLE` of :data:`SNAP_NOISE_FRAMES` frames
-    (:func:`range_noise_m`, at least :data:`SNAP_MIN_POINTS` of them) must be
-    :data:`SNAP_MIN_NOISE_M` or more; exact ranges stay bit for bit (the
+    others stay. Nothing moves unless the returns show range noise: the noise of an even subset
+    of :data:`SNAP_NOISE_SAMPLE` of the points on :data:`SNAP_NOISE_FRAMES` frames, measured
+    against the surface of the points themselves (of those frames and their neighbours) (:func:`range_noise_m`, at least
+    :data:`SNAP_MIN_POINTS` of them; the points are the returns inside the box, so about half the
+    noise: a detection, not an estimate), must be :data:`SNAP_MIN_NOISE_M` or more; exact ranges
+    stay bit for bit (the
     returns of other sweeps are placed by the object's trajectory, and a surface drawn from them
     would move an exact return by that placement's millimetres). Only a few sweeps either side:
     over a whole segment the trajectory's errors (label noise) would add up.
@@ -313,11 +313,17 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
     subset = candidates[np.isin(frame[candidates], some)]
     subset = subset[np.unique(np.linspace(0, subset.size - 1, min(subset.size, SNAP_NOISE_SAMPLE)).astype(np.int64))]
-    step = _steps_to_surface(points_box, frame, incidence, normal, surface, subset)
+    near_some = np.abs(frame[:, None] - some[None, :]).min(axis=1) <= SNAP_WINDOW_FRAMES if some.size else \
+        np.zeros(frame.size, dtype=bool)
+    own = SurfaceCloud(*_by_frame(points_box[near_some], normal[near_some], frame[near_some]))
+    step = _steps_to_surface(points_box, frame, incidence, normal, own, subset, SNAP_WINDOW_FRAMES)
     ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
     if ok.sum() < min(SNAP_MIN_POINTS, SNAP_NOISE_SAMPLE) or not range_noise_m(step[ok]) >= SNAP_MIN_NOISE_M:
         return out, moved
-    step = _steps_to_surface(points_box, frame, incidence, normal, surface, candidates)
+    surface = surface() if callable(surface) else surface
+    if surface is None:
+        return out, moved
+    step = _steps_to_surface(points_box, frame, incidence, normal, surface, candidates, SNAP_WINDOW_FRAMES)
     ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
     rows = candidates[ok]
     out[rows] += step[ok, None] * ray[rows]
@@ -325,8 +331,16 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     return out, moved
 
 
+def _by_frame(points: np.ndarray, normal: np.ndarray, frame: np.ndarray) -> tuple:
+    """``(points, normal, frames, offsets)`` of a :class:`SurfaceCloud`: the rows sorted by frame."""
+    order = np.argsort(frame, kind="stable")
+    frames, starts = np.unique(np.asarray(frame)[order], return_index=True)
+    return (np.ascontiguousarray(points[order], dtype=np.float64), np.ascontiguousarray(normal[order], dtype=np.float64),
+            frames.astype(np.int64), np.append(starts, order.size).astype(np.int64))
+
+
 def _steps_to_surface(points_box: np.ndarray, frame: np.ndarray, incidence: np.ndarray, normal: np.ndarray,
-                      surface: SurfaceCloud, rows: np.ndarray) -> np.ndarray:
+                      surface: SurfaceCloud, rows: np.ndarray, window: int) -> np.ndarray:
     """float64 [len(rows)]: how far (metres) each point ``rows`` int [k] of ``points_box`` lies from
     the surface along its ray (:func:`points_on_surface`), NaN where its frame's returns are too few."""
     from drivetrack.visibility import kernel
@@ -336,7 +350,7 @@ def _steps_to_surface(points_box: np.ndarray, frame: np.ndarray, incidence: np.n
     row_frame = frame[rows]
     for i in np.flatnonzero(np.isin(surface.frames, row_frame)):
         at = np.flatnonzero(row_frame == surface.frames[i])
-        near = np.flatnonzero(np.abs(surface.frames - surface.frames[i]) <= SNAP_WINDOW_FRAMES)
+        near = np.flatnonzero(np.abs(surface.frames - surface.frames[i]) <= window)
         lo, hi = surface.offsets[near[0]], surface.offsets[near[-1] + 1]
         cloud = surface.points[lo:hi]
         grid = kernel.cloud_grid(cloud, kernel.grid_cell(cloud))
