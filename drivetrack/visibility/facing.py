@@ -228,8 +228,8 @@ SNAP_MIN_NOISE_M = 0.002
 #: ... estimated from at least this many returns, of an even subset of this many at most from
 #: this many of the clip's frames (evenly spaced).
 SNAP_MIN_POINTS = 100
-SNAP_NOISE_SAMPLE = 1000
-SNAP_NOISE_FRAMES = 2
+SNAP_NOISE_SAMPLE = 2000
+SNAP_NOISE_FRAMES = 4
 #: The surface under a return is that of the returns of its own sweep and of this many sweeps before
 #: and after it (placed by the object's trajectory: more returns, their placement's errors small).
 SNAP_WINDOW_FRAMES = 2
