@@ -42,13 +42,13 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ shifted neighbourhoods (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ returns moved onto their surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
++ normals among 30 neighbours,+ returns moved onto their surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
++ normals among 30 neighbours,+ returns moved onto their surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods (default)"   # ~12 min
++ normals among 30 neighbours,+ shifted neighbourhoods,+ returns moved onto their surface (default)"   # ~15 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -142,6 +142,12 @@ def summarise(pf: dict[str, np.ndarray], clips) -> dict:
         "visible_recall": _rate(pf["pred_visible"][m & pf["truth_visible"]]),
         "by_distance": [], "by_role": [], "by_camera_motion": [],
     }
+    # positions: the truly visible point-frames' pixel errors
+    errors = pf["error_px"][m & pf["truth_visible"]]
+    errors = errors[np.isfinite(errors)]
+    result["pixel_error"] = ({"median": float(np.median(errors)), "p90": float(np.percentile(errors, 90)),
+                              "within_1px": float(np.mean(errors < 1.0))} if errors.size else
+                             {"median": float("nan"), "p90": float("nan"), "within_1px": float("nan")})
     for lo, hi, name in DISTANCE_BINS:
         sel = m & (pf["distance_m"] >= lo) & (pf["distance_m"] < hi)
         result["by_distance"].append({"bin": name, "point_frames": int(sel.sum()), "oa": _rate(correct[sel]),
@@ -201,33 +207,38 @@ _BEFORE_ELEVENTH = {**_BEFORE_SUBPIXELS, **_BEFORE_NEIGHBOURS}
 _BEFORE_SHIFT = {"normal_neighbourhood": "centred"}
 _BEFORE_TWELFTH = {**_BEFORE_ELEVENTH, **_BEFORE_SHIFT}
 
+#: Each return where the lidar put it (before 2026-11-28, seventeenth session; a no-op on exact ranges).
+_BEFORE_SNAP = {"surface_snap_max_m": None}
+
 #: Visibility variants compared in one run (name -> TrackConfig overrides), over the same segment.
 VARIANTS = {
     # the paper's maps too: every return where it was captured
     "depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_motion": False},
     # the z-buffer switched off by a tolerance no occluder can exceed: back faces alone
-    "depth-ratio + back faces": {"occlusion": "surface", "occluder_tolerance_m": 1e9, "depth_object_motion": False,
+    "depth-ratio + back faces": {"occlusion": "surface", **_BEFORE_SNAP, "occluder_tolerance_m": 1e9, "depth_object_motion": False,
                                  "own_surface_margin_m": None, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
-    "surface: + z-buffer of other objects": {"depth_object_motion": False, "own_surface_margin_m": None,
+    "surface: + z-buffer of other objects": {"depth_object_motion": False, **_BEFORE_SNAP, "own_surface_margin_m": None,
                                              **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
-    "surface + depth maps at image time": {"own_surface_margin_m": None, **_OLD_TOLERANCE, **_BEFORE_FILL,
+    "surface + depth maps at image time": {"own_surface_margin_m": None, **_BEFORE_SNAP, **_OLD_TOLERANCE, **_BEFORE_FILL,
                                            **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # the object's own returns in the depth maps hide none of its points with reliable normals
-    "+ own returns left to the back-face test": {**_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
+    "+ own returns left to the back-face test": {**_BEFORE_SNAP, **_OLD_TOLERANCE, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # the z-buffer's tolerance without the relative term: 0.15 m at any distance
-    "+ z-buffer tolerance 0.15 m": {**_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
+    "+ z-buffer tolerance 0.15 m": {**_BEFORE_SNAP, **_BEFORE_FILL, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # holes between an occluder's splats closed by 4 px
-    "+ z-buffer hole fill 4 px": {"depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_TWELFTH},
+    "+ z-buffer hole fill 4 px": {**_BEFORE_SNAP, "depth_defers_to_zbuffer": False, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # a depth-map surface inside another labelled object's box is left to the z-buffer
-    "+ depth map defers to the z-buffer": {**_BEFORE_FACES, **_BEFORE_TWELFTH},
+    "+ depth map defers to the z-buffer": {**_BEFORE_SNAP, **_BEFORE_FACES, **_BEFORE_TWELFTH},
     # unreliable normals on one face of the label box take that face's normal
-    "+ label-box faces at unreliable normals": {**_BEFORE_TWELFTH},
+    "+ label-box faces at unreliable normals": {**_BEFORE_SNAP, **_BEFORE_TWELFTH},
     # the z-buffer at two buffer pixels per image pixel: outlines placed to half a pixel
-    "+ z-buffer outlines to half a pixel": {**_BEFORE_NEIGHBOURS, **_BEFORE_SHIFT},
+    "+ z-buffer outlines to half a pixel": {**_BEFORE_SNAP, **_BEFORE_NEIGHBOURS, **_BEFORE_SHIFT},
     # normals among 30 neighbours (each cube's mean): robust to range noise
-    "+ normals among 30 neighbours": {**_BEFORE_SHIFT},
+    "+ normals among 30 neighbours": {**_BEFORE_SNAP, **_BEFORE_SHIFT},
     # each point's normal from the flattest neighbourhood through it: edges kept sharp
-    "+ shifted neighbourhoods (default)": {},
+    "+ shifted neighbourhoods": {**_BEFORE_SNAP},
+    # each return moved along its ray onto its sweep's surface (range noise; exact ranges: as above)
+    "+ returns moved onto their surface (default)": {},
 }
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
@@ -295,8 +306,14 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     for i, (_, _, label) in enumerate(DISTANCE_BINS):
         row(f"OA {label}", lambda r, i=i: r["by_distance"][i]["oa"], 4)
         row(f"back faces called visible {label}", lambda r, i=i: r["by_distance"][i]["back_face_false_visible"])
+    row("pixel error of truly visible point-frames: median px", lambda r: r["pixel_error"]["median"])
+    row("... 90th percentile px", lambda r: r["pixel_error"]["p90"])
+    row("... within 1 px", lambda r: r["pixel_error"]["within_1px"], 4)
     for i, d in enumerate(results[names[0]]["by_camera_motion"]):
         row(f"AJ {d['camera']} {d['objects']}", lambda r, i=i: r["by_camera_motion"][i]["aj"])
+    for i, d in enumerate(results[names[0]]["by_camera_motion"]):
+        row(f"median px error {d['camera']} {d['objects']}",
+            lambda r, i=i: r["by_camera_motion"][i]["pixel_error_median"])
     lines += ["", "OA per clip (query mode `first`):", "", "| camera | object | " + " | ".join(names) + " |",
               "|---|---|" + "---|" * len(names)]
     per = {n: {(c["camera"], c["object"]): c for c in results[n]["per_clip_oa"]} for n in names}

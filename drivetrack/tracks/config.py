@@ -122,6 +122,19 @@ class TrackConfig:
             was from flipping, :class:`drivetrack.tracks.core.ObjectTracks`) as the clip's
             optional ``occlusion_margin`` array (float16 [N, T]); the per-clip ambiguous count
             is computed from the margins either way.
+        surface_snap_max_m: each tracked return moves along its own lidar ray onto its object's
+            surface, at most this far (metres; None: off, each return where the lidar put it, as
+            before 2026-11-28): the mean, along the return's normal, of the object's returns round
+            it of its own sweep and the two before and after it
+            (:func:`drivetrack.visibility.points_on_surface`). Real returns carry
+            centimetres of range noise, and at a few metres a centimetre across the camera's ray
+            is pixels. Only when a clip's returns show range noise (an estimate of 2 mm or more:
+            exact ranges are left bit for bit) and under ``occlusion="surface"`` with the
+            segment's normals (``normals_from: segment``, the trajectory). docs/visibility.md
+            "Returns moved onto their surface".
+        surface_snap_margin_m: that surface is drawn from the returns inside the label boxes grown
+            by this much (metres): where a box is tight, the returns inside it are those whose
+            noise moved them inwards, and their mean lies inside the true surface.
         surfel_radius_m, surfel_max_px: each occluder return covers a square of
             ``min(surfel_max_px, round(f * r / z))`` pixels either side of its own, r its radius:
             ``surfel_radius_m`` for every return (``surfel_radius_from: fixed``) or, with
@@ -200,6 +213,8 @@ class TrackConfig:
     ambiguity_m: float = 0.1
     ambiguity_deg: float = 5.0
     surfel_radius_m: float = 0.05
+    surface_snap_max_m: float | None = 0.1
+    surface_snap_margin_m: float = 0.1
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
     occluder_subpixels: int = 2
@@ -286,6 +301,12 @@ class TrackConfig:
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
+        if self.surface_snap_max_m is not None and not self.surface_snap_max_m > 0:
+            raise ValueError(f"TrackConfig.surface_snap_max_m must be None or > 0 metres, got "
+                             f"{self.surface_snap_max_m!r}")
+        if not self.surface_snap_margin_m >= 0:
+            raise ValueError(f"TrackConfig.surface_snap_margin_m must be >= 0 metres, got "
+                             f"{self.surface_snap_margin_m!r}")
         if not isinstance(self.depth_defers_to_zbuffer, bool):
             raise ValueError(f"TrackConfig.depth_defers_to_zbuffer must be true or false, got "
                              f"{self.depth_defers_to_zbuffer!r}")

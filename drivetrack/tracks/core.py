@@ -601,6 +601,35 @@ def segment_cloud_normals(plan, object_id: str, poses):
     return plan.occluder_cache[key]
 
 
+def segment_surface_cloud(plan, object_id: str, poses):
+    """The :func:`drivetrack.visibility.surface_cloud` of all of ``object_id``'s returns over the
+    segment inside its boxes grown by ``surface_snap_margin_m`` (both sides of a noisy surface),
+    cached per object and segment (``plan.occluder_cache``); None without returns or normals."""
+    from dataclasses import replace
+
+    from drivetrack.tracks.plan import select_object_points
+    from drivetrack.visibility import surface_cloud
+
+    key = f"{object_id}#snap"
+    if key not in plan.occluder_cache:
+        fitted = segment_cloud_normals(plan, object_id, poses)
+        surface = None
+        if fitted is not None:
+            scene, config = plan.scene, plan.config
+            boxes = scene.boxes
+            all_rows = np.flatnonzero(boxes.object_id == object_id)
+            all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+            offsets, index = select_object_points(scene, replace(config, box_margin_m=config.surface_snap_margin_m),
+                                                  all_rows)
+            counts = offsets[all_rows + 1] - offsets[all_rows]
+            lidar_rows = np.concatenate([index[offsets[r]:offsets[r + 1]] for r in all_rows])
+            source = np.repeat(np.arange(all_rows.size), counts)
+            points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+            surface = surface_cloud(points_box, boxes.frame[all_rows][source], fitted)
+        plan.occluder_cache[key] = surface
+    return plan.occluder_cache[key]
+
+
 def segment_surface_radius(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m]: the splat radius (metres) of each point of :func:`segment_surface`: from the
     local spacing, ``surfel_spacing_scale`` x the distance to the 4th nearest neighbour, within
@@ -911,8 +940,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     by_surface = config.occlusion == "surface"
     surfels = centres_box = None
     if by_surface and config.back_face_max_deg is not None:
-        from drivetrack.visibility import (SurfelNormals, camera_centres_box, sensor_positions, surfel_normals,
-                                           with_box_face_normals)
+        from drivetrack.visibility import (SurfelNormals, camera_centres_box, points_on_surface, sensor_positions,
+                                           surfel_normals, with_box_face_normals)
 
         sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
         sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
@@ -923,6 +952,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             fitted = segment_cloud_normals(plan, job.object_id, poses)
             surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None    # too few: none
                        else SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool)))
+            # range noise: each return moved along its ray onto its sweep's surface (exact ranges stay)
+            if fitted is not None and config.surface_snap_max_m is not None:
+                rays_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3],
+                                     lidar.points_vehicle[lidar_rows] - sensor_vehicle)
+                p_box, _ = points_on_surface(p_box, boxes.frame[rows][source_clip], rays_box, surfels.normal,
+                                             lambda: segment_surface_cloud(plan, job.object_id, poses),
+                                             surfels.reliable, float(config.surface_snap_max_m))
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood)

@@ -32,6 +32,13 @@ point is the back-face test's question, so that surface hides nothing at a point
 reliable (where it is not, the back-face test cannot decide: there the surface is the object's
 own only where the ray from it to the point runs outside the box itself).
 
+Returns onto their surface (:func:`points_on_surface`, ``TrackConfig.surface_snap_max_m``): a
+return's range carries centimetres of noise along its ray, and a tracked point carries that offset
+through every frame (at a few metres from a camera a centimetre across its ray is pixels). The
+returns of the object's own sweep and the nearest few round it, on the same face, give the
+surface under it far better; the point moves along its own ray onto it, when the returns show
+range noise at all (exact ranges stay bit for bit).
+
 Shapes: n points, T frames; metres, box frame unless named otherwise.
 """
 from __future__ import annotations
@@ -41,9 +48,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
-           "SHIFT_TOLERANCE_M", "CloudNormals", "SurfelNormals", "box_face_normals", "camera_centres_box",
-           "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward", "other_boxes", "other_surface",
-           "own_box_parameters", "own_surface", "sensor_positions", "surfel_normals", "with_box_face_normals"]
+           "SHIFT_TOLERANCE_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
+           "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
+           "other_boxes", "other_surface", "own_box_parameters", "own_surface", "points_on_surface", "range_noise_m",
+           "sensor_positions", "surface_cloud", "surfel_normals", "with_box_face_normals"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
@@ -200,6 +208,156 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
     normal[orient_outward(normal, points_box, sensor_box)] *= -1.0
     reliable = (fitted.reach_m[at] <= max_neighbour_m) & (fitted.planarity[at] >= min_planarity)
     return SurfelNormals(normal, reliable)
+
+
+#: :func:`points_on_surface`: the surface under a point is the mean of the returns within this
+#: distance (metres) of its normal line ...
+SNAP_RADIUS_M = 0.08
+#: ... and this distance of the point along it (metres; a range's noise is centimetres) ...
+SNAP_SLAB_M = 0.08
+#: ... whose normal lies within this angle (degrees) of the point's (the same face) ...
+SNAP_MAX_TILT_DEG = 30.0
+#: ... when there are at least this many of them.
+SNAP_MIN_RETURNS = 10
+#: A point moves only when its ray meets the surface at least this steeply (the cosine between
+#: ray and normal): at grazing incidence a small error of the surface is a long move along the ray.
+SNAP_MIN_INCIDENCE_COS = 0.1
+#: ... and only when the returns' range noise (:func:`range_noise_m`) is at least this (metres):
+#: exact ranges stay where they are ...
+SNAP_MIN_NOISE_M = 0.002
+#: ... estimated from at least this many returns, of an even subset of this many at most from
+#: this many of the clip's frames (evenly spaced).
+SNAP_MIN_POINTS = 100
+SNAP_NOISE_SAMPLE = 2000
+SNAP_NOISE_FRAMES = 4
+#: The surface under a return is that of the returns of its own sweep and of this many sweeps before
+#: and after it (placed by the object's trajectory: more returns, their placement's errors small).
+SNAP_WINDOW_FRAMES = 2
+
+
+@dataclass
+class SurfaceCloud:
+    """An object's returns over the segment, frame by frame, for :func:`points_on_surface`.
+
+    Attributes:
+        points: float64 [r, 3], the returns (box frame at each one's capture time, metres), sorted
+            by frame.
+        normal: float64 [r, 3], unit, each one's normal (its nearest back-face cloud point's; sign
+            arbitrary).
+        frames: int64 [F], the segment frames that have returns, ascending.
+        offsets: int64 [F + 1], the returns of ``frames[i]`` are rows ``offsets[i]:offsets[i + 1]``.
+    """
+    points: np.ndarray
+    normal: np.ndarray
+    frames: np.ndarray
+    offsets: np.ndarray
+
+
+def surface_cloud(points_box: np.ndarray, frame: np.ndarray, fitted: CloudNormals) -> SurfaceCloud:
+    """The :class:`SurfaceCloud` of an object's returns ``points_box`` float64 [r, 3] (box frame;
+    selected from the label boxes *grown* by a few centimetres: see :func:`points_on_surface`),
+    ``frame`` int [r] each one's segment frame; ``fitted`` the back-face normals' cloud."""
+    normal = fitted.normal[fitted.nearest(points_box)] if points_box.shape[0] else np.zeros((0, 3))
+    return SurfaceCloud(*_by_frame(points_box, normal, frame))
+
+
+def range_noise_m(steps: np.ndarray) -> float:
+    """The returns' range noise (metres, a sigma) from ``steps`` float [n] (metres), each
+    return's distance along its ray from the surface under it (:func:`points_on_surface`): 1.4826
+    times their median absolute value (the median absolute deviation of a normal distribution);
+    NaN for none."""
+    steps = np.asarray(steps, dtype=np.float64)
+    return float(1.4826 * np.median(np.abs(steps))) if steps.size else float("nan")
+
+
+def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.ndarray, normal: np.ndarray,
+                      surface, usable: np.ndarray, max_move_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each return moved along its own lidar ray onto the object's surface: ``(moved float64 [n,
+    3], moved bool [n])``.
+
+    A return's range carries centimetres of noise, along its ray; the surface under it is known
+    far better from the many returns round it, of its own sweep and the nearest few.
+    ``points_box`` float64 [n, 3], ``frame`` int [n] each one's segment frame and ``rays_box``
+    float64 [n, 3] (each ray's direction, any length) in the box frame, ``normal`` float64 [n, 3]
+    each point's unit normal (sign arbitrary); ``surface`` the object's returns frame by frame
+    (:func:`surface_cloud`; or a function of no arguments returning it or None, called only when
+    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable. The surface under a point is the
+    mean, along its normal, of the returns of its frame and :data:`SNAP_WINDOW_FRAMES` frames
+    either side within :data:`SNAP_RADIUS_M` of its normal line
+    and :data:`SNAP_SLAB_M` along it whose normal lies within :data:`SNAP_MAX_TILT_DEG` of it
+    (:func:`drivetrack.visibility.kernel.surface_offsets`; at least :data:`SNAP_MIN_RETURNS`). The
+    point moves to where its ray meets that plane when the ray meets it at
+    :data:`SNAP_MIN_INCIDENCE_COS` or steeper and the move is at most ``max_move_m`` (metres); the
+    others stay. Nothing moves unless the returns show range noise: the noise of an even subset
+    of :data:`SNAP_NOISE_SAMPLE` of the points on :data:`SNAP_NOISE_FRAMES` frames, measured
+    against the surface of the points themselves (of those frames and their neighbours) (:func:`range_noise_m`, at least
+    :data:`SNAP_MIN_POINTS` of them; the points are the returns inside the box, so about half the
+    noise: a detection, not an estimate), must be :data:`SNAP_MIN_NOISE_M` or more; exact ranges
+    stay bit for bit (the
+    returns of other sweeps are placed by the object's trajectory, and a surface drawn from them
+    would move an exact return by that placement's millimetres). Only a few sweeps either side:
+    over a whole segment the trajectory's errors (label noise) would add up.
+
+    ``surface`` must hold the returns on *both* sides of the surface: a selection that keeps only
+    the returns inside the label box keeps those whose noise moved them inwards where the box is
+    tight, and their mean lies inside the true surface.
+    """
+    points_box = np.ascontiguousarray(points_box, dtype=np.float64)
+    frame = np.asarray(frame, dtype=np.int64)
+    ray = rays_box / np.linalg.norm(rays_box, axis=1, keepdims=True)
+    incidence = np.einsum("ni,ni->n", ray, normal)
+    candidates = np.flatnonzero(usable & (np.abs(incidence) >= SNAP_MIN_INCIDENCE_COS))
+    out, moved = points_box.copy(), np.zeros(points_box.shape[0], dtype=bool)
+    # the noise first, from an even subset of a few frames (exact ranges: nothing more to do)
+    present = np.unique(frame[candidates])
+    some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
+    subset = candidates[np.isin(frame[candidates], some)]
+    subset = subset[np.unique(np.linspace(0, subset.size - 1, min(subset.size, SNAP_NOISE_SAMPLE)).astype(np.int64))]
+    near_some = np.abs(frame[:, None] - some[None, :]).min(axis=1) <= SNAP_WINDOW_FRAMES if some.size else \
+        np.zeros(frame.size, dtype=bool)
+    own = SurfaceCloud(*_by_frame(points_box[near_some], normal[near_some], frame[near_some]))
+    step = _steps_to_surface(points_box, frame, incidence, normal, own, subset, SNAP_WINDOW_FRAMES)
+    ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
+    if ok.sum() < min(SNAP_MIN_POINTS, SNAP_NOISE_SAMPLE) or not range_noise_m(step[ok]) >= SNAP_MIN_NOISE_M:
+        return out, moved
+    surface = surface() if callable(surface) else surface
+    if surface is None:
+        return out, moved
+    step = _steps_to_surface(points_box, frame, incidence, normal, surface, candidates, SNAP_WINDOW_FRAMES)
+    ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
+    rows = candidates[ok]
+    out[rows] += step[ok, None] * ray[rows]
+    moved[rows] = True
+    return out, moved
+
+
+def _by_frame(points: np.ndarray, normal: np.ndarray, frame: np.ndarray) -> tuple:
+    """``(points, normal, frames, offsets)`` of a :class:`SurfaceCloud`: the rows sorted by frame."""
+    order = np.argsort(frame, kind="stable")
+    frames, starts = np.unique(np.asarray(frame)[order], return_index=True)
+    return (np.ascontiguousarray(points[order], dtype=np.float64), np.ascontiguousarray(normal[order], dtype=np.float64),
+            frames.astype(np.int64), np.append(starts, order.size).astype(np.int64))
+
+
+def _steps_to_surface(points_box: np.ndarray, frame: np.ndarray, incidence: np.ndarray, normal: np.ndarray,
+                      surface: SurfaceCloud, rows: np.ndarray, window: int) -> np.ndarray:
+    """float64 [len(rows)]: how far (metres) each point ``rows`` int [k] of ``points_box`` lies from
+    the surface along its ray (:func:`points_on_surface`), NaN where its frame's returns are too few."""
+    from drivetrack.visibility import kernel
+
+    offset = np.full(rows.size, np.nan)
+    min_cos = float(np.cos(np.radians(SNAP_MAX_TILT_DEG)))
+    row_frame = frame[rows]
+    for i in np.flatnonzero(np.isin(surface.frames, row_frame)):
+        at = np.flatnonzero(row_frame == surface.frames[i])
+        near = np.flatnonzero(np.abs(surface.frames - surface.frames[i]) <= window)
+        lo, hi = surface.offsets[near[0]], surface.offsets[near[-1] + 1]
+        cloud = surface.points[lo:hi]
+        grid = kernel.cloud_grid(cloud, kernel.grid_cell(cloud))
+        offset[at] = kernel.surface_offsets(grid, surface.normal[lo:hi], points_box[rows[at]], normal[rows[at]],
+                                            SNAP_RADIUS_M, SNAP_SLAB_M, min_cos, SNAP_MIN_RETURNS)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return offset / incidence[rows]
 
 
 def box_face_normals(points_box: np.ndarray, size: np.ndarray, skin_m: float) -> tuple[np.ndarray, np.ndarray]:

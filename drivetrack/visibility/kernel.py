@@ -5,7 +5,8 @@ occluder's surfels into an image window (:func:`project_in_window`), the tracked
 projection for the z-buffer test (:func:`project_points`), the back-face test
 (:func:`facing_test`, :func:`facing_test_rows`) and the z-buffer's passes over points, returns and
 pixels around OpenCV's morphology (:func:`zbuffer_points` to :func:`zbuffer_decide`:
-``drivetrack.visibility.zbuffer.hidden_by_others(use_kernel=True)``).
+``drivetrack.visibility.zbuffer.hidden_by_others(use_kernel=True)``), and the surface under each
+tracked return (:func:`surface_offsets`: ``drivetrack.visibility.facing.points_on_surface``).
 
 Shapes: m cloud points, k neighbours, n query points; metres, box frame.
 """
@@ -20,6 +21,7 @@ from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 from drivetrack.refine.kernel import _gap2      # squared distance to a cell's interval (the k-nearest grid's)
 
 __all__ = ["NUMBA_AVAILABLE", "CloudGrid", "cloud_grid", "grid_cell", "nearest_in_grid", "shifted_neighbourhoods",
+           "surface_offsets",
            "project_in_window", "project_points", "facing_test", "facing_test_rows", "zbuffer_points", "zbuffer_near",
            "splat_groups", "scatter_min", "merge_spread", "merge_nearer", "zbuffer_on", "zbuffer_decide"]
 
@@ -510,3 +512,54 @@ def zbuffer_decide(covered, on, size, r, col, row, c0, r0, depth, abs_m, rel, hi
         hidden[i] = far < threshold
         if np.isfinite(far):
             margin[i] = np.float32(far - threshold)
+
+
+@njit(cache=True, nogil=True)
+def _offsets_kernel(queries, query_normal, lo, cell, dims, start, order, points, cloud_normal, radius, slab,
+                    min_cos, min_count, offset):
+    d0, d1, d2 = dims[0], dims[1], dims[2]
+    r2 = radius * radius
+    reach = np.sqrt(radius * radius + slab * slab)           # the cylinder lies inside this ball
+    for i in range(queries.shape[0]):
+        x, y, z = queries[i, 0], queries[i, 1], queries[i, 2]
+        nx, ny, nz = query_normal[i, 0], query_normal[i, 1], query_normal[i, 2]
+        a0, b0 = _cell_of(x - reach, lo[0], cell, d0), _cell_of(x + reach, lo[0], cell, d0)
+        a1, b1 = _cell_of(y - reach, lo[1], cell, d1), _cell_of(y + reach, lo[1], cell, d1)
+        a2, b2 = _cell_of(z - reach, lo[2], cell, d2), _cell_of(z + reach, lo[2], cell, d2)
+        count, moment = 0, 0.0
+        for gi in range(a0, b0 + 1):
+            for gj in range(a1, b1 + 1):
+                base = (gi * d1 + gj) * d2
+                for gk in range(a2, b2 + 1):
+                    c = base + gk
+                    for s in range(start[c], start[c + 1]):
+                        dx, dy, dz = points[s, 0] - x, points[s, 1] - y, points[s, 2] - z
+                        along = dx * nx + dy * ny + dz * nz
+                        if abs(along) > slab or dx * dx + dy * dy + dz * dz - along * along > r2:
+                            continue
+                        j = order[s]
+                        if abs(cloud_normal[j, 0] * nx + cloud_normal[j, 1] * ny + cloud_normal[j, 2] * nz) < min_cos:
+                            continue                    # another face (an edge within the radius)
+                        count += 1
+                        moment += along
+        offset[i] = moment / count if count >= max(min_count, 1) else np.nan
+
+
+def surface_offsets(grid: CloudGrid, cloud_normal: np.ndarray, queries: np.ndarray, query_normal: np.ndarray,
+                    radius_m: float, slab_m: float, min_cos: float, min_count: int) -> np.ndarray:
+    """float64 [n]: where the surface lies along each query's normal, relative to the query
+    (metres; NaN where too little of it is near).
+
+    ``grid`` the :func:`cloud_grid` of m cloud points (an object's returns), ``cloud_normal`` float
+    [m, 3] their unit normals (sign arbitrary); ``queries`` float [n, 3] and ``query_normal`` float
+    [n, 3] (unit). The offset is the mean of ``(q - query) . normal`` over the cloud points q
+    within ``radius_m`` of the query's normal line and ``slab_m`` of the query along it whose own
+    normal lies within ``arccos(min_cos)`` of the query's (either sign: the same face, not one
+    across an edge), when there are ``min_count`` of them or more.
+    """
+    queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+    offset = np.empty(queries.shape[0])
+    _offsets_kernel(queries, np.ascontiguousarray(query_normal, dtype=np.float64), grid.lo, float(grid.cell),
+                    grid.dims, grid.start, grid.order, grid.points, np.ascontiguousarray(cloud_normal, dtype=np.float64),
+                    float(radius_m), float(slab_m), float(min_cos), int(min_count), offset)
+    return offset
