@@ -281,22 +281,24 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     float64 [n, 3] (each ray's direction, any length) in the box frame, ``normal`` float64 [n, 3]
     each point's unit normal (sign arbitrary); ``surface`` the object's returns frame by frame
     (:func:`surface_cloud`; or a function of no arguments returning it or None, called only when
-    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable. The surface under a point is the
-    mean, along its normal, of the returns of its frame and :data:`SNAP_WINDOW_FRAMES` frames
-    either side within :data:`SNAP_RADIUS_M` of its normal line
+    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable.
+
+    The surface under a point is the mean, along its normal, of the returns of its frame and
+    :data:`SNAP_WINDOW_FRAMES` frames either side within :data:`SNAP_RADIUS_M` of its normal line
     and :data:`SNAP_SLAB_M` along it whose normal lies within :data:`SNAP_MAX_TILT_DEG` of it
     (:func:`drivetrack.visibility.kernel.surface_offsets`; at least :data:`SNAP_MIN_RETURNS`). The
     point moves to where its ray meets that plane when the ray meets it at
     :data:`SNAP_MIN_INCIDENCE_COS` or steeper and the move is at most ``max_move_m`` (metres); the
-    others stay. Nothing moves unless the returns show range noise: the noise of an even subset
-    of :data:`SNAP_NOISE_SAMPLE` of the points on :data:`SNAP_NOISE_FRAMES` frames, measured
-    against the surface of the points themselves (of those frames and their neighbours) (:func:`range_noise_m`, at least
-    :data:`SNAP_MIN_POINTS` of them; the points are the returns inside the box, so about half the
-    noise: a detection, not an estimate), must be :data:`SNAP_MIN_NOISE_M` or more; exact ranges
-    stay bit for bit (the
-    returns of other sweeps are placed by the object's trajectory, and a surface drawn from them
-    would move an exact return by that placement's millimetres). Only a few sweeps either side:
-    over a whole segment the trajectory's errors (label noise) would add up.
+    others stay. Only a few sweeps either side: over a whole segment the trajectory's errors
+    (label noise) would add up.
+
+    Nothing moves unless the returns show range noise: :func:`range_noise_m` of an even subset of
+    :data:`SNAP_NOISE_SAMPLE` of the points on :data:`SNAP_NOISE_FRAMES` frames, measured against
+    the surface of the points themselves (of those frames and their neighbours; at least
+    :data:`SNAP_MIN_POINTS` of them), must be :data:`SNAP_MIN_NOISE_M` or more. The points are the
+    returns inside the box, so that is about half the noise: a detection, not an estimate. Exact
+    ranges stay bit for bit (the returns of other sweeps are placed by the object's trajectory,
+    and a surface drawn from them would move an exact return by that placement's millimetres).
 
     ``surface`` must hold the returns on *both* sides of the surface: a selection that keeps only
     the returns inside the label box keeps those whose noise moved them inwards where the box is
