@@ -552,6 +552,12 @@ def _surfel_cube_m(config) -> float:
     return 0.5 * float(config.surfel_radius_m)
 
 
+def _object_rows(boxes, object_id: str) -> np.ndarray:
+    """int64 [R]: the box rows of ``object_id``, in frame order."""
+    rows = np.flatnonzero(boxes.object_id == object_id)
+    return rows[np.argsort(boxes.frame[rows], kind="stable")]
+
+
 def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
     """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
     both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
@@ -560,8 +566,7 @@ def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray
     clouds = plan.occluder_cache.get(object_id)
     if clouds is None:
         boxes = plan.scene.boxes
-        all_rows = np.flatnonzero(boxes.object_id == object_id)
-        all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+        all_rows = _object_rows(boxes, object_id)
         lidar_rows, source = plan.box_points(all_rows)
         points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
         cube_m = _surfel_cube_m(plan.config)
@@ -607,7 +612,7 @@ def segment_surface_cloud(plan, object_id: str, poses):
     cached per object and segment (``plan.occluder_cache``); None without returns or normals."""
     from dataclasses import replace
 
-    from drivetrack.tracks.plan import select_object_points
+    from drivetrack.tracks.plan import box_members, select_object_points
     from drivetrack.visibility import surface_cloud
 
     key = f"{object_id}#snap"
@@ -617,13 +622,10 @@ def segment_surface_cloud(plan, object_id: str, poses):
         if fitted is not None:
             scene, config = plan.scene, plan.config
             boxes = scene.boxes
-            all_rows = np.flatnonzero(boxes.object_id == object_id)
-            all_rows = all_rows[np.argsort(boxes.frame[all_rows], kind="stable")]
+            all_rows = _object_rows(boxes, object_id)
             offsets, index = select_object_points(scene, replace(config, box_margin_m=config.surface_snap_margin_m),
                                                   all_rows)
-            counts = offsets[all_rows + 1] - offsets[all_rows]
-            lidar_rows = np.concatenate([index[offsets[r]:offsets[r + 1]] for r in all_rows])
-            source = np.repeat(np.arange(all_rows.size), counts)
+            lidar_rows, source = box_members(offsets, index, all_rows)
             points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
             surface = surface_cloud(points_box, boxes.frame[all_rows][source], fitted)
         plan.occluder_cache[key] = surface

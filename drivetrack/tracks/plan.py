@@ -30,7 +30,7 @@ from drivetrack.tracks.config import TrackConfig
 from drivetrack.waymo.schema import BoxType, CameraName
 
 __all__ = ["CameraGeometry", "ObjectJob", "SegmentPlan", "plan_segment",
-           "camera_geometry", "continuous_runs", "select_object_points"]
+           "box_members", "camera_geometry", "continuous_runs", "select_object_points"]
 
 
 @dataclass
@@ -116,12 +116,19 @@ class SegmentPlan:
 
     def box_points(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """LiDAR rows of box rows ``rows`` (int [R]) and, for each, its position in ``rows``."""
-        rows = np.asarray(rows, dtype=np.int64)
-        starts, stops = self.box_point_offsets[rows], self.box_point_offsets[rows + 1]
-        counts = stops - starts
-        owner = np.repeat(np.arange(rows.shape[0]), counts)
-        within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        return self.box_point_index[np.repeat(starts, counts) + within], owner
+        return box_members(self.box_point_offsets, self.box_point_index, rows)
+
+
+def box_members(offsets: np.ndarray, index: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(members, owner)`` of box rows ``rows`` (int [R]) in the CSR ``(offsets int [K + 1],
+    index int [P])`` of :func:`select_object_points`: their members in order, and for each the
+    position of its box row in ``rows``."""
+    rows = np.asarray(rows, dtype=np.int64)
+    starts, stops = offsets[rows], offsets[rows + 1]
+    counts = stops - starts
+    owner = np.repeat(np.arange(rows.shape[0]), counts)
+    within = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    return index[np.repeat(starts, counts) + within], owner
 
 
 def continuous_runs(mask: np.ndarray) -> np.ndarray:
