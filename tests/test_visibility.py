@@ -1225,6 +1225,20 @@ def test_returns_move_along_their_rays_onto_their_frames_surface():
     assert edge.sum() > 500 and np.median(after[edge]) < 0.7 * np.median(before[edge])
     assert range_noise_m(np.einsum("ni,ni->n", noisy - points, ray)) == pytest.approx(0.02, rel=0.1)
 
+    # the same returns in two cameras' clips (keys: their lidar rows): each measured once, the
+    # moves those of one call without keys
+    surface = surface_cloud(noisy, frame, fitted)
+    keys = 1000 + 7 * np.arange(len(points))
+    first = rng.permutation(len(points))[: len(points) // 2]
+    got, got_moved = points_on_surface(noisy[first], frame[first], ray[first], normal[first], surface,
+                                       usable[first], 0.1, keys=keys[first])
+    assert np.array_equal(got, moved_points[first]) and np.array_equal(got_moved, moved[first])
+    remembered = surface.remembered[0].size
+    assert remembered >= got_moved.sum() and np.all(np.diff(surface.remembered[0]) > 0)
+    got, got_moved = points_on_surface(noisy, frame, ray, normal, surface, usable, 0.1, keys=keys)
+    assert np.array_equal(got, moved_points) and np.array_equal(got_moved, moved)
+    assert surface.remembered[0].size > remembered and np.all(np.diff(surface.remembered[0]) > 0)
+
     # exact ranges: nothing moves
     exact_fitted = cloud_normals(surfel_means(points, 0.025), 30)
     exact_normal = exact_fitted.normal[exact_fitted.nearest(points)]

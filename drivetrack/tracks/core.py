@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import threading
 import warnings
 import zlib
 from dataclasses import dataclass, field
@@ -606,13 +607,39 @@ def segment_cloud_normals(plan, object_id: str, poses):
     return plan.occluder_cache[key]
 
 
-def segment_surface_cloud(plan, object_id: str, poses):
-    """The :func:`drivetrack.visibility.surface_cloud` of all of ``object_id``'s returns over the
-    segment inside its boxes grown by ``surface_snap_margin_m`` (both sides of a noisy surface),
-    cached per object and segment (``plan.occluder_cache``); None without returns or normals."""
+def _grown_selection(plan) -> tuple[np.ndarray, np.ndarray]:
+    """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of every box row
+    of the plan's tracked objects, grown by ``surface_snap_margin_m``: one pass over the segment's
+    returns for all of them (a pass per object scans each frame's returns once per object), made
+    when the first object needs it and cached in ``plan.occluder_cache``."""
     from dataclasses import replace
 
-    from drivetrack.tracks.plan import box_members, select_object_points
+    from drivetrack.tracks.plan import select_object_points
+
+    cache = plan.occluder_cache
+    grown = cache.get("#grown")
+    if grown is None:
+        # the other objects' jobs wait for it rather than make it again (the lock leaves the
+        # cache once it is made: a plan sent to another process carries no lock)
+        with cache.setdefault("#grown-lock", threading.Lock()):
+            grown = cache.get("#grown")
+            if grown is None:
+                config, boxes = plan.config, plan.scene.boxes
+                tracked = sorted({job.object_id for job in plan.jobs})
+                rows = np.flatnonzero(np.isin(boxes.object_id.astype(str), tracked))
+                grown = select_object_points(plan.scene, replace(config, box_margin_m=config.surface_snap_margin_m),
+                                             rows)
+                cache["#grown"] = grown
+        cache.pop("#grown-lock", None)
+    return grown
+
+
+def segment_surface_cloud(plan, object_id: str, poses):
+    """The :func:`drivetrack.visibility.surface_cloud` of all of ``object_id``'s returns over the
+    segment inside its boxes grown by ``surface_snap_margin_m`` (both sides of a noisy surface;
+    :func:`_grown_selection`), cached per object and segment (``plan.occluder_cache``); None
+    without returns or normals."""
+    from drivetrack.tracks.plan import box_members
     from drivetrack.visibility import surface_cloud
 
     key = f"{object_id}#snap"
@@ -620,11 +647,9 @@ def segment_surface_cloud(plan, object_id: str, poses):
         fitted = segment_cloud_normals(plan, object_id, poses)
         surface = None
         if fitted is not None:
-            scene, config = plan.scene, plan.config
-            boxes = scene.boxes
+            boxes = plan.scene.boxes
             all_rows = _object_rows(boxes, object_id)
-            offsets, index = select_object_points(scene, replace(config, box_margin_m=config.surface_snap_margin_m),
-                                                  all_rows)
+            offsets, index = _grown_selection(plan)
             lidar_rows, source = box_members(offsets, index, all_rows)
             points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
             surface = surface_cloud(points_box, boxes.frame[all_rows][source], fitted)
@@ -960,7 +985,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                                      lidar.points_vehicle[lidar_rows] - sensor_vehicle)
                 p_box, _ = points_on_surface(p_box, boxes.frame[rows][source_clip], rays_box, surfels.normal,
                                              lambda: segment_surface_cloud(plan, job.object_id, poses),
-                                             surfels.reliable, float(config.surface_snap_max_m))
+                                             surfels.reliable, float(config.surface_snap_max_m), keys=lidar_rows)
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood)

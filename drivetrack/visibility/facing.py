@@ -246,11 +246,17 @@ class SurfaceCloud:
             arbitrary).
         frames: int64 [F], the segment frames that have returns, ascending.
         offsets: int64 [F + 1], the returns of ``frames[i]`` are rows ``offsets[i]:offsets[i + 1]``.
+        remembered: ``(keys int64 [m] ascending, steps float64 [m])``: the steps to the surface
+            (metres, along the ray; NaN: none) of the points already moved, by their keys
+            (:func:`points_on_surface`'s ``keys``): an object seen by several cameras has the
+            same returns in each camera's clip, and each is measured once.
     """
     points: np.ndarray
     normal: np.ndarray
     frames: np.ndarray
     offsets: np.ndarray
+    remembered: tuple = field(default_factory=lambda: (np.zeros(0, dtype=np.int64), np.zeros(0)),
+                              repr=False, compare=False)
 
 
 def surface_cloud(points_box: np.ndarray, frame: np.ndarray, fitted: CloudNormals) -> SurfaceCloud:
@@ -271,7 +277,8 @@ def range_noise_m(steps: np.ndarray) -> float:
 
 
 def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.ndarray, normal: np.ndarray,
-                      surface, usable: np.ndarray, max_move_m: float) -> tuple[np.ndarray, np.ndarray]:
+                      surface, usable: np.ndarray, max_move_m: float,
+                      keys: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Each return moved along its own lidar ray onto the object's surface: ``(moved float64 [n,
     3], moved bool [n])``.
 
@@ -281,7 +288,10 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     float64 [n, 3] (each ray's direction, any length) in the box frame, ``normal`` float64 [n, 3]
     each point's unit normal (sign arbitrary); ``surface`` the object's returns frame by frame
     (:func:`surface_cloud`; or a function of no arguments returning it or None, called only when
-    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable.
+    the returns are moved); ``usable`` bool [n]: the points whose normal is reliable; ``keys`` int
+    [n] or None: each point's unique id (its lidar row), under which its step to the surface is
+    remembered in ``surface`` (:attr:`SurfaceCloud.remembered`) for later calls with the same
+    points, positions and normals (an object's clips in several cameras).
 
     The surface under a point is the mean, along its normal, of the returns of its frame and
     :data:`SNAP_WINDOW_FRAMES` frames either side within :data:`SNAP_RADIUS_M` of its normal line
@@ -325,12 +335,34 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     surface = surface() if callable(surface) else surface
     if surface is None:
         return out, moved
-    step = _steps_to_surface(points_box, frame, incidence, normal, surface, candidates, SNAP_WINDOW_FRAMES)
+    if keys is None:
+        step = _steps_to_surface(points_box, frame, incidence, normal, surface, candidates, SNAP_WINDOW_FRAMES)
+    else:
+        step = _remembered_steps(surface, np.asarray(keys, dtype=np.int64)[candidates], lambda missing: _steps_to_surface(
+            points_box, frame, incidence, normal, surface, candidates[missing], SNAP_WINDOW_FRAMES))
     ok = np.isfinite(step) & (np.abs(step) <= max_move_m)
     rows = candidates[ok]
     out[rows] += step[ok, None] * ray[rows]
     moved[rows] = True
     return out, moved
+
+
+def _remembered_steps(surface: SurfaceCloud, keys: np.ndarray, steps_of) -> np.ndarray:
+    """float64 [k]: the steps of the points with unique ``keys`` int64 [k]: those remembered in
+    ``surface``, the others ``steps_of(positions int [m])`` (then remembered too)."""
+    known_keys, known = surface.remembered
+    at = np.minimum(np.searchsorted(known_keys, keys), max(known_keys.size - 1, 0))
+    hit = known_keys[at] == keys if known_keys.size else np.zeros(keys.size, dtype=bool)
+    step = np.empty(keys.size)
+    step[hit] = known[at[hit]]
+    missing = np.flatnonzero(~hit)
+    if missing.size:
+        step[missing] = steps_of(missing)
+        all_keys = np.concatenate([known_keys, keys[missing]])
+        order = np.argsort(all_keys, kind="stable")
+        # one assignment: another thread's call sees the old pair or the new one, never a mix
+        surface.remembered = (all_keys[order], np.concatenate([known, step[missing]])[order])
+    return step
 
 
 def _by_frame(points: np.ndarray, normal: np.ndarray, frame: np.ndarray) -> tuple:
