@@ -538,8 +538,9 @@ def test_frame_time_candidates_kernel_matches_the_numpy_reference(tilted, label_
     got, ref = refine_kernel.frame_time_candidates(*args), _frame_time_candidates(*args)
     for a, b in zip(got, ref):
         np.testing.assert_array_equal(a, b)
-    local, vehicle, kept = ref
+    local, vehicle, kept, position = ref
     assert 0 < kept.size < m
+    assert np.all(np.diff(position) > 0) and np.array_equal(kept, owner[position])
     # direct check: the box at each return's time, and the box pose at its own time
     r = rows[owner]
     dt = offsets[index].astype(np.float64) - (0.0 if label_offset is None else label_offset[r])

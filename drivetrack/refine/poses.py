@@ -10,7 +10,7 @@ from drivetrack.geometry import (box_from_center_heading, center_heading_from_po
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.motion import _motion_operator
-from drivetrack.refine.select import _body_points, _inside, _Selection, spread_priority
+from drivetrack.refine.select import _body_points, _inside, _Selection, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
 
@@ -215,7 +215,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         points, frame = points[order], frame[order]
     # fixed per-point priority for the per-frame cap: a hash of the point's coordinates, so the
     # result does not depend on the order of the input rows
-    priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
+    priority = point_priority(points)
     if config.sample_voxel_m is not None:
         # the cap spread evenly over the surface, not in proportion to the returns (select.spread_priority)
         priority = spread_priority(points, frame, priority, float(config.sample_voxel_m))
