@@ -50,9 +50,9 @@ import numpy as np
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
            "SHIFT_TOLERANCE_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
            "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
-           "other_boxes", "other_surface", "own_box_parameters", "own_surface", "points_on_surface", "points_on_sweep_surface",
-           "range_noise_m",
-           "sensor_positions", "surface_cloud", "surfel_normals", "with_box_face_normals"]
+           "other_boxes", "other_surface", "own_box_parameters", "own_surface", "points_on_surface",
+           "points_on_sweep_surface", "range_noise_m", "sensor_positions", "surface_cloud", "surfel_normals",
+           "with_box_face_normals"]
 
 #: Stand-in lidar position (vehicle frame, metres) for a laser without calibration: about where
 #: Waymo's roof lidar sits (1.4 m ahead of the rear axle, 2.2 m up).
