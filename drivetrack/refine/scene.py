@@ -123,6 +123,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                 motion[0], motion[1], pitch_all, roll_all, boxes.size, config.candidate_margin_m)
             inside = np.ones(owner.size, dtype=bool)
             returns = index[position]
+        measured = None                # the candidates as measured, when p holds moved copies
         if config.sweep_surface_max_m is not None and oid not in static:
             # range noise: each return onto its own sweep's surface first (exact ranges stay); the
             # candidates fill the box grown by candidate_margin_m, both sides of a noisy surface
@@ -138,7 +139,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                                                         float(config.sweep_surface_max_m),
                                                         rows=np.searchsorted(np.flatnonzero(inside), kept))
             if moved.any():
-                p, owner, local = on_surface, owner[kept], local[kept]
+                measured, p, owner, local = p[kept], on_surface, owner[kept], local[kept]
                 inside = np.ones(kept.size, dtype=bool)
         if oid in static:              # one pose: nothing frame to frame to register (refine/static.py)
             result = dataclasses.replace(
@@ -152,7 +153,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         else:
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                          p[inside], owner[inside], timestamps_s[frames], config,
-                                         name=f"{scene.segment}/{oid}")
+                                         name=f"{scene.segment}/{oid}", points_measured=measured)
         if result.refined:
             update = {"center": result.center_vehicle, "heading": result.heading, "size": result.size}
             if tilted:
