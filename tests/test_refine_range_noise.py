@@ -51,9 +51,9 @@ def _jitter_cm(scene, truth, object_id: str) -> float:
 def test_registration_of_noisy_ranges_from_each_sweeps_surface(tmp_path):
     """5 cm / 1 deg labels and 2 cm range noise (medium hard world, whose lidar is dense enough
     for a sweep's own surface; 6 frames): with the returns moved onto their sweep's surface first
-    (``sweep_surface_max_m`` 0.1) the movers' boxes jitter less about the truth: measured 0.83 -> 0.39, 1.46 -> 0.44,
-    3.97 -> 1.11 and 1.76 -> 1.10 cm; five movers unchanged (too few returns round each, or
-    nothing moved), one 4.06 -> 4.16 cm."""
+    (``sweep_surface_max_m`` 0.1) the movers' boxes jitter less about the truth: measured 0.83 ->
+    0.39, 1.46 -> 0.44, 3.97 -> 1.11 and 1.76 -> 1.10 cm; five movers unchanged (too few returns
+    round each, or nothing moved), one 4.06 -> 4.16 cm."""
     world = _world(tmp_path, "medium", 6, 0.02)
     off, on = _refined(world, None), _refined(world, 0.1)
     truth = world[2]
