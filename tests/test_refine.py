@@ -293,6 +293,8 @@ def test_bad_config_raises():
         RefineConfig(jerk_sigma_mps3=0.0)
     with pytest.raises(ValueError, match="sample_voxel_m"):
         RefineConfig(sample_voxel_m=-0.1)
+    with pytest.raises(ValueError, match="sweep_surface_max_m"):
+        RefineConfig(sweep_surface_max_m=0.0)
     with pytest.raises(ValueError, match="unknown keys"):
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
