@@ -293,6 +293,8 @@ def test_bad_config_raises():
         RefineConfig(jerk_sigma_mps3=0.0)
     with pytest.raises(ValueError, match="sample_voxel_m"):
         RefineConfig(sample_voxel_m=-0.1)
+    with pytest.raises(ValueError, match="sweep_surface_max_m"):
+        RefineConfig(sweep_surface_max_m=0.0)
     with pytest.raises(ValueError, match="unknown keys"):
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
@@ -538,8 +540,9 @@ def test_frame_time_candidates_kernel_matches_the_numpy_reference(tilted, label_
     got, ref = refine_kernel.frame_time_candidates(*args), _frame_time_candidates(*args)
     for a, b in zip(got, ref):
         np.testing.assert_array_equal(a, b)
-    local, vehicle, kept = ref
+    local, vehicle, kept, position = ref
     assert 0 < kept.size < m
+    assert np.all(np.diff(position) > 0) and np.array_equal(kept, owner[position])
     # direct check: the box at each return's time, and the box pose at its own time
     r = rows[owner]
     dt = offsets[index].astype(np.float64) - (0.0 if label_offset is None else label_offset[r])
@@ -760,3 +763,25 @@ def test_even_subsets_take_a_sparse_face_before_a_second_return_of_a_dense_one()
     assert (np.floor(spread[frame == 1]) == 0).sum() == np.unique(np.floor(points[frame == 1] / 0.1).astype(int), axis=0).shape[0]
     order = rng.permutation(points.shape[0])
     np.testing.assert_array_equal(spread_priority(points[order], frame[order], uniform[order], 0.1), spread[order])
+
+
+def test_points_measured_decide_whether_the_labels_are_kept():
+    """``points_measured``: the poses are solved on moved copies of the returns, but whether they
+    beat the labels is decided on the returns as measured. Exact labels, returns moved 3 cm per
+    frame (an error a pose absorbs): solved and decided on the moved copies, the labels are
+    replaced; decided on the measured returns, they are kept; the same points as measured change
+    nothing; a wrong shape is refused."""
+    exact, labels, wfv, pts, frame, ts = make_object(t_count=10, noise_m=0.0, seed=12)
+    shift = np.random.default_rng(3).normal(0.0, 0.03, size=(exact.shape[0], 3))
+    moved = pts + shift[frame]
+    fooled = refine_object_poses(exact, SIZE, wfv, moved, frame, ts)
+    assert fooled.refined
+    kept = refine_object_poses(exact, SIZE, wfv, moved, frame, ts, points_measured=pts)
+    assert not kept.refined and kept.reason == "labels_consistent" and "as measured" in kept.detail
+    np.testing.assert_array_equal(kept.vehicle_from_box, exact)
+    same = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, points_measured=pts)
+    plain = refine_object_poses(labels, SIZE, wfv, pts, frame, ts)
+    np.testing.assert_array_equal(same.vehicle_from_box, plain.vehicle_from_box)
+    with pytest.raises(ValueError, match="points_measured") as info:
+        refine_object_poses(labels, SIZE, wfv, pts, frame, ts, name="seg/obj9", points_measured=pts[:-1])
+    assert "seg/obj9" in str(info.value)

@@ -116,6 +116,13 @@ class RefineConfig:
             (:func:`drivetrack.tracks.core.occluding_objects`): the occlusion z-buffer draws their
             returns carried by their boxes, so noisy labels blur their surface as they would a
             tracked object's (docs/refinement.md, "Occluders").
+        sweep_surface_max_m: (``refine_scene_boxes``) before registering a moving object, each
+            candidate return moves along its own lidar ray onto the surface of its own sweep's
+            candidates round it, by at most this much (metres; None: off), when the returns show
+            range noise (:func:`drivetrack.visibility.points_on_sweep_surface`; exact ranges stay
+            bit for bit): the registration then matches surfaces instead of each return's
+            centimetres of noise. Off by default: it helps noisy labels, but lets the
+            registration replace exact labels (docs/refinement.md, "Range noise").
         kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
             kernels of ``drivetrack.refine.kernel``) or ``numpy`` (the scipy/numpy reference,
             same results up to floating-point rounding and ties).
@@ -162,6 +169,7 @@ class RefineConfig:
     fit_extent: bool = True
     extent_margin_m: float = 0.02
     max_extent_growth_m: float = 0.1
+    sweep_surface_max_m: float | None = None
     kernel: str = "numba"
 
     def __post_init__(self):
@@ -190,6 +198,11 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"RefineConfig.{name} must be >= 0, got {value!r}")
+        if self.sweep_surface_max_m is not None and not (
+                isinstance(self.sweep_surface_max_m, (int, float)) and not isinstance(self.sweep_surface_max_m, bool)
+                and np.isfinite(self.sweep_surface_max_m) and self.sweep_surface_max_m > 0):
+            raise ValueError(f"RefineConfig.sweep_surface_max_m must be None or a positive number of metres, got "
+                             f"{self.sweep_surface_max_m!r}")
         if self.pitch_roll_sigma_deg is not None and not (np.isfinite(self.pitch_roll_sigma_deg)
                                                           and self.pitch_roll_sigma_deg > 0):
             raise ValueError(f"RefineConfig.pitch_roll_sigma_deg must be a positive number or None (4 DOF), "

@@ -370,7 +370,7 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
 
 @njit(cache=True, nogil=True)
 def _frame_time_kernel(points, index, owner, row_of, offsets, label_offset, has_label_offset, center, heading,
-                       velocity, yaw_rate, pitch, roll, has_tilt, size, margin, local, vehicle, kept):
+                       velocity, yaw_rate, pitch, roll, has_tilt, size, margin, local, vehicle, kept, at):
     # the operations of points_box_at_capture / vectors_to_box, inside_box and vectors_from_box,
     # in their order, one candidate at a time; returns the number kept
     m = 0
@@ -402,15 +402,17 @@ def _frame_time_kernel(points, index, owner, row_of, offsets, label_offset, has_
             vehicle[m, 1] = (sh * b0 + ch * b1) + center[k, 1]
             vehicle[m, 2] = b2 + center[k, 2]
             kept[m] = o
+            at[m] = i
             m += 1
     return m
 
 
 def frame_time_candidates(points, index, owner, rows, offsets, label_offset_s, center, heading, velocity,
                           yaw_rate, pitch, roll, size, margin):
-    """(body points float64 [P, 3], vehicle-frame points float64 [P, 3], owner int64 [P]) of the
-    candidates that lie in their grown box once moved to the box's time. The fused twin of
-    ``drivetrack.refine.scene._frame_time_candidates`` (same arguments and results)."""
+    """(body points float64 [P, 3], vehicle-frame points float64 [P, 3], owner int64 [P], position
+    int64 [P] in ``index``) of the candidates that lie in their grown box once moved to the box's
+    time. The fused twin of ``drivetrack.refine.scene._frame_time_candidates`` (same arguments and
+    results)."""
     def f64(a):
         return np.ascontiguousarray(a, dtype=np.float64)
 
@@ -418,15 +420,15 @@ def frame_time_candidates(points, index, owner, rows, offsets, label_offset_s, c
     has_tilt = pitch is not None or roll is not None
     row_count = center.shape[0]
     zeros = np.zeros(row_count)
-    local, vehicle, kept = np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64)
+    local, vehicle, kept, at = np.empty((n, 3)), np.empty((n, 3)), np.empty(n, np.int64), np.empty(n, np.int64)
     m = _frame_time_kernel(f64(points), np.ascontiguousarray(index, dtype=np.int64),
                            np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(rows, dtype=np.int64),
                            np.ascontiguousarray(offsets),
                            zeros if label_offset_s is None else f64(label_offset_s), label_offset_s is not None,
                            f64(center), f64(heading), f64(velocity), f64(yaw_rate),
                            zeros if pitch is None else f64(pitch), zeros if roll is None else f64(roll), has_tilt,
-                           f64(size), float(margin), local, vehicle, kept)
-    return local[:m].copy(), vehicle[:m].copy(), kept[:m].copy()
+                           f64(size), float(margin), local, vehicle, kept, at)
+    return local[:m].copy(), vehicle[:m].copy(), kept[:m].copy(), at[:m].copy()
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -10,7 +10,7 @@ from drivetrack.geometry import (box_from_center_heading, center_heading_from_po
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.motion import _motion_operator
-from drivetrack.refine.select import _body_points, _inside, _Selection, spread_priority
+from drivetrack.refine.select import _body_points, _inside, _Selection, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
 
@@ -160,7 +160,8 @@ def _result(center, heading, label_center, label_heading, world_from_vehicle, ti
 
 def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_from_vehicle: np.ndarray,
                         points_vehicle: np.ndarray, point_frame: np.ndarray, timestamps_s: np.ndarray,
-                        config: RefineConfig | None = None, name: str = "") -> RefinedPoses:
+                        config: RefineConfig | None = None, name: str = "",
+                        points_measured: np.ndarray | None = None) -> RefinedPoses:
     """Refine one object's per-frame box poses from its own LiDAR (see the module docstring).
 
     Args:
@@ -176,6 +177,11 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         timestamps_s: float64 [T], seconds, strictly increasing.
         config: :class:`RefineConfig` (defaults when None).
         name: object name used in error messages (e.g. ``segment/object_id``).
+        points_measured: float64 [M, 3] or None: the returns as measured when ``points_vehicle``
+            are moved copies of them (onto their sweep's surface, ``sweep_surface_max_m``): the
+            poses are solved on ``points_vehicle``, but whether they beat the labels by
+            ``min_improvement`` is decided on these (a surface moved onto by the returns' own
+            neighbours fits any pose near it better, and exact labels would be replaced).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
     Raises:
@@ -185,6 +191,11 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     cpu0 = time.process_time()
     vehicle_from_box, size, world_from_vehicle, points, frame, timestamps_s = _check_inputs(
         vehicle_from_box, size, world_from_vehicle, points_vehicle, point_frame, timestamps_s, name)
+    if points_measured is not None:
+        points_measured = np.asarray(points_measured, dtype=np.float64)
+        if points_measured.shape != points.shape or not np.all(np.isfinite(points_measured)):
+            raise ValueError(f"{name}: points_measured must be finite and of points_vehicle's shape {points.shape}, "
+                             f"got {points_measured.shape}")
     t_count = vehicle_from_box.shape[0]
     label_center, label_heading = center_heading_from_poses(vehicle_from_box)
     label_heading = np.unwrap(label_heading)
@@ -213,9 +224,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     if frame.size > 1 and not np.all(frame[1:] >= frame[:-1]):       # (callers usually pass them sorted)
         order = np.argsort(frame, kind="stable")
         points, frame = points[order], frame[order]
+        points_measured = None if points_measured is None else points_measured[order]
     # fixed per-point priority for the per-frame cap: a hash of the point's coordinates, so the
     # result does not depend on the order of the input rows
-    priority = np.modf(np.abs(points @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
+    priority = point_priority(points)
     if config.sample_voxel_m is not None:
         # the cap spread evenly over the surface, not in proportion to the returns (select.spread_priority)
         priority = spread_priority(points, frame, priority, float(config.sample_voxel_m))
@@ -335,9 +347,19 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{rotation[t_bad]:.2f} deg exceeds {config.max_correction_m} m / "
                       f"{config.max_correction_deg} deg", residual=residual, residual_label=residual_label,
                       num_points=final.num_points, iterations=iterations)
-    if residual_label <= (1.0 + config.min_improvement) * residual:
-        return labels(RefineReason.LABELS_CONSISTENT, f"robust residual {residual_label:.4f} m at the labels, "
-                     f"{residual:.4f} m refined: less than {config.min_improvement:.0%} better",
+    decided_label, decided, on = residual_label, residual, ""
+    if points_measured is not None:       # the same subset (priority), the returns as measured
+        measured = _Selection(points_measured, frame, priority, half, config.max_points_per_frame, t_count,
+                              kernel=use_kernel)
+        label_tilt_or_none = label_tilt if six else None
+        decided_label, decided = (
+            _pair_terms(measured, _associate(measured, c, h, config.max_correspondence_m, config, t_count, a),
+                        c, h, config, t_count, normal_equations=False, tilt=a).scale
+            for c, h, a in ((label_center, label_heading, label_tilt_or_none), (center, heading, tilt)))
+        on = " (the returns as measured)"
+    if decided_label <= (1.0 + config.min_improvement) * decided:
+        return labels(RefineReason.LABELS_CONSISTENT, f"robust residual {decided_label:.4f} m at the labels, "
+                     f"{decided:.4f} m refined{on}: less than {config.min_improvement:.0%} better",
                      residual=residual, residual_label=residual_label, num_points=final.num_points,
                      iterations=iterations)
     size_out = size.copy()

@@ -11,10 +11,15 @@ from drivetrack.geometry import vectors_from_box
 from drivetrack.parallel import pool_map
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
-from drivetrack.refine.select import _body_points
+from drivetrack.refine.select import _body_points, first_per_frame, point_priority
 from drivetrack.refine.static import static_object_centres
 
 __all__ = ["refine_scene_boxes"]
+
+#: ``RefineConfig.sweep_surface_max_m``: at most this many candidates of a frame are moved onto
+#: their sweep's surface (an even subset by :func:`drivetrack.refine.select.point_priority`) and
+#: registered; every candidate makes the surface
+SWEEP_RETURNS_PER_FRAME = 2000
 
 
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
@@ -111,11 +116,31 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             p = lidar.points_vehicle[index]
             local = _body_points(boxes.center[rows], boxes.heading[rows], p, owner, row_tilt)
             inside = inside_box(local, boxes.size[rows][owner], config.candidate_margin_m)
+            returns = index
         else:                          # the compensated returns, back in the vehicle frame at the box's time
-            local, p, owner = frame_time_candidates(
+            local, p, owner, position = frame_time_candidates(
                 lidar.points_vehicle, index, owner, rows, offsets, label_offset_s, boxes.center, boxes.heading,
                 motion[0], motion[1], pitch_all, roll_all, boxes.size, config.candidate_margin_m)
             inside = np.ones(owner.size, dtype=bool)
+            returns = index[position]
+        measured = None                # the candidates as measured, when p holds moved copies
+        if config.sweep_surface_max_m is not None and oid not in static:
+            # range noise: each return onto its own sweep's surface first (exact ranges stay); the
+            # candidates fill the box grown by candidate_margin_m, both sides of a noisy surface
+            from drivetrack.visibility.facing import points_on_sweep_surface, sensor_positions
+
+            ray = lidar.points_vehicle[returns] - sensor_positions(lidar.laser[returns], scene.lidar_origins)
+            # each return's own ray, from where it now sits (moved to the box's time)
+            # (a dense object's sweep: an even subset of SWEEP_RETURNS_PER_FRAME is moved and
+            # registered, the registration takes max_points_per_frame of them anyway)
+            kept = np.flatnonzero(inside)
+            kept = kept[first_per_frame(owner[kept], point_priority(p[kept]), SWEEP_RETURNS_PER_FRAME)]
+            on_surface, moved = points_on_sweep_surface(p[inside], owner[inside], p[inside] - ray[inside],
+                                                        float(config.sweep_surface_max_m),
+                                                        rows=np.searchsorted(np.flatnonzero(inside), kept))
+            if moved.any():
+                measured, p, owner, local = p[kept], on_surface, owner[kept], local[kept]
+                inside = np.ones(kept.size, dtype=bool)
         if oid in static:              # one pose: nothing frame to frame to register (refine/static.py)
             result = dataclasses.replace(
                 refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
@@ -128,7 +153,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         else:
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                          p[inside], owner[inside], timestamps_s[frames], config,
-                                         name=f"{scene.segment}/{oid}")
+                                         name=f"{scene.segment}/{oid}", points_measured=measured)
         if result.refined:
             update = {"center": result.center_vehicle, "heading": result.heading, "size": result.size}
             if tilted:
@@ -199,8 +224,9 @@ def _frame_time_candidates(points: np.ndarray, index: np.ndarray, owner: np.ndar
     into the vehicle frame with the box's pose at its own time.
 
     Returns:
-        ``(local float64 [P, 3], vehicle float64 [P, 3], owner int64 [P])`` of the kept candidates,
-        in candidate order. ``drivetrack.refine.kernel.frame_time_candidates`` is the fused twin.
+        ``(local float64 [P, 3], vehicle float64 [P, 3], owner int64 [P], position int64 [P])`` of
+        the kept candidates, in candidate order (``position``: theirs in ``index``).
+        ``drivetrack.refine.kernel.frame_time_candidates`` is the fused twin.
     """
     from drivetrack.tracks.sweep_motion import points_box_at_capture
 
@@ -213,4 +239,4 @@ def _frame_time_candidates(points: np.ndarray, index: np.ndarray, owner: np.ndar
     local, owner, r = local[inside], np.asarray(owner, np.int64)[inside], r[inside]
     tilt = (None, None) if tilt[0] is None else (tilt[0][inside], tilt[1][inside])
     vehicle = vectors_from_box(local, heading[r], *tilt) + center[r]
-    return local, vehicle, owner
+    return local, vehicle, owner, np.flatnonzero(inside).astype(np.int64)

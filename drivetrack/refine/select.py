@@ -22,6 +22,21 @@ def _inside(q: np.ndarray, half: np.ndarray, margin: float, clearance: float) ->
     return inside & (q[:, 2] <= half[:, 2] + margin) & (q[:, 2] >= -half[:, 2] + clearance)
 
 
+def point_priority(points: np.ndarray) -> np.ndarray:
+    """float64 [M] in [0, 1): each point's fixed priority for the per-frame cap, a hash of its
+    coordinates ``points`` float [M, 3] (so that a selection does not depend on the rows' order)."""
+    return np.modf(np.abs(np.asarray(points) @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
+
+
+def first_per_frame(frame: np.ndarray, priority: np.ndarray, cap: int) -> np.ndarray:
+    """int64 [k], ascending: the rows of the ``cap`` lowest ``priority`` float [M] of each frame
+    ``frame`` int [M] (all of a frame that has fewer)."""
+    order = np.lexsort((priority, frame))
+    sorted_frame = np.asarray(frame)[order]
+    starts = np.searchsorted(sorted_frame, sorted_frame, side="left")
+    return np.sort(order[np.arange(order.size) - starts < cap])
+
+
 def _frame_priority_order(frame: np.ndarray, priority: np.ndarray) -> np.ndarray:
     """int64 [M]: ``np.lexsort((priority, frame))`` (by frame, then priority, ties by index); when
     ``frame`` is already non-decreasing (the caller's order), each frame's run is sorted on its own,

@@ -14,12 +14,12 @@ returns in each image, and the test hiding a point behind another object's surfa
 from drivetrack.visibility.facing import (OWN_BOX_DEPTH_M, SENSOR_VEHICLE_M, CloudNormals, SurfaceCloud,
                                           SurfelNormals, box_face_normals, camera_centres_box, cloud_normals,
                                           facing_mask, facing_test, orient_outward, other_boxes, other_surface,
-                                          own_box_parameters, own_surface, points_on_surface, sensor_positions,
-                                          surface_cloud, surfel_normals, with_box_face_normals)
+                                          own_box_parameters, own_surface, points_on_surface, points_on_sweep_surface,
+                                          sensor_positions, surface_cloud, surfel_normals, with_box_face_normals)
 from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
 __all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "CloudNormals", "SurfaceCloud", "SurfelNormals",
            "box_face_normals", "camera_centres_box", "cloud_normals", "facing_mask", "facing_test",
            "hidden_by_others", "nearest_depth", "orient_outward", "other_boxes", "other_surface",
-           "own_box_parameters", "own_surface", "points_on_surface", "sensor_positions", "surface_cloud",
-           "surfel_normals", "with_box_face_normals"]
+           "own_box_parameters", "own_surface", "points_on_surface", "points_on_sweep_surface", "sensor_positions",
+           "surface_cloud", "surfel_normals", "with_box_face_normals"]
