@@ -767,10 +767,11 @@ def test_even_subsets_take_a_sparse_face_before_a_second_return_of_a_dense_one()
 
 def test_points_measured_decide_whether_the_labels_are_kept():
     """``points_measured``: the poses are solved on moved copies of the returns, but whether they
-    beat the labels is decided on the returns as measured. Exact labels, returns moved 3 cm per
-    frame (an error a pose absorbs): solved and decided on the moved copies, the labels are
-    replaced; decided on the measured returns, they are kept; the same points as measured change
-    nothing; a wrong shape is refused."""
+    beat the labels is decided on the returns as measured (others than the solve's where a frame
+    has more than the cap). Exact labels, returns moved 3 cm per frame (an error a pose absorbs):
+    solved and decided on the moved copies, the labels are replaced; decided on the measured
+    returns, they are kept; noisy labels with the same points as measured: the same poses; a
+    wrong shape is refused."""
     exact, labels, wfv, pts, frame, ts = make_object(t_count=10, noise_m=0.0, seed=12)
     shift = np.random.default_rng(3).normal(0.0, 0.03, size=(exact.shape[0], 3))
     moved = pts + shift[frame]

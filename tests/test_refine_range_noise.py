@@ -2,7 +2,7 @@
 
 Each return's range carries centimetres of noise along its ray; the registration matches each
 return to its nearest neighbour of another frame, so two returns' noise enters every residual.
-With ``sweep_surface_max_m`` (off by default: docs/refinement.md, "Range noise") each candidate
+With ``sweep_surface_max_m`` (default 0.1 m: docs/refinement.md, "Range noise") each candidate
 first moves along its own ray onto the surface of its own sweep's candidates round it
 (:func:`drivetrack.visibility.points_on_sweep_surface`: no poses between sweeps needed), only
 when the returns show range noise.

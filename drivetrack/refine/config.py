@@ -121,8 +121,8 @@ class RefineConfig:
             candidates round it, by at most this much (metres; None: off), when the returns show
             range noise (:func:`drivetrack.visibility.points_on_sweep_surface`; exact ranges stay
             bit for bit): the registration then matches surfaces instead of each return's
-            centimetres of noise. Off by default: it helps noisy labels, but lets the
-            registration replace exact labels (docs/refinement.md, "Range noise").
+            centimetres of noise; whether the result beats the labels is still decided on the
+            returns as measured (docs/refinement.md, "Range noise").
         kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
             kernels of ``drivetrack.refine.kernel``) or ``numpy`` (the scipy/numpy reference,
             same results up to floating-point rounding and ties).
@@ -169,7 +169,7 @@ class RefineConfig:
     fit_extent: bool = True
     extent_margin_m: float = 0.02
     max_extent_growth_m: float = 0.1
-    sweep_surface_max_m: float | None = None
+    sweep_surface_max_m: float | None = 0.1
     kernel: str = "numba"
 
     def __post_init__(self):

@@ -348,8 +348,12 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{config.max_correction_deg} deg", residual=residual, residual_label=residual_label,
                       num_points=final.num_points, iterations=iterations)
     decided_label, decided, on = residual_label, residual, ""
-    if points_measured is not None:       # the same subset (priority), the returns as measured
-        measured = _Selection(points_measured, frame, priority, half, config.max_points_per_frame, t_count,
+    if points_measured is not None:
+        # the returns as measured, and where a frame has more than the cap, others than those the
+        # poses were solved on (a registration fits the noise of its own subset: on exact labels
+        # with 2 cm range noise it measured 13.2 -> 11.5 mm on its own subset, 15.4 -> 14.7 on others)
+        held_out = np.modf(priority + 0.5)[0]
+        measured = _Selection(points_measured, frame, held_out, half, config.max_points_per_frame, t_count,
                               kernel=use_kernel)
         label_tilt_or_none = label_tilt if six else None
         decided_label, decided = (

@@ -386,14 +386,30 @@ def points_on_sweep_surface(points: np.ndarray, frame: np.ndarray, sensor: np.nd
     of the same sweep) and each other return takes its nearest one's. Nothing depends on the poses
     between sweeps: the registration (:mod:`drivetrack.refine`) can use it before it has poses.
     ``points`` must hold the returns on both sides of the surface (a box grown by a margin), as
-    :func:`points_on_surface` says.
+    :func:`points_on_surface` says. The detection runs first on the :data:`SNAP_NOISE_FRAMES`
+    frames it measures alone: with exact ranges no other frame's normals are fitted.
     """
     points = np.ascontiguousarray(points, dtype=np.float64)
     frame = np.asarray(frame, dtype=np.int64)
+    sensor = np.asarray(sensor, dtype=np.float64)
     n = points.shape[0]
     rows = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
     chosen = np.zeros(n, dtype=bool)
     chosen[rows] = True
+    # the detection first, on the few frames it measures (exact ranges: no normals for the others)
+    present = np.unique(frame[rows])
+    some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
+    probe = np.isin(frame, some)
+    if not _sweep_moves(points[probe], frame[probe], sensor[probe], chosen[probe], max_move_m)[1].any():
+        return points[rows].copy(), np.zeros(rows.size, dtype=bool)
+    out, moved = _sweep_moves(points, frame, sensor, chosen, max_move_m)
+    return out[rows], moved[rows]
+
+
+def _sweep_moves(points: np.ndarray, frame: np.ndarray, sensor: np.ndarray, chosen: np.ndarray,
+                 max_move_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`points_on_sweep_surface` of the ``chosen`` bool [n] points, for all n."""
+    n = points.shape[0]
     normal, usable = np.zeros((n, 3)), np.zeros(n, dtype=bool)
     order = np.argsort(frame, kind="stable")
     _, starts = np.unique(frame[order], return_index=True)
@@ -407,10 +423,9 @@ def points_on_sweep_surface(points: np.ndarray, frame: np.ndarray, sensor: np.nd
         usable[at] = ((fitted.reach_m <= SWEEP_NORMAL_MAX_REACH_M)
                       & (fitted.planarity >= SWEEP_NORMAL_MIN_PLANARITY))[nearest]
     surface = SurfaceCloud(*_by_frame(points, normal, frame))
-    out, moved = points_on_surface(points, frame, points - sensor, normal, surface, usable & chosen, max_move_m,
-                                   window=0, radius_m=SWEEP_RADIUS_M, min_returns=SWEEP_MIN_RETURNS,
-                                   min_noise_m=SWEEP_MIN_NOISE_M)
-    return out[rows], moved[rows]
+    return points_on_surface(points, frame, points - sensor, normal, surface, usable & chosen, max_move_m,
+                             window=0, radius_m=SWEEP_RADIUS_M, min_returns=SWEEP_MIN_RETURNS,
+                             min_noise_m=SWEEP_MIN_NOISE_M)
 
 
 def _remembered_steps(surface: SurfaceCloud, keys: np.ndarray, steps_of) -> np.ndarray:
