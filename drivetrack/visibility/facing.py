@@ -329,8 +329,7 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     candidates = np.flatnonzero(usable & (np.abs(incidence) >= SNAP_MIN_INCIDENCE_COS))
     out, moved = points_box.copy(), np.zeros(points_box.shape[0], dtype=bool)
     # the noise first, from an even subset of a few frames (exact ranges: nothing more to do)
-    present = np.unique(frame[candidates])
-    some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
+    some = _noise_frames(frame[candidates])
     subset = candidates[np.isin(frame[candidates], some)]
     subset = subset[np.unique(np.linspace(0, subset.size - 1, min(subset.size, SNAP_NOISE_SAMPLE)).astype(np.int64))]
     near_some = np.abs(frame[:, None] - some[None, :]).min(axis=1) <= window if some.size else \
@@ -356,11 +355,9 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     return out, moved
 
 
-#: :func:`points_on_sweep_surface`: the neighbours of a sweep's PCA normals, and the limits on a
-#: normal taken as reliable (the k-th neighbour's distance, metres; ``(l2 - l1) / l3``)
+#: :func:`points_on_sweep_surface`: the neighbours of a sweep's PCA normals (reliable as
+#: :func:`surfel_normals` takes them)
 SWEEP_NORMAL_NEIGHBOURS = 12
-SWEEP_NORMAL_MAX_REACH_M = 0.5
-SWEEP_NORMAL_MIN_PLANARITY = 0.2
 #: :func:`points_on_sweep_surface`: one sweep holds a fifth of the returns of five, so the
 #: cylinder is wider than :data:`SNAP_RADIUS_M` and needs fewer of them
 SWEEP_RADIUS_M = 0.1
@@ -397,13 +394,18 @@ def points_on_sweep_surface(points: np.ndarray, frame: np.ndarray, sensor: np.nd
     chosen = np.zeros(n, dtype=bool)
     chosen[rows] = True
     # the detection first, on the few frames it measures (exact ranges: no normals for the others)
-    present = np.unique(frame[rows])
-    some = present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
-    probe = np.isin(frame, some)
+    probe = np.isin(frame, _noise_frames(frame[rows]))
     if not _sweep_moves(points[probe], frame[probe], sensor[probe], chosen[probe], max_move_m)[1].any():
         return points[rows].copy(), np.zeros(rows.size, dtype=bool)
     out, moved = _sweep_moves(points, frame, sensor, chosen, max_move_m)
     return out[rows], moved[rows]
+
+
+def _noise_frames(frame: np.ndarray) -> np.ndarray:
+    """int64 [<= SNAP_NOISE_FRAMES]: the frames, evenly spread over those of ``frame`` int [n], on
+    which :func:`points_on_surface` measures the range noise."""
+    present = np.unique(frame)
+    return present[np.unique(np.linspace(0, present.size - 1, min(present.size, SNAP_NOISE_FRAMES)).astype(np.int64))]
 
 
 def _sweep_moves(points: np.ndarray, frame: np.ndarray, sensor: np.ndarray, chosen: np.ndarray,
@@ -416,12 +418,9 @@ def _sweep_moves(points: np.ndarray, frame: np.ndarray, sensor: np.ndarray, chos
     for at in np.split(order, starts[1:]) if n else []:
         fit = at[chosen[at]]
         fitted = cloud_normals(points[fit], SWEEP_NORMAL_NEIGHBOURS) if fit.size else None
-        if fitted is None:
-            continue
-        nearest = fitted.nearest(points[at])
-        normal[at] = fitted.normal[nearest]
-        usable[at] = ((fitted.reach_m <= SWEEP_NORMAL_MAX_REACH_M)
-                      & (fitted.planarity >= SWEEP_NORMAL_MIN_PLANARITY))[nearest]
+        if fitted is not None:      # each return takes its nearest fitted one's (surfel_normals)
+            surfels = surfel_normals(points[at], sensor[at], fitted=fitted)
+            normal[at], usable[at] = surfels.normal, surfels.reliable
     surface = SurfaceCloud(*_by_frame(points, normal, frame))
     return points_on_surface(points, frame, points - sensor, normal, surface, usable & chosen, max_move_m,
                              window=0, radius_m=SWEEP_RADIUS_M, min_returns=SWEEP_MIN_RETURNS,
