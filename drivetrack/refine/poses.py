@@ -180,8 +180,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         points_measured: float64 [M, 3] or None: the returns as measured when ``points_vehicle``
             are moved copies of them (onto their sweep's surface, ``sweep_surface_max_m``): the
             poses are solved on ``points_vehicle``, but whether they beat the labels by
-            ``min_improvement`` is decided on these (a surface moved onto by the returns' own
-            neighbours fits any pose near it better, and exact labels would be replaced).
+            ``min_improvement`` is decided on these, on others than the solve's subset where a
+            frame has more than ``max_points_per_frame`` (a surface moved onto by the returns' own
+            neighbours, and the solve's own subset, fit any pose near them better: exact labels
+            would be replaced).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
     Raises:
