@@ -125,12 +125,14 @@ def test_refinement_recovers_exact_poses_far_better_than_noisy_labels(noisy):
     rel_refined = relative_error(refined.world_from_box, wfv @ exact, CORNERS)
     abs_label = absolute_error(labels, exact)
     abs_refined = absolute_error(refined.vehicle_from_box, exact)
-    # measured: corners carried between frames 12.2 cm (labels) -> 0.74 cm (refined, with the
-    # default jerk term; 0.78 without); absolute centre 8.6 cm -> 2.1 cm, heading 0.53 deg -> 0.04 deg
+    # measured: corners carried between frames 12.2 cm (labels) -> 0.71 cm (refined, with the
+    # default jerk term); absolute centre 8.6 cm -> 2.1 cm, heading 0.53 deg -> 0.15 deg (0.03 with
+    # 120 returns a frame: the heading shared by all frames is the labels' mean, a gauge the returns
+    # cannot see, bounded by their noise over sqrt(T) frames: 1 deg / sqrt(30) = 0.18 deg)
     assert rel_label > 0.06
     assert rel_refined < 0.2 * rel_label and rel_refined < 0.012
     assert abs_refined[0] < 0.35 * abs_label[0]
-    assert abs_refined[1] < 0.25 * abs_label[1]
+    assert abs_refined[1] < 1.0 / np.sqrt(len(ts)) and abs_refined[1] < 0.5 * abs_label[1]
     assert refined.residual_m < refined.residual_label_m
     assert refined.residual_m < 0.01
 

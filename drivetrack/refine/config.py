@@ -45,13 +45,18 @@ class RefineConfig:
             shrinking geometrically from the first to the second over the iterations.
         huber_k: Huber threshold in units of the robust residual scale.
         point_sigma_floor_m: floor of the robust residual scale (LiDAR noise), metres.
-        normal_neighbours: model points in the PCA giving each model normal.
+        normal_neighbours: model points in the PCA giving each model normal while a frame's
+            subset holds 120 returns or fewer; more in proportion when it holds more
+            (:func:`drivetrack.refine.terms.normal_neighbours`: the same patch of surface).
         min_planarity: a correspondence's weight is scaled by the planarity of its model
             neighbourhood ((l2 - l1) / l3 of the PCA eigenvalues) over this, capped at 1: points
             on a scan line or an edge, whose normal is undefined, count less or not at all.
         association_neighbours: nearest model points examined to find one from another frame.
         max_points_per_frame: at most this many returns per frame take part (a fixed
-            pseudo-random subset, deterministic); bounds the cost on near objects.
+            pseudo-random subset, deterministic); bounds the cost on near objects. 400: a car
+            seen from behind or side-on is pinned along its faces only by the few returns at
+            their edges, which a smaller subset mostly leaves out (docs/refinement.md, "Returns
+            per frame"; 120 before).
         sample_voxel_m: that subset spread evenly over the object's surface: one return per cube
             of this side (metres) before a second from any (``drivetrack.refine.select.spread_priority``).
             None (default): uniform over the returns, so a face seen at a grazing angle, with few
@@ -139,7 +144,7 @@ class RefineConfig:
     normal_neighbours: int = 12
     min_planarity: float = 0.3
     association_neighbours: int = 12
-    max_points_per_frame: int = 120
+    max_points_per_frame: int = 400
     sample_voxel_m: float | None = None
     label_sigma_m: float = 0.05
     label_sigma_deg: float = 1.0

@@ -97,6 +97,23 @@ def _point_jacobian(n: np.ndarray, q: np.ndarray, heading: np.ndarray, tilt: np.
                      -n[:, 0] * vz + kz * q[:, 0], n[:, 1] * q[:, 2] - n[:, 2] * q[:, 1]], axis=-1)
 
 
+#: :func:`normal_neighbours`: the returns a frame's subset holds at which a model normal takes
+#: ``RefineConfig.normal_neighbours`` of them (the cap of earlier defaults)
+NORMALS_REFERENCE_POINTS_PER_FRAME = 120
+
+
+def normal_neighbours(config: RefineConfig, num_points: np.ndarray) -> int:
+    """The model points in the PCA of a model normal: ``config.normal_neighbours`` while the
+    frames' subsets hold :data:`NORMALS_REFERENCE_POINTS_PER_FRAME` returns or fewer (median over
+    the frames with any, ``num_points`` int [T]), more in proportion when they hold more (a near
+    object under ``max_points_per_frame`` 400: 40), so that a normal is fitted over the same
+    patch of surface however densely the frames are sampled, and 2 cm of range noise does not
+    turn it (docs/refinement.md, "Returns per frame")."""
+    present = num_points[num_points > 0]
+    per_frame = float(np.median(present)) if present.size else 0.0
+    return int(round(config.normal_neighbours * max(1.0, per_frame / NORMALS_REFERENCE_POINTS_PER_FRAME)))
+
+
 def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, gate_m: float,
                config: RefineConfig, t_count: int, tilt: np.ndarray | None = None) -> _Pairs | None:
     """Correspondences at state (center, heading): one ``cKDTree`` over all used body points,
@@ -108,7 +125,7 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     num_points = np.bincount(f, minlength=t_count).astype(np.int64)
     if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
         return _Pairs(*(np.zeros(0, np.int64),) * 4, *(np.zeros((0, 3)),) * 3, np.zeros(0), num_points)
-    k = int(min(max(config.association_neighbours, config.normal_neighbours), q.shape[0]))
+    k = int(min(max(config.association_neighbours, normal_neighbours(config, num_points)), q.shape[0]))
     use_kernel = _use_kernel(config)
     if use_kernel:                                                       # one query serves both uses
         from drivetrack.refine import kernel
@@ -124,7 +141,7 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     src = np.flatnonzero(has)
     dst = nbr[src, first[src]]
     targets, target_of = np.unique(dst, return_inverse=True)
-    neighbours = nbr[targets, :min(config.normal_neighbours, k)]
+    neighbours = nbr[targets, :min(normal_neighbours(config, num_points), k)]
     normal_t, planarity_t = (kernel.normals(q, neighbours) if use_kernel else _normals(q, neighbours))
     weight = np.clip(planarity_t[target_of] / config.min_planarity, 0.0, 1.0)
     return _Pairs(rows[src], rows[dst], f[src], f[dst], q[src], q[dst], normal_t[target_of], weight, num_points)
