@@ -788,3 +788,18 @@ def test_points_measured_decide_whether_the_labels_are_kept():
     with pytest.raises(ValueError, match="points_measured") as info:
         refine_object_poses(labels, SIZE, wfv, pts, frame, ts, name="seg/obj9", points_measured=pts[:-1])
     assert "seg/obj9" in str(info.value)
+
+
+def test_normal_neighbours_grow_with_the_frames_subsets():
+    """A model normal spans the same patch of surface however densely the frames are sampled: the
+    configured neighbours up to 120 returns a frame (median over the frames with any), more in
+    proportion above (docs/refinement.md, "Returns per frame")."""
+    from drivetrack.refine.terms import normal_neighbours
+
+    config = RefineConfig()
+    assert config.max_points_per_frame == 400 and config.normal_neighbours == 12
+    assert normal_neighbours(config, np.array([0, 30, 120, 120, 0])) == 12
+    assert normal_neighbours(config, np.array([0, 0, 0])) == 12
+    assert normal_neighbours(config, np.array([400, 400, 10, 0])) == 40
+    assert normal_neighbours(RefineConfig(normal_neighbours=20), np.array([240, 240])) == 40
+

@@ -125,7 +125,8 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     num_points = np.bincount(f, minlength=t_count).astype(np.int64)
     if q.shape[0] < 4 or np.count_nonzero(num_points) < 2:
         return _Pairs(*(np.zeros(0, np.int64),) * 4, *(np.zeros((0, 3)),) * 3, np.zeros(0), num_points)
-    k = int(min(max(config.association_neighbours, normal_neighbours(config, num_points)), q.shape[0]))
+    kn = normal_neighbours(config, num_points)
+    k = int(min(max(config.association_neighbours, kn), q.shape[0]))
     use_kernel = _use_kernel(config)
     if use_kernel:                                                       # one query serves both uses
         from drivetrack.refine import kernel
@@ -141,7 +142,7 @@ def _associate(selection: _Selection, center: np.ndarray, heading: np.ndarray, g
     src = np.flatnonzero(has)
     dst = nbr[src, first[src]]
     targets, target_of = np.unique(dst, return_inverse=True)
-    neighbours = nbr[targets, :min(normal_neighbours(config, num_points), k)]
+    neighbours = nbr[targets, :min(kn, k)]
     normal_t, planarity_t = (kernel.normals(q, neighbours) if use_kernel else _normals(q, neighbours))
     weight = np.clip(planarity_t[target_of] / config.min_planarity, 0.0, 1.0)
     return _Pairs(rows[src], rows[dst], f[src], f[dst], q[src], q[dst], normal_t[target_of], weight, num_points)
