@@ -845,6 +845,16 @@ def test_slip_terms_are_the_gauss_newton_terms_of_their_residuals(dof):
     assert h_bb == pytest.approx(jb @ jb, rel=1e-6) and g_b == pytest.approx(jb @ r, rel=1e-6)
 
 
+def _without_and_with_slip(exact, labels, wfv, pts, frame, ts):
+    """([carried-corner error without the no-slip prior, with 0.02 m/s], [the two refinements])
+    of a wheeled object."""
+    refined = [refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=slip), wheeled=True)
+               for slip in (None, 0.02)]
+    for r in refined:
+        assert r.refined, r.reason
+    return [relative_error(r.world_from_box, wfv @ exact, CORNERS) for r in refined], refined
+
+
 def test_the_no_slip_prior_pins_a_car_seen_from_behind_along_its_rear_face():
     """A car 12 m straight ahead, seen from behind: its returns pin it along the road and in yaw
     but hardly across (only the rear face's two edges do), so 5 cm / 1 deg labels leave it
@@ -857,12 +867,7 @@ def test_the_no_slip_prior_pins_a_car_seen_from_behind_along_its_rear_face():
     for seed in (1, 2, 3, 4):
         exact, labels, wfv, pts, frame, ts = make_object(t_count=20, seed=seed, speed=10.0, yaw_rate=0.0, yaw0=0.0,
                                                          lateral=0.0, ahead=12.0)
-        row = []
-        for slip in (None, 0.02):
-            refined = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=slip),
-                                          wheeled=True)
-            assert refined.refined, refined.reason
-            row.append(relative_error(refined.world_from_box, wfv @ exact, CORNERS))
+        row, _ = _without_and_with_slip(exact, labels, wfv, pts, frame, ts)
         errors.append(row)
     without, with_slip = np.mean(errors, axis=0)
     assert with_slip < 0.6 * without, (without, with_slip)
@@ -882,16 +887,9 @@ def test_the_no_slip_point_is_found_behind_the_centre_of_a_turning_car():
                                                          axle_offset=1.4)
         centre, heading = center_heading_from_poses(exact)
         exact_offsets.append(slip_offset_guess(centre, np.unwrap(heading), wfv, ts, 0.02, SIZE[0] / 2))
-        row = []
-        for slip in (None, 0.02):
-            refined = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=slip),
-                                          wheeled=True)
-            assert refined.refined, refined.reason
-            row.append(relative_error(refined.world_from_box, wfv @ exact, CORNERS))
-            if slip is not None:
-                found.append(refined.slip_offset_m)
-            else:
-                assert np.isnan(refined.slip_offset_m)
+        row, (plain, slipping) = _without_and_with_slip(exact, labels, wfv, pts, frame, ts)
+        assert np.isnan(plain.slip_offset_m)
+        found.append(slipping.slip_offset_m)
         errors.append(row)
     assert np.all(np.array(exact_offsets) < -1.0), exact_offsets          # behind the centre
     np.testing.assert_allclose(found, exact_offsets, atol=0.3)
