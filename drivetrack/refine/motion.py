@@ -117,7 +117,7 @@ SLIP_OFFSET_SIGMA_M = 1.0
 
 def slip_offset_guess(center: np.ndarray, heading: np.ndarray, world_from_vehicle: np.ndarray,
                       timestamps_s: np.ndarray, sigma_mps: float, max_offset_m: float,
-                      offset_sigma_m: float = 1.0) -> float:
+                      offset_sigma_m: float = SLIP_OFFSET_SIGMA_M) -> float:
     """The least-squares ``offset_m`` of :func:`_slip_terms` at a fixed state (metres along the
     box's x axis, clipped to +-``max_offset_m``): where to start it."""
     v_lat, omega = _slip_velocities(center, heading, world_from_vehicle, timestamps_s)[:2]

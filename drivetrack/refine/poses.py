@@ -298,7 +298,7 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     if slip:
         sigma_slip, max_slip_offset = float(config.slip_sigma_mps), float(half[:, 0].max())
         slip_offset = slip_offset_guess(label_center, label_heading, world_from_vehicle, timestamps_s, sigma_slip,
-                                        max_slip_offset, SLIP_OFFSET_SIGMA_M)
+                                        max_slip_offset)
     for it in range(config.iterations):
         if it > 0:
             data = _data_terms(selection, center, heading, gates[it], config, t_count, tilt=tilt)
