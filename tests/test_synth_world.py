@@ -138,3 +138,48 @@ def test_speed_changes_leave_the_rest_of_the_world_as_it_was(kind):
         make_world(np.random.default_rng(0), 4.0, kind, -1.0)
     with pytest.raises(ValueError, match="speed_changes_mps2"):
         SynthConfig(speed_changes_mps2=-1.0)
+
+
+@pytest.mark.parametrize("kind", ["default", "hard"])
+def test_rear_axles_make_the_centres_of_turning_movers_slip_sideways(kind):
+    """``make_world(rear_axle_fraction=0.3)``: every moving vehicle and cyclist drives on the point
+    0.3 of its length behind its centre (no lateral velocity there, checked by central differences
+    of the closed-form centre and heading), its centre slips sideways by ``yaw rate x offset``, its
+    velocity and acceleration stay the derivatives of its centre; the same objects, nothing drives
+    through anything, and the default (0) is the world as before."""
+    for seed in (1, 7):
+        rng = lambda: np.random.default_rng(np.random.SeedSequence([seed, 0]).spawn(3)[0])  # noqa: E731
+        plain = make_world(rng(), 4.0, kind)
+        same = make_world(rng(), 4.0, kind, rear_axle_fraction=0.0)
+        axled = make_world(rng(), 4.0, kind, rear_axle_fraction=0.3)
+        assert same == plain
+        assert [(o.object_id, o.size, o.role) for o in axled.objects] == [(o.object_id, o.size, o.role)
+                                                                          for o in plain.objects]
+        assert world_overlaps(axled, 4.0) == []
+        t, h = np.linspace(0.0, 4.0, 41), 1e-5
+        slipping = 0
+        for o in axled.objects:
+            m = o.motion
+            wheeled_mover = o.type in (1, 4) and (m.s > 0.0 or m.turn != 0.0)
+            assert o.axle_offset_m == (pytest.approx(0.3 * o.size[0]) if wheeled_mover else 0.0), o.role
+            if not wheeled_mover:
+                continue
+            np.testing.assert_allclose(o.velocity(t), (o.center(t + h) - o.center(t - h)) / (2 * h), atol=1e-5)
+            np.testing.assert_allclose(o.acceleration(t), (o.velocity(t + h) - o.velocity(t - h)) / (2 * h),
+                                       atol=1e-4)
+
+            def axle(tt, o=o):
+                head = o.heading(tt)
+                return o.center(tt)[..., :2] - o.axle_offset_m * np.stack([np.cos(head), np.sin(head)], -1)
+
+            left = np.stack([-np.sin(o.heading(t)), np.cos(o.heading(t))], -1)
+            axle_lateral = np.einsum("ti,ti->t", (axle(t + h) - axle(t - h)) / (2 * h), left)
+            np.testing.assert_allclose(axle_lateral, 0.0, atol=1e-6)
+            centre_lateral = np.einsum("ti,ti->t", o.velocity(t)[:, :2], left)
+            np.testing.assert_allclose(centre_lateral, o.axle_offset_m * m.yaw_rate(t), atol=1e-6)
+            slipping += int(np.abs(centre_lateral).max() > 0.05)
+        assert slipping >= (1 if kind == "hard" else 0)      # the default world's movers drive straight
+    with pytest.raises(ValueError, match="rear_axle_fraction"):
+        make_world(np.random.default_rng(0), 4.0, kind, rear_axle_fraction=0.5)
+    with pytest.raises(ValueError, match="rear_axle_fraction"):
+        SynthConfig(rear_axle_fraction=-0.1)

@@ -75,6 +75,16 @@ class RefineConfig:
             body and a cabin, on 4 s ones; on 1 s box-car segments it lost on one world and
             gained on another (docs/refinement.md, "Jerk"). None: off. Exact labels are kept
             either way.
+        slip_sigma_mps: the no-side-slip prior of wheeled objects (``refine_object_poses(...,
+            wheeled=True)``; ``refine_scene_boxes``: VEHICLE and CYCLIST): between consecutive
+            frames, the lateral velocity (m/s) of the point on the box's long axis that drives
+            along the heading (a rear axle: its offset from the centre is an unknown of the solve)
+            has this sigma. It ties a car's position across its rear or front face, which the
+            returns of that face do not pin, to its heading, which they do (docs/refinement.md,
+            "No side slip"). 0.02 m/s: steady-state tyre slip grows with the lateral
+            acceleration and at a steady speed is the same as moving that point; what is left
+            when the speed changes on a curve is about 0.01-0.02 m/s. None: off (before
+            2026-11-28, twentieth session).
         pitch_roll_sigma_deg: None: 4 degrees of freedom per frame (centre, heading: the labels'
             parametrisation; a refined box is yaw-only like a label). A number: 6 (and pitch,
             roll), with a prior of this sigma towards the labels' tilt (0 for ``lidar_box``
@@ -152,6 +162,7 @@ class RefineConfig:
     vertical_accel_sigma_mps2: float = 0.3
     yaw_accel_sigma_radps2: float = 1.0
     jerk_sigma_mps3: float | None = 5.0
+    slip_sigma_mps: float | None = 0.02
     pitch_roll_sigma_deg: float | None = 1.0
     pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60
@@ -195,6 +206,9 @@ class RefineConfig:
         if self.sample_voxel_m is not None and not (isinstance(self.sample_voxel_m, (int, float))
                                                     and np.isfinite(self.sample_voxel_m) and self.sample_voxel_m > 0):
             raise ValueError(f"RefineConfig.sample_voxel_m must be None or a positive number, got {self.sample_voxel_m!r}")
+        if self.slip_sigma_mps is not None and not (isinstance(self.slip_sigma_mps, (int, float))
+                                                    and np.isfinite(self.slip_sigma_mps) and self.slip_sigma_mps > 0):
+            raise ValueError(f"RefineConfig.slip_sigma_mps must be None or a positive number, got {self.slip_sigma_mps!r}")
         if self.jerk_sigma_mps3 is not None and not (isinstance(self.jerk_sigma_mps3, (int, float))
                                                      and np.isfinite(self.jerk_sigma_mps3) and self.jerk_sigma_mps3 > 0):
             raise ValueError(f"RefineConfig.jerk_sigma_mps3 must be None or a positive number, got {self.jerk_sigma_mps3!r}")

@@ -107,3 +107,75 @@ def _jerk_operator(rotation: np.ndarray, offset: np.ndarray, timestamps_s: np.nd
                       shape=(3 * (t_count - 3), dof * t_count))
     e0 = (np.einsum("tk,tki->ti", coef, offset[frames]) / sigma).reshape(-1)
     return S, e0
+
+
+#: prior sigma (metres) of the no-slip point's offset from the box centre, towards 0 (a car's rear
+#: axle lies 1-1.5 m behind its centre; the prior only matters while the object drives straight,
+#: where the offset is not observed and changes nothing)
+SLIP_OFFSET_SIGMA_M = 1.0
+
+
+def slip_offset_guess(center: np.ndarray, heading: np.ndarray, world_from_vehicle: np.ndarray,
+                      timestamps_s: np.ndarray, sigma_mps: float, max_offset_m: float,
+                      offset_sigma_m: float = SLIP_OFFSET_SIGMA_M) -> float:
+    """The least-squares ``offset_m`` of :func:`_slip_terms` at a fixed state (metres along the
+    box's x axis, clipped to +-``max_offset_m``): where to start it."""
+    v_lat, omega = _slip_velocities(center, heading, world_from_vehicle, timestamps_s)[:2]
+    b = -float(np.sum(v_lat * omega)) / (float(np.sum(omega * omega)) + (sigma_mps / offset_sigma_m) ** 2)
+    return float(np.clip(b, -max_offset_m, max_offset_m))
+
+
+def _slip_velocities(center, heading, world_from_vehicle, timestamps_s):
+    """(lateral velocity [T-1] m/s of the box centre across the mid heading, yaw rate [T-1]
+    rad/s, half the along-heading velocity [T-1] m/s, lateral unit [T-1, 3], dt [T-1] s) between
+    consecutive frames of a state (center [T, 3] and heading [T] in the vehicle frames)."""
+    rotation, offset = world_from_vehicle[:, :3, :3], world_from_vehicle[:, :3, 3]
+    w = np.einsum("tij,tj->ti", rotation, center) + offset
+    psi = heading + np.unwrap(np.arctan2(rotation[:, 1, 0], rotation[:, 0, 0]))
+    dt = np.diff(timestamps_s)
+    dpsi = np.angle(np.exp(1j * np.diff(psi)))
+    mid = psi[:-1] + 0.5 * dpsi
+    lateral = np.stack([-np.sin(mid), np.cos(mid), np.zeros_like(mid)], axis=-1)      # [T-1, 3]
+    forward = np.stack([np.cos(mid), np.sin(mid), np.zeros_like(mid)], axis=-1)
+    dw = np.diff(w, axis=0)
+    return (np.einsum("ti,ti->t", lateral, dw) / dt, dpsi / dt, 0.5 * np.einsum("ti,ti->t", forward, dw) / dt,
+            lateral, dt)
+
+
+def _slip_terms(center: np.ndarray, heading: np.ndarray, world_from_vehicle: np.ndarray, timestamps_s: np.ndarray,
+                sigma_mps: float, dof: int, offset_m: float):
+    """Gauss-Newton terms of the no-side-slip prior of a wheeled object at state (center [T, 3]
+    vehicle frame, heading [T] rad, vehicle frame; ``offset_m`` the no-slip point's):
+    ``(H float64 [DT, DT], g float64 [DT], h_xb float64 [DT], h_bb float, g_b float, r float64 [T-1])``,
+    the blocks of the normal equations in (state, offset) and the residuals.
+
+    A wheeled vehicle moves along its heading: the point on its long axis above the rear axle
+    (``offset_m`` along the box's x from its centre, negative behind it) has no lateral
+    velocity. Between consecutive frames, with the world centres ``w``, world headings ``psi``,
+    the mid heading's lateral unit ``n`` and ``omega = dpsi / dt``, the residual is
+    ``(n . dw / dt + omega * offset_m) / sigma_mps`` (the box centre's lateral velocity plus that
+    of the axle point relative to it). It ties a car's lateral position (along its rear face, not
+    observed by a lidar behind it) to its heading (which that face observes well). The offset is
+    an unknown of the solve (observed only while the object turns; the caller adds its prior).
+    """
+    t_count = center.shape[0]
+    n_state = dof * t_count
+    rotation = world_from_vehicle[:, :3, :3]
+    v_lat, omega, along, lateral, dt = _slip_velocities(center, heading, world_from_vehicle, timestamps_s)
+    b = float(offset_m)
+    r = (v_lat + omega * b) / sigma_mps
+    jac = np.zeros((t_count - 1, 2 * 4))
+    jac[:, 0:3] = -np.einsum("tji,tj->ti", rotation[:-1], lateral) / dt[:, None]
+    jac[:, 3] = -along - b / dt
+    jac[:, 4:7] = np.einsum("tji,tj->ti", rotation[1:], lateral) / dt[:, None]
+    jac[:, 7] = -along + b / dt
+    jac /= sigma_mps
+    jac_b = omega / sigma_mps                                                         # d r / d offset
+    frames = np.arange(t_count - 1)
+    cols = np.concatenate([dof * frames[:, None] + np.arange(4), dof * (frames[:, None] + 1) + np.arange(4)], axis=1)
+    flat = (cols[:, :, None] * n_state + cols[:, None, :]).reshape(-1)
+    H = np.bincount(flat, weights=(jac[:, :, None] * jac[:, None, :]).reshape(-1),
+                    minlength=n_state * n_state).reshape(n_state, n_state)
+    g = np.bincount(cols.reshape(-1), weights=(jac * r[:, None]).reshape(-1), minlength=n_state)
+    h_xb = np.bincount(cols.reshape(-1), weights=(jac * jac_b[:, None]).reshape(-1), minlength=n_state)
+    return H, g, h_xb, float(jac_b @ jac_b), float(jac_b @ r), r

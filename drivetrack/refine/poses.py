@@ -9,7 +9,7 @@ import numpy as np
 from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, tilt_from_poses, vectors_from_box,
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
-from drivetrack.refine.motion import _motion_operator
+from drivetrack.refine.motion import SLIP_OFFSET_SIGMA_M, _motion_operator, _slip_terms, slip_offset_guess
 from drivetrack.refine.select import _body_points, _inside, _Selection, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
@@ -47,6 +47,10 @@ class RefinedPoses:
         reason: a :class:`RefineReason`; ``detail``: human-readable numbers behind it.
         iterations: Gauss-Newton iterations run.
         cpu_seconds: process CPU time spent in the call.
+        slip_offset_m: with the no-side-slip prior (``RefineConfig.slip_sigma_mps``, wheeled
+            objects), where the point without lateral slip lies along the box's x axis from its
+            centre (metres, negative behind it: a car's rear axle) at the refined poses; NaN
+            when the prior was not applied.
     """
     vehicle_from_box: np.ndarray
     world_from_box: np.ndarray
@@ -67,6 +71,7 @@ class RefinedPoses:
     cpu_seconds: float = 0.0
     pitch: np.ndarray | None = None
     roll: np.ndarray | None = None
+    slip_offset_m: float = float("nan")
 
     def summary(self) -> dict:
         """Flat dict for the statistics tables and the gates (one row per object)."""
@@ -161,7 +166,7 @@ def _result(center, heading, label_center, label_heading, world_from_vehicle, ti
 def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_from_vehicle: np.ndarray,
                         points_vehicle: np.ndarray, point_frame: np.ndarray, timestamps_s: np.ndarray,
                         config: RefineConfig | None = None, name: str = "",
-                        points_measured: np.ndarray | None = None) -> RefinedPoses:
+                        points_measured: np.ndarray | None = None, wheeled: bool = False) -> RefinedPoses:
     """Refine one object's per-frame box poses from its own LiDAR (see the module docstring).
 
     Args:
@@ -184,6 +189,9 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             frame has more than ``max_points_per_frame`` (a surface moved onto by the returns' own
             neighbours, and the solve's own subset, fit any pose near them better: exact labels
             would be replaced).
+        wheeled: the object drives on wheels (a vehicle or a cyclist): with
+            ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
+            a pedestrian steps sideways, so not to it).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
     Raises:
@@ -285,6 +293,12 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{config.min_improvement:.0%} of the noise floor {config.point_sigma_floor_m} m",
                       residual=residual_label, residual_label=residual_label, num_points=data.num_points)
     iterations = 0
+    slip = wheeled and config.slip_sigma_mps is not None and t_count >= 2
+    slip_offset = float("nan")
+    if slip:
+        sigma_slip, max_slip_offset = float(config.slip_sigma_mps), float(half[:, 0].max())
+        slip_offset = slip_offset_guess(label_center, label_heading, world_from_vehicle, timestamps_s, sigma_slip,
+                                        max_slip_offset)
     for it in range(config.iterations):
         if it > 0:
             data = _data_terms(selection, center, heading, gates[it], config, t_count, tilt=tilt)
@@ -303,7 +317,19 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         g = data.gradient + prior_w * (state - label_state)
         if S is not None:
             g = g + S.T @ (S @ state) + motion_g0
-        dx = _solve_spd(data.hessian + H_fixed, -g, use_kernel)
+        hessian = data.hessian + H_fixed
+        if slip:
+            # the no-slip point's offset is an unknown too, eliminated by its Schur complement
+            # (a rank-one change of the state's normal equations)
+            H_slip, g_slip, h_xb, h_bb, g_b, _ = _slip_terms(center, heading, world_from_vehicle, timestamps_s,
+                                                             sigma_slip, dof, slip_offset)
+            h_bb += 1.0 / SLIP_OFFSET_SIGMA_M ** 2
+            g_b += slip_offset / SLIP_OFFSET_SIGMA_M ** 2
+            hessian = hessian + H_slip - np.outer(h_xb, h_xb) / h_bb
+            g = g + g_slip - h_xb * (g_b / h_bb)
+        dx = _solve_spd(hessian, -g, use_kernel)
+        if slip and np.all(np.isfinite(dx)):
+            slip_offset = float(np.clip(slip_offset - (g_b + h_xb @ dx) / h_bb, -max_slip_offset, max_slip_offset))
         iterations = it + 1
         if not np.all(np.isfinite(dx)):
             return labels(RefineReason.NOT_FINITE, f"non-finite update at iteration {iterations}",
@@ -383,11 +409,17 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             center = center + vectors_from_box(np.broadcast_to(offset, (t_count, 3)), heading,
                                                *((None, None) if tilt is None else (tilt[:, 0], tilt[:, 1])))
             size_out = size + (grow_hi + grow_lo)
+            slip_offset -= offset[0]                    # measured from the new centre
             extent_detail = (f"; box grown to the registered returns by {np.round(grow_lo * 100, 1).tolist()} / "
                              f"{np.round(grow_hi * 100, 1).tolist()} cm (-x -y -z / +x +y +z)")
-    return _result(center, heading, label_center, label_heading, world_from_vehicle, tilt=tilt, size=size_out,
-                   residual_m=residual, residual_label_m=residual_label,
-                   residual_per_frame_m=per_frame_residual, num_points=final.num_points, refined=True,
-                   used_fallback=False, reason=RefineReason.REFINED,
-                   detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m{extent_detail}",
-                   iterations=iterations, cpu_seconds=time.process_time() - cpu0)
+    slip_detail = ""
+    if slip:
+        slip_detail = f"; no-slip point {slip_offset:+.2f} m along the box from its centre"
+    out = _result(center, heading, label_center, label_heading, world_from_vehicle, tilt=tilt, size=size_out,
+                  residual_m=residual, residual_label_m=residual_label,
+                  residual_per_frame_m=per_frame_residual, num_points=final.num_points, refined=True,
+                  used_fallback=False, reason=RefineReason.REFINED,
+                  detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m{extent_detail}{slip_detail}",
+                  iterations=iterations, cpu_seconds=time.process_time() - cpu0)
+    out.slip_offset_m = slip_offset
+    return out

@@ -13,6 +13,10 @@ from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
 from drivetrack.refine.select import _body_points, first_per_frame, point_priority
 from drivetrack.refine.static import static_object_centres
+from drivetrack.waymo.schema import BoxType
+
+#: box types on wheels: they move along their heading (``RefineConfig.slip_sigma_mps``)
+WHEELED_TYPES = (int(BoxType.VEHICLE), int(BoxType.CYCLIST))
 
 __all__ = ["refine_scene_boxes"]
 
@@ -153,7 +157,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         else:
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                          p[inside], owner[inside], timestamps_s[frames], config,
-                                         name=f"{scene.segment}/{oid}", points_measured=measured)
+                                         name=f"{scene.segment}/{oid}", points_measured=measured,
+                                         wheeled=bool(np.isin(boxes.type[rows[0]], WHEELED_TYPES)))
         if result.refined:
             update = {"center": result.center_vehicle, "heading": result.heading, "size": result.size}
             if tilted:

@@ -49,7 +49,11 @@ class SynthConfig:
     vehicles and cyclists brake and speed up (:func:`drivetrack.synth.world.make_world`); the
     world is otherwise the same. ``range_noise_m``: 0 (exact ranges) or the sigma (metres) of
     Gaussian noise on every written lidar range, as real returns carry (each return moves along
-    its ray; the ground truth keeps the point where the ray hit the surface)."""
+    its ray; the ground truth keeps the point where the ray hit the surface). ``rear_axle_fraction``:
+    0 (the box centre of every mover follows its path, heading its tangent: no slip at the centre)
+    or where the point without lateral slip lies behind the centre of each moving vehicle and
+    cyclist, as a fraction of its length (about 0.3 for a car's rear axle): on a turn the centre
+    then moves sideways, as real cars' do (:attr:`drivetrack.synth.world.SynthObject.axle_offset_m`)."""
     seed: int = 7
     frames: int = 40
     preset: str = "small"
@@ -64,6 +68,7 @@ class SynthConfig:
     car_shape: str = "box"
     speed_changes_mps2: float = 0.0
     range_noise_m: float = 0.0
+    rear_axle_fraction: float = 0.0
 
     def __post_init__(self):
         from drivetrack.synth.world import CAR_SHAPES, WORLDS
@@ -77,6 +82,9 @@ class SynthConfig:
         if not (isinstance(self.range_noise_m, (int, float)) and 0 <= self.range_noise_m <= 0.5):
             raise ValueError(f"SynthConfig.range_noise_m: expected a sigma in metres in [0, 0.5], "
                              f"found {self.range_noise_m!r}")
+        if not (isinstance(self.rear_axle_fraction, (int, float)) and 0 <= self.rear_axle_fraction < 0.5):
+            raise ValueError(f"SynthConfig.rear_axle_fraction: expected a fraction of the length in [0, 0.5), "
+                             f"found {self.rear_axle_fraction!r}")
         if not (isinstance(self.speed_changes_mps2, (int, float)) and 0 <= self.speed_changes_mps2 < 20):
             raise ValueError(f"SynthConfig.speed_changes_mps2: expected a number of m/s^2 in [0, 20), "
                              f"found {self.speed_changes_mps2!r}")
@@ -93,7 +101,7 @@ class SynthConfig:
         """True when anything beyond the original scene is on: the truth then also records roles
         and time offsets (kept out of the default output so its bytes stay the same)."""
         return (self.world != "default" or self.trigger != "frame" or self.label_time != "frame"
-                or self.speed_changes_mps2 > 0)
+                or self.speed_changes_mps2 > 0 or self.rear_axle_fraction > 0)
 
     @property
     def heading_sigma(self) -> float:

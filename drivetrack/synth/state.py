@@ -37,7 +37,8 @@ class _Generator(_CameraRendering, _LidarCasting):
         self.timestamps = (T0_MICROS + index * 10**9 + np.arange(self.T) * 100_000).astype(np.int64)
         self.world: World = with_car_shape(make_world(np.random.default_rng(world_seq), self.T * FRAME_PERIOD_S,
                                                       config.world, config.speed_changes_mps2,
-                                                      np.random.default_rng(speed_seq)), config.car_shape)
+                                                      np.random.default_rng(speed_seq),
+                                                      config.rear_axle_fraction), config.car_shape)
         self.id_rng = np.random.default_rng(id_seq)
         self.noise_rng = np.random.default_rng(noise_seq)
         self.rolling = bool(config.rolling_shutter)

@@ -149,6 +149,15 @@ class Motion:
         _, _, vx, vy, ax, ay = self._local(t)
         return (vx * ay - vy * ax) / (vx * vx + vy * vy)
 
+    def yaw_acceleration(self, t: np.ndarray) -> np.ndarray:
+        """float64 [...] d^2 heading / dt^2 (rad/s^2): a central difference of :meth:`yaw_rate`
+        over 1e-4 s (the weave's is smooth: error ~1e-9 rad/s^2); 0 on an arc."""
+        t = np.asarray(t, dtype=np.float64)
+        if self.turn != 0.0 or self.s == 0.0:
+            return np.zeros_like(t)
+        h = 1e-4
+        return (self.yaw_rate(t + h) - self.yaw_rate(t - h)) / (2.0 * h)
+
 
 @dataclass(frozen=True)
 class SynthObject:
@@ -159,6 +168,15 @@ class SynthObject:
     1 = stripes, ``texture_scale`` metres per texture cell, ``seed`` for its noise. ``parts``: the
     solid as axis-aligned boxes in the box frame, ``((offset xyz, half size xyz), ...)`` metres,
     all inside the label box; empty: the label box itself (:attr:`solids`).
+
+    ``axle_offset_m``: 0 (default) the box centre follows ``motion``'s path and the heading is its
+    tangent, so the centre never slips sideways. > 0: the point that far behind the centre on the
+    box's long axis (a rear axle) follows the path, shifted by a constant vector so that the centre
+    is where the path puts it while the heading is that of ``motion.h0``: the centre is
+    ``path + axle_offset_m (f(heading) - f(h0))`` (``f`` the unit forward vector) and the axle
+    point moves along its heading, as a car's rear axle does, while the centre gains the lateral
+    velocity ``yaw_rate x axle_offset_m`` on a turn (real cars; a model that assumes no slip at the
+    centre is wrong by that much).
     """
     object_id: str
     type: int
@@ -171,6 +189,7 @@ class SynthObject:
     seed: int
     role: str
     parts: tuple = ()
+    axle_offset_m: float = 0.0
 
     @property
     def solids(self) -> tuple:
@@ -180,9 +199,19 @@ class SynthObject:
             return tuple((np.asarray(o, np.float64), np.asarray(h, np.float64)) for o, h in self.parts)
         return ((np.zeros(3), np.asarray(self.size, np.float64) / 2.0),)
 
+    def _axle_terms(self, t: np.ndarray):
+        """(forward [..., 2], left [..., 2], yaw rate [...]) of the heading at ``t``."""
+        heading = self.motion.heading(t)
+        forward = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+        left = np.stack([-np.sin(heading), np.cos(heading)], axis=-1)
+        return forward, left, self.motion.yaw_rate(t)
+
     def center(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 3] box centre in the world at times ``t``."""
         xy = self.motion.position_xy(t)
+        if self.axle_offset_m:
+            forward = self._axle_terms(np.asarray(t, dtype=np.float64))[0]
+            xy = xy + self.axle_offset_m * (forward - np.array([np.cos(self.motion.h0), np.sin(self.motion.h0)]))
         return np.concatenate([xy, np.full(xy.shape[:-1] + (1,), self.z_center)], axis=-1)
 
     def heading(self, t: np.ndarray) -> np.ndarray:
@@ -191,10 +220,18 @@ class SynthObject:
     def velocity(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 3] world-frame velocity of the box centre, m/s."""
         v = self.motion.velocity_xy(t)
+        if self.axle_offset_m:
+            _, left, rate = self._axle_terms(np.asarray(t, dtype=np.float64))
+            v = v + self.axle_offset_m * rate[..., None] * left
         return np.concatenate([v, np.zeros(v.shape[:-1] + (1,))], axis=-1)
 
     def acceleration(self, t: np.ndarray) -> np.ndarray:
         a = self.motion.acceleration_xy(t)
+        if self.axle_offset_m:
+            t = np.asarray(t, dtype=np.float64)
+            forward, left, rate = self._axle_terms(t)
+            a = a + self.axle_offset_m * (self.motion.yaw_acceleration(t)[..., None] * left
+                                          - (rate * rate)[..., None] * forward)
         return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
 
     def world_from_box(self, t: np.ndarray) -> np.ndarray:
@@ -326,7 +363,7 @@ def _ego_body(ego: Motion, times: np.ndarray) -> _Body:
 
 def _object_body(o: SynthObject, times: np.ndarray) -> _Body:
     length, width, height = o.size
-    return _Body(o.role, _footprints(o.motion.position_xy(times), o.motion.heading(times), length + CLEARANCE_M,
+    return _Body(o.role, _footprints(o.center(times)[..., :2], o.motion.heading(times), length + CLEARANCE_M,
                                      width + CLEARANCE_M), (o.z_center - height / 2, o.z_center + height / 2))
 
 
@@ -376,7 +413,7 @@ def world_overlaps(world: World, duration: float) -> list[tuple[str, str, float]
 
 
 def make_world(rng: np.random.Generator, duration: float, kind: str = "default", speed_changes_mps2: float = 0.0,
-               speed_rng: np.random.Generator | None = None) -> World:
+               speed_rng: np.random.Generator | None = None, rear_axle_fraction: float = 0.0) -> World:
     """Sample one segment's world from ``rng``; ``duration`` (s) shapes where objects start.
 
     ``speed_changes_mps2`` > 0: every moving vehicle and cyclist that does not turn also brakes
@@ -385,6 +422,10 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default",
     period ``2 pi / W`` uniform in 4-8 s, phase uniform; drawn from ``speed_rng`` (default: seed 0)
     so that everything else is the world of ``speed_changes_mps2 = 0`` (before placement, which
     then keeps the surging objects clear like any other).
+
+    ``rear_axle_fraction`` > 0: every moving vehicle and cyclist slips at its centre as a car
+    does on a turn: the point this fraction of its length behind the centre follows the path
+    (:attr:`SynthObject.axle_offset_m`; nothing else is drawn differently).
 
     ``kind`` "hard" adds :func:`_hard_objects` after the default ones (drawn from ``rng`` after
     everything the default world draws, so the default objects, ego and ground are the same),
@@ -413,6 +454,8 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default",
     bodies, ghosts = [_ego_body(ego, times)], []
     if not (np.isfinite(speed_changes_mps2) and speed_changes_mps2 >= 0):
         raise ValueError(f"make_world: speed_changes_mps2 must be a number >= 0, got {speed_changes_mps2!r}")
+    if not (np.isfinite(rear_axle_fraction) and 0 <= rear_axle_fraction < 0.5):
+        raise ValueError(f"make_world: rear_axle_fraction must be a number in [0, 0.5), got {rear_axle_fraction!r}")
     if speed_changes_mps2 > 0 and speed_rng is None:
         speed_rng = np.random.default_rng(0)
 
@@ -431,11 +474,13 @@ def make_world(rng: np.random.Generator, duration: float, kind: str = "default",
         ``keep`` is False; everything is drawn from ``rng`` either way); returns its motion as
         placed."""
         color = tuple(float(c) for c in rng.uniform(0.15, 0.95, size=3))
+        wheeled_mover = type_ in (BoxType.VEHICLE, BoxType.CYCLIST) and (motion.s > 0.0 or motion.turn != 0.0)
         o = SynthObject(
             object_id=_object_id(rng), type=int(type_), size=tuple(float(s) for s in size),
             z_center=float(size[2] / 2 if z is None else z), motion=surging(type_, motion), color=color,
             pattern=int(rng.integers(0, 2) if pattern is None else pattern),
-            texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role)
+            texture_scale=float(u(0.15, 0.4)), seed=int(rng.integers(0, 2**31 - 1)), role=role,
+            axle_offset_m=float(rear_axle_fraction * size[0]) if wheeled_mover else 0.0)
         o = _place(o, bodies, times)
         if o is None:
             return motion
