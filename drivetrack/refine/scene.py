@@ -158,7 +158,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
                                          p[inside], owner[inside], timestamps_s[frames], config,
                                          name=f"{scene.segment}/{oid}", points_measured=measured,
-                                         wheeled=bool(np.isin(boxes.type[rows[0]], WHEELED_TYPES)))
+                                         wheeled=int(boxes.type[rows[0]]) in WHEELED_TYPES)
         if result.refined:
             update = {"center": result.center_vehicle, "heading": result.heading, "size": result.size}
             if tilted:

@@ -209,8 +209,9 @@ class SynthObject:
     def center(self, t: np.ndarray) -> np.ndarray:
         """float64 [..., 3] box centre in the world at times ``t``."""
         xy = self.motion.position_xy(t)
-        if self.axle_offset_m:
-            forward = self._axle_terms(np.asarray(t, dtype=np.float64))[0]
+        if self.axle_offset_m:          # (the heading alone: the lidar cast asks this per column)
+            heading = self.motion.heading(np.asarray(t, dtype=np.float64))
+            forward = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
             xy = xy + self.axle_offset_m * (forward - np.array([np.cos(self.motion.h0), np.sin(self.motion.h0)]))
         return np.concatenate([xy, np.full(xy.shape[:-1] + (1,), self.z_center)], axis=-1)
 
