@@ -166,14 +166,21 @@ def test_exact_labels_lose_nothing():
     assert kept.residual_label_m <= 1.15 * kept.residual_m
     # cost: consistent labels are recognised after early_stop_iteration (2) iterations, not all 10
     assert kept.iterations == RefineConfig().early_stop_iteration
-    # forced (no early stop, no improvement required), refinement stays within millimetres of the
-    # exact poses (measured 8.4 mm with the default 120 returns per frame)
+    # forced (no early stop, no improvement required), refinement on a uniform subset stays within
+    # millimetres of the exact poses (measured 8.4 mm with 120 returns per frame)
     forced = refine_object_poses(labels, SIZE, wfv, pts, frame, ts,
-                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0, fit_extent=False))
+                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0, fit_extent=False,
+                                              sample_normals=False))
     assert forced.refined
     assert relative_error(forced.world_from_box, wfv @ exact, CORNERS) < 0.011
     centre, heading = absolute_error(forced.vehicle_from_box, exact)
     assert centre < 0.006 and heading < 0.1
+    # on the default normal-space subset the forced iterations end no better than the labels
+    # (0.0064 m both): kept bit for bit even with no improvement required
+    forced = refine_object_poses(labels, SIZE, wfv, pts, frame, ts,
+                                 RefineConfig(min_improvement=0.0, early_stop_iteration=0, fit_extent=False))
+    assert forced.reason == "labels_consistent" and not forced.refined
+    np.testing.assert_array_equal(forced.vehicle_from_box, labels)
 
 
 def test_frames_without_points_take_the_motion_model():
@@ -298,6 +305,8 @@ def test_bad_config_raises():
         RefineConfig(jerk_sigma_mps3=0.0)
     with pytest.raises(ValueError, match="sample_voxel_m"):
         RefineConfig(sample_voxel_m=-0.1)
+    with pytest.raises(ValueError, match="sample_normals"):
+        RefineConfig(sample_normals="yes")
     with pytest.raises(ValueError, match="sweep_surface_max_m"):
         RefineConfig(sweep_surface_max_m=0.0)
     with pytest.raises(ValueError, match="unknown keys"):
@@ -770,6 +779,46 @@ def test_even_subsets_take_a_sparse_face_before_a_second_return_of_a_dense_one()
     np.testing.assert_array_equal(spread_priority(points[order], frame[order], uniform[order], 0.1), spread[order])
 
 
+def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
+    """``sample_normals`` (select.normal_priority, the default): a car's frame with 2,000 returns
+    on its side face seen square-on and 200 on its end face seen at a grazing angle, in the
+    vehicle frame of a box turned by 0.6 rad. Uniform priorities put about a tenth of a cap of 120
+    on the end face; keyed by the direction of their normals (along, across, up the box), every
+    screened end-face return comes before the side's 60th. A frame with fewer returns than the
+    normals' neighbourhood keeps the uniform order, unscreened returns follow the screened ones,
+    and the priorities do not depend on the order of the rows."""
+    from drivetrack.refine.select import normal_priority, point_priority
+
+    rng = np.random.default_rng(5)
+    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 0.9), rng.uniform(0.2, 1.4, 2000)], -1)
+    end = np.stack([np.full(200, 2.2), rng.uniform(-0.8, 0.8, 200), rng.uniform(0.2, 1.4, 200)], -1)
+    body = np.concatenate([side, end]) + rng.normal(0.0, 0.005, (2200, 3))
+    heading = np.array([0.6, 0.6])
+    c, s = np.cos(0.6), np.sin(0.6)
+    rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    points = np.concatenate([body @ rotate.T + [10.0, 5.0, 0.0], body[:8] @ rotate.T + [10.0, 5.0, 0.0]])
+    frame = np.repeat([0, 1], [2200, 8])                       # frame 1: too few for a normal
+    is_end = np.zeros(points.shape[0], bool)
+    is_end[2000:2200] = True
+    uniform = point_priority(points)
+    cap = 120
+    normals = normal_priority(points, frame, uniform, heading, 3 * cap)
+    rows0 = np.flatnonzero(frame == 0)
+    screened = rows0[np.argsort(uniform[rows0])[:3 * cap]]
+    assert np.all(normals[screened] < 1e6) and np.all(normals[np.setdiff1d(rows0, screened)] >= 1e6)
+    first = rows0[np.argsort(normals[rows0])[:cap]]
+    first_uniform = rows0[np.argsort(uniform[rows0])[:cap]]
+    screened_end = is_end[screened].sum()
+    assert 20 <= screened_end <= 50                            # about a tenth of the screen
+    assert is_end[first].sum() >= screened_end - 2             # (a corner's normal may lean)
+    assert is_end[first_uniform].sum() < 0.6 * is_end[first].sum()
+    rows1 = np.flatnonzero(frame == 1)
+    np.testing.assert_array_equal(np.argsort(normals[rows1]), np.argsort(uniform[rows1]))
+    order = rng.permutation(points.shape[0])
+    np.testing.assert_array_equal(normal_priority(points[order], frame[order], uniform[order], heading, 3 * cap),
+                                  normals[order])
+
+
 def test_points_measured_decide_whether_the_labels_are_kept():
     """``points_measured``: the poses are solved on moved copies of the returns, but whether they
     beat the labels is decided on the returns as measured (others than the solve's where a frame
@@ -877,8 +926,9 @@ def test_the_no_slip_point_is_found_behind_the_centre_of_a_turning_car():
     """A car on a curve whose rear axle, 1.4 m behind the box centre, drives along its heading
     (the centre slips sideways at yaw rate x 1.4 m): the refinement finds the no-slip point the
     exact poses give (-1.90 m: the test's path steps along the heading at each step's end, which
-    adds 0.5 m at 10 m/s; found -2.04, -1.83, -1.63 for seeds 1-3), and tracks no worse than
-    without the prior (0.4-0.5 cm both): the offset is an unknown, not assumed at the centre."""
+    adds 0.5 m at 10 m/s; found -1.95, -1.81, -1.56 for seeds 1-3, -2.04, -1.83, -1.63 on uniform
+    subsets), and tracks no worse than without the prior (0.3-0.4 cm; 0.4-0.5 on uniform subsets): the offset is an
+    unknown, not assumed at the centre."""
     from drivetrack.refine.motion import slip_offset_guess
 
     found, exact_offsets, errors = [], [], []
@@ -892,7 +942,7 @@ def test_the_no_slip_point_is_found_behind_the_centre_of_a_turning_car():
         found.append(slipping.slip_offset_m)
         errors.append(row)
     assert np.all(np.array(exact_offsets) < -1.0), exact_offsets          # behind the centre
-    np.testing.assert_allclose(found, exact_offsets, atol=0.3)
+    np.testing.assert_allclose(found, exact_offsets, atol=0.4)
     without, with_slip = np.mean(errors, axis=0)
     assert with_slip <= 1.05 * without, (without, with_slip)
 

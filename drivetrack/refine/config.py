@@ -57,11 +57,17 @@ class RefineConfig:
             seen from behind or side-on is pinned along its faces only by the few returns at
             their edges, which a smaller subset mostly leaves out (docs/refinement.md, "Returns
             per frame"; 120 before).
-        sample_voxel_m: that subset spread evenly over the object's surface: one return per cube
-            of this side (metres) before a second from any (``drivetrack.refine.select.spread_priority``).
-            None (default): uniform over the returns, so a face seen at a grazing angle, with few
-            returns, is hardly in it. 0.1 measured better on the small hard world and worse on
-            the medium one (docs/refinement.md, "Even subsets"), so it is not the default.
+        sample_normals: that subset shared among the directions the returns' surfaces face
+            (normal-space sampling, ``drivetrack.refine.select.normal_priority``): about a third
+            each from returns facing along the label box, across it and up, where a frame has
+            them. True (default): a car seen side-on keeps the returns of its front or rear face,
+            seen at a grazing angle, which alone fix it along the road and which a uniform subset
+            mostly leaves out (docs/refinement.md, "Normal-space sampling"). False: uniform.
+        sample_voxel_m: instead, that subset spread evenly over the object's surface: one return
+            per cube of this side (metres) before a second from any
+            (``drivetrack.refine.select.spread_priority``); takes precedence over
+            ``sample_normals``. None (default): not used. 0.1 measured better on the small hard
+            world and worse on the medium one (docs/refinement.md, "Even subsets").
         label_sigma_m, label_sigma_deg: the labels' per-frame noise (prior strength).
         accel_sigma_mps2, vertical_accel_sigma_mps2, yaw_accel_sigma_radps2: motion model
             stiffness: horizontal, vertical (world z; roads are smooth and the LiDAR sees little
@@ -155,6 +161,7 @@ class RefineConfig:
     min_planarity: float = 0.3
     association_neighbours: int = 12
     max_points_per_frame: int = 400
+    sample_normals: bool = True
     sample_voxel_m: float | None = None
     label_sigma_m: float = 0.05
     label_sigma_deg: float = 1.0
@@ -203,6 +210,8 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
+        if not isinstance(self.sample_normals, (bool, np.bool_)):
+            raise ValueError(f"RefineConfig.sample_normals must be True or False, got {self.sample_normals!r}")
         if self.sample_voxel_m is not None and not (isinstance(self.sample_voxel_m, (int, float))
                                                     and np.isfinite(self.sample_voxel_m) and self.sample_voxel_m > 0):
             raise ValueError(f"RefineConfig.sample_voxel_m must be None or a positive number, got {self.sample_voxel_m!r}")

@@ -10,7 +10,7 @@ from drivetrack.geometry import (box_from_center_heading, center_heading_from_po
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.motion import SLIP_OFFSET_SIGMA_M, _motion_operator, _slip_terms, slip_offset_guess
-from drivetrack.refine.select import _body_points, _inside, _Selection, point_priority, spread_priority
+from drivetrack.refine.select import _body_points, _inside, _Selection, normal_priority, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
 
@@ -241,6 +241,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     if config.sample_voxel_m is not None:
         # the cap spread evenly over the surface, not in proportion to the returns (select.spread_priority)
         priority = spread_priority(points, frame, priority, float(config.sample_voxel_m))
+    elif config.sample_normals:
+        # the cap shared among the directions the surfaces face (select.normal_priority): screened
+        # as the selection screens, the first 3 x cap of each frame by hash
+        priority = normal_priority(points, frame, priority, label_heading, 3 * config.max_points_per_frame)
 
     # Selection at the labels decides whether there is enough to register at all.
     use_kernel = _use_kernel(config)

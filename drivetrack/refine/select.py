@@ -77,12 +77,58 @@ def spread_priority(points: np.ndarray, frame: np.ndarray, priority: np.ndarray,
     cell -= cell.min(axis=0)
     span = cell.max(axis=0) + 1
     key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    return _rank_priority(key, frame, priority)
+
+
+def normal_priority(points: np.ndarray, frame: np.ndarray, priority: np.ndarray, heading: np.ndarray,
+                    screen: int, neighbours: int = 12) -> np.ndarray:
+    """float64 [M]: per-frame priorities that share the cap among the directions the returns'
+    surfaces face: normal-space sampling (Rusinkiewicz & Levoy 2001).
+
+    The ``screen`` returns of lowest ``priority`` (float [M] in [0, 1)) of each frame (``frame``
+    int [M]) get a PCA normal from their ``neighbours`` nearest returns of the same frame
+    (``points`` float [M, 3], metres, vehicle frame); each is keyed by the axis of its frame's
+    label box (``heading`` float [T], radians) its normal lies closest to: along the object,
+    across it, or up. Its new priority is its rank among its frame's screened returns of the same
+    key, plus its hash; the unscreened returns follow all of them (hash + 10^6). A cap of k
+    then takes about k/3 from each direction that has them: a car seen side-on from a few metres
+    gives its front or rear face, seen at a grazing angle and holding a few hundred of its tens
+    of thousands of returns, as large a share as its side, and those are the only returns that
+    fix its position along the road. Frames with fewer than ``neighbours`` screened returns
+    keep uniform ranks (key 0)."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.refine.terms import _normals          # (terms imports this module)
+
+    out = priority.astype(np.float64) + 1e6
+    rows = first_per_frame(frame, priority, screen)
+    if rows.size == 0:
+        return out
+    f = frame[rows]
+    counts = np.bincount(f)
+    key = np.zeros(rows.size, dtype=np.int64)
+    enough = counts[f] >= neighbours
+    if enough.any():
+        r = rows[enough]
+        # one tree over every frame's screened returns, frames kept apart by 10 km along x; the
+        # normals from the un-offset coordinates (the offset would cost their precision)
+        q = points[r] + (frame[r] * 1e4)[:, None] * np.array([1.0, 0.0, 0.0])
+        _, nbr = cKDTree(q).query(q, k=neighbours)
+        normal, _ = _normals(points[r], nbr)
+        key[enough] = np.argmax(np.abs(vectors_to_box(normal, heading, rows=frame[r])), axis=1)
+    out[rows] = _rank_priority(key, f, priority[rows])
+    return out
+
+
+def _rank_priority(key: np.ndarray, frame: np.ndarray, priority: np.ndarray) -> np.ndarray:
+    """float64 [M]: each point's rank among the points of its frame ``frame`` int [M] with its
+    ``key`` int [M] (ordered by ``priority`` float [M] in [0, 1)), plus that priority."""
     order = np.lexsort((priority, key, frame))
     run_key = np.stack([frame[order], key[order]], axis=-1)
     new_run = np.concatenate([[True], np.any(run_key[1:] != run_key[:-1], axis=-1)])
     starts = np.flatnonzero(new_run)
     rank = np.arange(order.size) - np.repeat(starts, np.diff(np.append(starts, order.size)))
-    out = np.empty(points.shape[0], dtype=np.float64)
+    out = np.empty(key.shape[0], dtype=np.float64)
     out[order] = rank + priority[order]
     return out
 
