@@ -10,6 +10,7 @@ import pytest
 
 from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, invert_rigid,
                                  rigid_from_rotation_translation, rotation_from_rpy, rotation_z)
+from drivetrack.numba_compat import NUMBA_AVAILABLE
 from drivetrack.refine import REFINE_REASONS, RefineConfig, RefinedPoses, refine_object_poses
 
 SIZE = np.array([4.6, 1.9, 1.6])
@@ -779,6 +780,30 @@ def test_even_subsets_take_a_sparse_face_before_a_second_return_of_a_dense_one()
     np.testing.assert_array_equal(spread_priority(points[order], frame[order], uniform[order], 0.1), spread[order])
 
 
+def test_first_per_frame_takes_the_lowest_priorities_of_each_frame_ties_to_the_earlier_rows():
+    """``select.first_per_frame``: the rows of each frame's ``cap`` lowest priorities, among equal
+    ones the earlier rows (the order of a stable sort by frame, then priority), whether the frames
+    come sorted (partitioned run by run) or not; frames with fewer rows are kept whole."""
+    from drivetrack.refine.select import first_per_frame
+
+    def stable_sort(frame, priority, cap):
+        order = np.lexsort((priority, frame))
+        rank = np.arange(order.size) - np.searchsorted(frame[order], frame[order], side="left")
+        return np.sort(order[rank < cap])
+
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        m, frames, cap = int(rng.integers(0, 2000)), int(rng.integers(1, 8)), int(rng.integers(1, 300))
+        frame = np.sort(rng.integers(0, frames, m))
+        # half the trials with many equal priorities, so that the cut falls among them
+        priority = rng.integers(0, 20, m) / 20.0 if trial % 2 else rng.random(m)
+        np.testing.assert_array_equal(first_per_frame(frame, priority, cap), stable_sort(frame, priority, cap))
+        shuffled = rng.permutation(m)
+        np.testing.assert_array_equal(first_per_frame(frame[shuffled], priority[shuffled], cap),
+                                      stable_sort(frame[shuffled], priority[shuffled], cap))
+    assert first_per_frame(np.zeros(0, np.int64), np.zeros(0), 5).size == 0
+
+
 def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
     """``sample_normals`` (select.normal_priority, the default): a car's frame with 2,000 returns
     on its side face seen square-on and 200 on its end face seen at a grazing angle, in the
@@ -817,6 +842,11 @@ def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
     order = rng.permutation(points.shape[0])
     np.testing.assert_array_equal(normal_priority(points[order], frame[order], uniform[order], heading, 3 * cap),
                                   normals[order])
+    if NUMBA_AVAILABLE:                     # the kernels' neighbours and normals: the same priorities
+        np.testing.assert_array_equal(normal_priority(points, frame, uniform, heading, 3 * cap, use_kernel=True),
+                                      normals)
+        np.testing.assert_array_equal(normal_priority(points[order], frame[order], uniform[order], heading, 3 * cap,
+                                                      use_kernel=True), normals[order])
 
 
 def test_points_measured_decide_whether_the_labels_are_kept():

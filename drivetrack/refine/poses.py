@@ -238,16 +238,17 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
     # fixed per-point priority for the per-frame cap: a hash of the point's coordinates, so the
     # result does not depend on the order of the input rows
     priority = point_priority(points)
+    use_kernel = _use_kernel(config)
     if config.sample_voxel_m is not None:
         # the cap spread evenly over the surface, not in proportion to the returns (select.spread_priority)
         priority = spread_priority(points, frame, priority, float(config.sample_voxel_m))
     elif config.sample_normals:
         # the cap shared among the directions the surfaces face (select.normal_priority): screened
         # as the selection screens, the first 3 x cap of each frame by hash
-        priority = normal_priority(points, frame, priority, label_heading, 3 * config.max_points_per_frame)
+        priority = normal_priority(points, frame, priority, label_heading, 3 * config.max_points_per_frame,
+                                   use_kernel=use_kernel)
 
     # Selection at the labels decides whether there is enough to register at all.
-    use_kernel = _use_kernel(config)
     if use_kernel:
         from drivetrack.refine.kernel import inside_counts
 
