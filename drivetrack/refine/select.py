@@ -28,6 +28,12 @@ def point_priority(points: np.ndarray) -> np.ndarray:
     return np.modf(np.abs(np.asarray(points) @ np.array([12.9898, 78.233, 37.719])) * 43758.5453)[0]
 
 
+def _runs(frame: np.ndarray) -> list[tuple[int, int]]:
+    """[(start, stop)]: the runs of equal values of ``frame`` int [M] (non-decreasing: one per frame)."""
+    cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
+    return list(zip(np.concatenate([[0], cuts]).tolist(), np.append(cuts, frame.size).tolist()))
+
+
 def first_per_frame(frame: np.ndarray, priority: np.ndarray, cap: int) -> np.ndarray:
     """int64 [k], ascending: the rows of the ``cap`` lowest ``priority`` float [M] of each frame
     ``frame`` int [M] (all of a frame that has fewer; among equal priorities the earlier rows).
@@ -44,9 +50,8 @@ def first_per_frame(frame: np.ndarray, priority: np.ndarray, cap: int) -> np.nda
         sorted_frame = frame[order]
         starts = np.searchsorted(sorted_frame, sorted_frame, side="left")
         return np.sort(order[np.arange(order.size) - starts < cap])
-    cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
     parts = []
-    for a, b in zip(np.concatenate([[0], cuts]).tolist(), np.append(cuts, n).tolist()):
+    for a, b in _runs(frame):
         if b - a <= cap:
             parts.append(np.arange(a, b, dtype=np.int64))
             continue
@@ -65,9 +70,7 @@ def _frame_priority_order(frame: np.ndarray, priority: np.ndarray) -> np.ndarray
     the same permutation at about half the cost on a near object's ~10^5 candidates."""
     n = frame.size
     if n > 1 and np.all(frame[1:] >= frame[:-1]):
-        cuts = np.flatnonzero(frame[1:] != frame[:-1]) + 1
-        starts, stops = np.concatenate([[0], cuts]), np.append(cuts, n)
-        return np.concatenate([a + _argsort_ties_by_index(priority[a:b]) for a, b in zip(starts, stops)])
+        return np.concatenate([a + _argsort_ties_by_index(priority[a:b]) for a, b in _runs(frame)])
     return np.lexsort((priority, frame))
 
 
@@ -152,9 +155,8 @@ def _frame_normals(points: np.ndarray, frame: np.ndarray, neighbours: int, use_k
 
     order = np.argsort(frame, kind="stable")
     ordered, f = points[order], frame[order]
-    cuts = np.flatnonzero(f[1:] != f[:-1]) + 1
     nbr = np.empty((points.shape[0], neighbours), np.int64)
-    for a, b in zip(np.concatenate([[0], cuts]).tolist(), np.append(cuts, f.size).tolist()):
+    for a, b in _runs(f):
         nbr[a:b] = kernel.knn(ordered[a:b], neighbours)[1] + a
     out = np.empty_like(ordered)
     out[order] = kernel.normals(ordered, nbr)[0]
