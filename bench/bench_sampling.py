@@ -9,8 +9,8 @@ among the directions the returns' surfaces face (``sample_normals``, the default
 ``bench_visibility``'s clip selection (``bench/refine_worlds.py``). Writes the ``bench_sampling``
 block of docs/benchmarks.md.
 
-    .venv/bin/python bench/bench_sampling.py                        # seeds 7-10, ~15 min
-    .venv/bin/python bench/bench_sampling.py --seeds 7 --no-docs     # ~4 min
+    .venv/bin/python bench/bench_sampling.py                        # seeds 7-10, ~7 min
+    .venv/bin/python bench/bench_sampling.py --seeds 7 --no-docs     # ~2 min
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ truth with ``bench_visibility``'s clip selection (five cameras, every object typ
 occlusion calls, pixel error of the truly visible point-frames (``bench/refine_worlds.py``).
 Writes the ``bench_slip`` block of docs/benchmarks.md.
 
-    .venv/bin/python bench/bench_slip.py                          # seeds 7-11, ~7 min
+    .venv/bin/python bench/bench_slip.py                          # seeds 7-11, ~5 min
     .venv/bin/python bench/bench_slip.py --seeds 7 --no-docs       # ~1 min
 """
 from __future__ import annotations
