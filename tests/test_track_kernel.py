@@ -17,7 +17,7 @@ from test_tracks import (DT, FRONT, H, W, SceneBuilder, camera_model, world_cent
 pytestmark = pytest.mark.skipif(not kernel.NUMBA_AVAILABLE, reason="numba is not importable")
 
 #: The track kernel's own-box and other-box arguments turned off (TrackConfig.own_surface_margin_m=None).
-OFF = (np.zeros((0, 6)), np.zeros(0, dtype=bool), np.zeros((0, 0, 18)))
+OFF = (np.zeros((0, 6)), np.zeros(0, dtype=bool), np.zeros((0, 0, 21)))
 
 
 def _hand_built_clip(seed=3, n=3000, t_count=7):
@@ -282,9 +282,15 @@ def test_kernel_own_and_other_boxes_equal_the_numpy_rules(max_gap_m):
         m = 0 if tau == 2 else 4 + tau % 2
         centres = rng.uniform([1.5, -3.0, -1.0], [7.0, 3.0, 1.0], size=(m, 3))
         camera_from_other = box_from_center_heading(centres, rng.uniform(-np.pi, np.pi, m))
-        others_list.append((camera_from_other, rng.uniform([0.5, 0.5, 0.5], [4.0, 2.5, 2.0], size=(m, 3))))
+        size = rng.uniform([0.5, 0.5, 0.5], [4.0, 2.5, 2.0], size=(m, 3))
+        if tau % 2:     # the part its returns fill: faces moved in by up to 15 cm, not symmetrically
+            inset = rng.uniform(0.0, 0.15, size=(m, 2, 3)) * [[-1.0], [1.0]]
+            others_list.append((camera_from_other, size, np.stack([-0.5 * size, 0.5 * size], axis=1) - inset))
+        else:
+            others_list.append((camera_from_other, size))
     others = other_boxes(cam, shift, others_list, 0.2)
-    assert others.shape == (t_count, 5, 18) and (others[2, :, 12] < 0).all() and (others[0, 4, 12] < 0)
+    assert not np.allclose(others[1, :4, 18:21], 0.0) and np.allclose(others[0, :4, 18:21], 0.0)
+    assert others.shape == (t_count, 5, 21) and (others[2, :, 12] < 0).all() and (others[0, 4, 12] < 0)
     _, vis_plain, *_, ok, surface = _reference(model, p, cam, shift, veh, world, maps, ratio, 0.6)
     points_camera_x = np.einsum("tj,nj->tn", cam[:, 0, :3], p) + cam[:, None, 0, 3] + shift[:, None, 0]
     occluded = ok & (surface > 0) & (surface < ratio * points_camera_x)

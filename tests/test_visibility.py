@@ -753,6 +753,38 @@ def test_own_surface_point_on_the_ray():
                                   [[False], [False]])   # no margin: not the object's surface at all
 
 
+def test_a_loose_label_box_leaves_the_points_beside_its_object_to_the_zbuffer():
+    """Another object's label box drawn wider than the object (by hand, or a static object's box
+    grown to hold its returns): the depth map's spread of that object just past its outline is
+    left to the z-buffer wherever the ray misses the part of the box its returns fill
+    (:func:`drivetrack.visibility.solid_extents`), not only where it misses the label box."""
+    from drivetrack.visibility import other_boxes, other_surface, own_box_parameters, solid_extents
+
+    # a pole 0.3 m wide, 1 cm off its label's centre, in a label 0.36 x 0.36 x 5 m; its returns on
+    # its near face only (x = -0.15) and from 0.2 m above the label's bottom (the ground clearance)
+    rng = np.random.default_rng(3)
+    returns = np.column_stack([np.full(400, -0.15), rng.uniform(-0.14, 0.16, 400), rng.uniform(-2.3, 2.5, 400)])
+    returns[:2, 1:] = [[-0.14, -2.3], [0.16, 2.5]]
+    label = np.array([[0.36, 0.36, 5.0]])
+    solid = solid_extents(returns, label)
+    # the faces within 5 cm of its returns move in; the unseen far face and the bottom (20 cm
+    # below the lowest return) stay; a face never moves out
+    np.testing.assert_allclose(solid[0], [[-0.15, -0.14, -2.5], [0.18, 0.16, 2.5]])
+    np.testing.assert_allclose(solid_extents(returns * [1.0, 2.0, 1.0], label)[0], [[-0.15, -0.18, -2.5], [0.18, 0.18, 2.5]])
+    camera_from_other = np.eye(4)[None].copy()
+    camera_from_other[0, 0, 3] = 20.0                                           # 20 m ahead of the camera
+    own = own_box_parameters(np.zeros((1, 3)), np.ones((1, 3)), 0.2)             # this object's frame = camera's
+    boxed = other_boxes(np.eye(4)[None], np.zeros((1, 3)), [(camera_from_other, label)], 0.2)
+    filled = other_boxes(np.eye(4)[None], np.zeros((1, 3)), [(camera_from_other, label, solid)], 0.2)
+    assert boxed.shape == filled.shape == (1, 1, 21)
+    # points on a wall 25 m away: beside the pole (its ray passes 2 cm outside the pole, inside the
+    # label), and straight behind it; the map holds the pole's near face (19.85 m) at both
+    wall = np.array([[25.0, -0.2, 0.0], [25.0, 0.0, 0.0]])
+    ratio = np.full((1, 2), 19.85 / 25.0)
+    np.testing.assert_array_equal(other_surface(wall, ratio, own, boxed), [[False, False]])
+    np.testing.assert_array_equal(other_surface(wall, ratio, own, filled), [[True, False]])
+
+
 def test_own_surface_at_points_without_a_reliable_normal():
     """Where a point's normal is unreliable the back-face test cannot decide, so no gap is taken for
     the object's own without the ray test: a map surface inside the box is the object's own smear

@@ -816,7 +816,8 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
     0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
-    added to the translation, size float64 [k, 3]).
+    added to the translation, size float64 [k, 3], solid float64 [k, 2, 3], the part of each box
+    its returns fill, :func:`drivetrack.visibility.solid_extents`).
 
     Every object but ``job``'s with a box at some clip frame and returns selected by the plan
     (somewhere in the segment) is carried by its own :func:`clip_poses` (the capture time of
@@ -840,6 +841,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     numba kernel (:func:`drivetrack.visibility.kernel.project_in_window`; the global shutter
     only), else with numpy.
     """
+    from drivetrack.visibility import solid_extents
     from drivetrack.visibility.zbuffer import surfel_subsample
 
     scene = plan.scene
@@ -895,6 +897,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             continue
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
+        solid = solid_extents(points_box, boxes.size[obj_rows])
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
         if use_kernel:
@@ -922,13 +925,14 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 else:
                     splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
-            frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]]))
+            frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
     returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
     return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
-                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3))) for parts in frame_boxes], seen
+                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
+                      np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes], seen
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -1070,8 +1074,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # The other labelled objects' boxes for the depth-map test (drivetrack.visibility.other_surface):
     # a map surface inside one of them (grown) on a ray that misses the box itself is that object's
     # depth spread past its outline, which the z-buffer draws from its own surface; posed like the
-    # own box (the global-shutter image pose); [T, 0, 18]: off.
-    others = np.zeros((0, 0, 18))
+    # own box (the global-shutter image pose); [T, 0, 21]: off.
+    others = np.zeros((0, 0, 21))
     occluders = []
 
     def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
@@ -1351,7 +1355,7 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     candidates, None when that test is off; ``own_box`` float64 [T, 8] or [0, 8] (off) and
     ``own_points`` bool [n]: where the depth map's surface is the object's own
     (:func:`drivetrack.visibility.own_surface`) at a point it applies to, or another labelled
-    object's spread beyond its outline (``others`` float64 [T, K, 18],
+    object's spread beyond its outline (``others`` float64 [T, K, 21],
     :func:`drivetrack.visibility.other_surface`), the depth-map test cannot hide the point (+inf).
     """
     from drivetrack.depth import lookup_max4

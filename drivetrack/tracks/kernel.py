@@ -54,7 +54,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     to the gap not passing through the box itself, does not hide it; where not ``own_point`` (the
     point's normal is unreliable, so the back-face test cannot decide) the gap is 0: only the ray
     test
-    (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 18] (K may be 0; used
+    (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 21] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the
     margin (negative: an unused slot), then their half extents; a surface whose point lies in a
@@ -157,14 +157,15 @@ def _segment_in_box(sx, sy, sz, fx, fy, fz, hx, hy, hz):
 @njit(cache=True, nogil=True, inline="always")
 def _segment_enters_box(o, e, px, py, pz):
     """The segment from the camera centre ``e[:3]`` to the point (px, py, pz) (this object's box
-    frame) passes through the box of ``o`` (:func:`_visible`'s slot: rotation, translation, grown
-    and plain half extents) before the point (slab test, t in [0, 1))."""
-    return _segment_in_box(o[0] * e[0] + o[1] * e[1] + o[2] * e[2] + o[9],
-                               o[3] * e[0] + o[4] * e[1] + o[5] * e[2] + o[10],
-                               o[6] * e[0] + o[7] * e[1] + o[8] * e[2] + o[11],
-                               o[0] * px + o[1] * py + o[2] * pz + o[9],
-                               o[3] * px + o[4] * py + o[5] * pz + o[10],
-                               o[6] * px + o[7] * py + o[8] * pz + o[11], o[15], o[16], o[17])
+    frame) passes through the solid part of the box of ``o`` (:func:`_visible`'s slot: rotation,
+    translation, grown half extents, the solid part's half extents and centre) before the point
+    (slab test, t in [0, 1))."""
+    return _segment_in_box(o[0] * e[0] + o[1] * e[1] + o[2] * e[2] + o[9] - o[18],
+                               o[3] * e[0] + o[4] * e[1] + o[5] * e[2] + o[10] - o[19],
+                               o[6] * e[0] + o[7] * e[1] + o[8] * e[2] + o[11] - o[20],
+                               o[0] * px + o[1] * py + o[2] * pz + o[9] - o[18],
+                               o[3] * px + o[4] * py + o[5] * pz + o[10] - o[19],
+                               o[6] * px + o[7] * py + o[8] * pz + o[11] - o[20], o[15], o[16], o[17])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -206,7 +207,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         own: float64 [T, 8] or [0, 8]: the object's own box for the depth test (:func:`_visible`),
             ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
             ``own`` is [0, 7]), the points it applies to (reliable normals).
-        others: float64 [T, K, 18], the other labelled objects' boxes (:func:`_visible`).
+        others: float64 [T, K, 21], the other labelled objects' boxes (:func:`_visible`).
         duration_s: clip duration; the speed is NaN when T < 2 or this is <= 0.
         box_speed_mps, max_speed_deviation_mps: the speed filter drops a visible point whose
             ``|speed - box_speed_mps|`` is not <= the deviation; a NaN of either disables it.

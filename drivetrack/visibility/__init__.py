@@ -15,11 +15,12 @@ from drivetrack.visibility.facing import (OWN_BOX_DEPTH_M, SENSOR_VEHICLE_M, Clo
                                           SurfelNormals, box_face_normals, camera_centres_box, cloud_normals,
                                           facing_mask, facing_test, orient_outward, other_boxes, other_surface,
                                           own_box_parameters, own_surface, points_on_surface, points_on_sweep_surface,
-                                          sensor_positions, surface_cloud, surfel_normals, with_box_face_normals)
+                                          sensor_positions, solid_extents, surface_cloud, surfel_normals,
+                                          with_box_face_normals)
 from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
 __all__ = ["OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "CloudNormals", "SurfaceCloud", "SurfelNormals",
            "box_face_normals", "camera_centres_box", "cloud_normals", "facing_mask", "facing_test",
            "hidden_by_others", "nearest_depth", "orient_outward", "other_boxes", "other_surface",
            "own_box_parameters", "own_surface", "points_on_surface", "points_on_sweep_surface", "sensor_positions",
-           "surface_cloud", "surfel_normals", "with_box_face_normals"]
+           "solid_extents", "surface_cloud", "surfel_normals", "with_box_face_normals"]

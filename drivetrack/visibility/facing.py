@@ -48,9 +48,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
-           "SHIFT_TOLERANCE_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
+           "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
            "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
-           "other_boxes", "other_surface", "own_box_parameters", "own_surface", "points_on_surface",
+           "other_boxes", "other_surface", "solid_extents", "own_box_parameters", "own_surface", "points_on_surface",
            "points_on_sweep_surface", "range_noise_m", "sensor_positions", "surface_cloud", "surfel_normals",
            "with_box_face_normals"]
 
@@ -616,32 +616,63 @@ def _surface_points(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.nda
     return centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
 
 
-def other_boxes(camera_from_box: np.ndarray, shift_camera: np.ndarray,
-                others: list[tuple[np.ndarray, np.ndarray]], margin_m: float) -> np.ndarray:
-    """float64 [T, K, 18]: the other labelled objects' boxes in this object's box frame, per frame.
+#: A face of another object's box counts as solid up to its outermost return (:func:`solid_extents`)
+#: when those returns come within this of the face (metres: a label drawn a few centimetres wide,
+#: a static object's box grown to hold its returns); farther (a face no sweep reached, the bottom
+#: below the ground clearance, the last centimetres a sparse object's returns did not reach), up to
+#: the face itself.
+SOLID_FACE_MAX_M = 0.05
+
+
+def solid_extents(points_box: np.ndarray, size: np.ndarray, max_gap_m: float = SOLID_FACE_MAX_M) -> np.ndarray:
+    """float64 [r, 2, 3]: the low and high corners (box frame, metres) of the part of each box of
+    ``size`` float [r, 3] its object fills, from the object's returns ``points_box`` float [m, 3]
+    in that frame.
+
+    Each face moves in to the outermost return when that return lies within ``max_gap_m`` inside
+    it, else stays (never moves out). A label is drawn a few centimetres wide of its object (by
+    hand, or a static object's box grown to hold the returns of its one pose), so a ray that
+    crosses the label box near its face may pass beside the object itself: the depth-map test
+    leaves such a ray to the z-buffer (:func:`other_surface`)."""
+    half = 0.5 * np.asarray(size, dtype=np.float64).reshape(-1, 3)
+    lo, hi = -half, half.copy()
+    points_box = np.asarray(points_box, dtype=np.float64)
+    if points_box.shape[0]:
+        p_lo, p_hi = points_box.min(axis=0), points_box.max(axis=0)
+        lo = np.where((p_lo > lo) & (p_lo - lo <= max_gap_m), p_lo, lo)
+        hi = np.where((p_hi < hi) & (hi - p_hi <= max_gap_m), p_hi, hi)
+    return np.stack([lo, hi], axis=1)
+
+
+def other_boxes(camera_from_box: np.ndarray, shift_camera: np.ndarray, others: list[tuple], margin_m: float) -> np.ndarray:
+    """float64 [T, K, 21]: the other labelled objects' boxes in this object's box frame, per frame.
 
     ``camera_from_box`` float64 [T, 4, 4] and ``shift_camera`` float64 [T, 3] place this object
     (camera frame, metres: ``R p + t + shift``); ``others[tau]`` = (camera_from_box float64
-    [m, 4, 4] with the other objects' shifts added to the translation, size float64 [m, 3]) of the
-    other objects posed for that image. Each slot holds the 9 rotation and 3 translation values
-    of ``box_other_from_box_self``, the other box's half extents grown by ``margin_m``, then its
-    half extents; unused slots have half extents -1 (:func:`other_surface`, the track kernel's
-    depth test).
+    [m, 4, 4] with the other objects' shifts added to the translation, size float64 [m, 3][,
+    solid float64 [m, 2, 3]]) of the other objects posed for that image, ``solid`` the part of
+    each box its object fills (:func:`solid_extents`; default the box). Each slot holds the 9
+    rotation and 3 translation values of ``box_other_from_box_self``, the other box's half extents
+    grown by ``margin_m``, then the solid part's half extents and its centre (the other's box
+    frame); unused slots have half extents -1 (:func:`other_surface`, the track kernel's depth test).
     """
     t_count = camera_from_box.shape[0]
     k_max = max((o[1].shape[0] for o in others), default=0)
-    out = np.full((t_count, k_max, 18), -1.0)
-    for tau, (camera_from_other, size) in enumerate(others):
+    out = np.full((t_count, k_max, 21), -1.0)
+    for tau, other in enumerate(others):
+        camera_from_other, size = other[0], other[1]
         m = size.shape[0]
         if m == 0:
             continue
+        solid = other[2] if len(other) > 2 else np.stack([-0.5 * size, 0.5 * size], axis=1)
         rotation, translation = camera_from_other[:, :3, :3], camera_from_other[:, :3, 3]
         r_self, t_self = camera_from_box[tau, :3, :3], camera_from_box[tau, :3, 3] + shift_camera[tau]
         # other <- camera <- self: R_o^T (R_s q + t_s - t_o)
         out[tau, :m, :9] = np.einsum("mji,jk->mik", rotation, r_self).reshape(m, 9)
         out[tau, :m, 9:12] = np.einsum("mji,mj->mi", rotation, t_self[None] - translation)
         out[tau, :m, 12:15] = 0.5 * size + float(margin_m)
-        out[tau, :m, 15:18] = 0.5 * size
+        out[tau, :m, 15:18] = 0.5 * (solid[:, 1] - solid[:, 0])
+        out[tau, :m, 18:21] = 0.5 * (solid[:, 1] + solid[:, 0])
     return out
 
 
@@ -665,7 +696,8 @@ def other_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarr
     object's returns beyond its outline, and its own surface in the z-buffer, not the map, decides.
 
     As :func:`own_surface` (``own`` float64 [T, 6] gives the camera centres), against the boxes
-    ``others`` float64 [T, K, 18] of :func:`other_boxes`. The depth maps are completed by nearest
+    ``others`` float64 [T, K, 21] of :func:`other_boxes` (the ray must cross the part of the box
+    its object fills, :func:`solid_extents`). The depth maps are completed by nearest
     neighbour, which spreads a labelled occluder's returns a few pixels beyond its outline (points
     beside a pole, or just past a car's edge, were called hidden); the z-buffer draws that
     occluder from its own surface with its outline kept (:mod:`drivetrack.visibility.zbuffer`).
@@ -683,14 +715,16 @@ def other_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarr
     centre = own[t_idx, :3]
     with np.errstate(invalid="ignore"):
         surface = _surface_points(points_box, depth_ratio, own, t_idx, n_idx)                # [m, 3]
-        slots = others[t_idx]                                                                # [m, K, 18]
+        slots = others[t_idx]                                                                # [m, K, 21]
         rotation = slots[..., :9].reshape(-1, slots.shape[1], 3, 3)
 
         def to_other(points):                                                                # [m, 3] -> [m, K, 3]
             return np.einsum("mkij,mj->mki", rotation, points) + slots[..., 9:12]
 
         inside = np.all(np.abs(to_other(surface)) <= slots[..., 12:15], axis=-1) & (slots[..., 12] >= 0)
-        through = _segment_enters_box(to_other(centre), to_other(points_box[n_idx]), slots[..., 15:18])
+        solid_centre = slots[..., 18:21]
+        through = _segment_enters_box(to_other(centre) - solid_centre, to_other(points_box[n_idx]) - solid_centre,
+                                      slots[..., 15:18])
     out[t_idx, n_idx] = (inside & ~through).any(axis=-1)
     return out
 
