@@ -294,6 +294,32 @@ def test_range_noise_moves_the_returns_along_their_rays_and_keeps_the_truth(tmp_
         SynthConfig(range_noise_m=-0.01)
 
 
+def test_box_slack_draws_the_labels_wider_and_keeps_the_rest(tmp_path):
+    """``box_slack_m``: every written box (``lidar_box``, ``lidar_camera_synced_box``) is that much
+    wider than its object on each side, centres and headings unchanged; the lidar, the cameras and
+    the ground truth (the objects' own sizes) stay as without it."""
+    exact = SynthConfig(seed=5, frames=2, preset="small", cameras=("FRONT",))
+    slack = SynthConfig(seed=5, frames=2, preset="small", cameras=("FRONT",), box_slack_m=0.1)
+    seg = generate_segment(str(tmp_path / "a"), exact, 0)["segment"]
+    generate_segment(str(tmp_path / "b"), slack, 0)
+    for component, box in (("lidar_box", "box"), ("lidar_camera_synced_box", "camera_synced_box")):
+        c = COMPONENTS[component]
+        a, b = (_read(str(tmp_path / d), component, seg).to_pandas() for d in "ab")
+        assert len(a) == len(b) > 0
+        for axis in "xyz":
+            np.testing.assert_allclose(b[c.col(f"{box}.size.{axis}")], a[c.col(f"{box}.size.{axis}")] + 0.2)
+            np.testing.assert_array_equal(b[c.col(f"{box}.center.{axis}")], a[c.col(f"{box}.center.{axis}")])
+    ta, tb = (load_ground_truth(str(tmp_path / d), "training", seg) for d in "ab")
+    np.testing.assert_array_equal(ta.objects["size"], tb.objects["size"])
+    for key in ("point_box", "pixels", "visible"):
+        np.testing.assert_array_equal(ta.hits[key], tb.hits[key])
+    for name in ("lidar", "camera_image", "vehicle_pose"):
+        assert (tmp_path / "a" / "training" / name / f"{seg}.parquet").read_bytes() == \
+            (tmp_path / "b" / "training" / name / f"{seg}.parquet").read_bytes(), name
+    with pytest.raises(ValueError, match="box_slack_m"):
+        SynthConfig(box_slack_m=-0.01)
+
+
 def test_cli_writes_segments_and_rejects_bad_camera(tmp_path, capsys):
     from drivetrack.cli import main
 

@@ -63,6 +63,9 @@ def add_parser(sub) -> None:
                         "their length behind the box centre (about 0.3 for a car): on a turn the "
                         "centre slips sideways, as real cars' do; 0 (default): the centre follows "
                         "the path")
+    p.add_argument("--box-slack", type=float, default=0.0, metavar="M",
+                   help="every written box is drawn this much wider than its object on each side "
+                        "(metres), as hand-drawn labels are; 0 (default): the object's extent")
     p.add_argument("--workers", type=int, default=1, help="threads rendering cameras (default 1)")
     p.set_defaults(func=run)
 
@@ -89,6 +92,9 @@ def run(args) -> int:
     if args.box_noise < 0:
         console.print(f"[red]error:[/] --box-noise must be >= 0 (got {args.box_noise})")
         return 2
+    if not 0 <= args.box_slack <= 0.5:
+        console.print(f"[red]error:[/] --box-slack must be in [0, 0.5] m (got {args.box_slack})")
+        return 2
     if not 0 <= args.range_noise <= 0.5:
         console.print(f"[red]error:[/] --range-noise must be in [0, 0.5] m (got {args.range_noise})")
         return 2
@@ -103,6 +109,7 @@ def run(args) -> int:
         box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
         camera_trigger=args.camera_trigger, label_time=args.label_time, car_shape=args.car_shape,
         speed_changes_mps2=args.speed_changes, range_noise_m=args.range_noise, rear_axle_fraction=args.rear_axle,
+        box_slack_m=args.box_slack,
         heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console) as progress:
@@ -129,6 +136,7 @@ def run(args) -> int:
           + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "")
           + (f", speed changes up to {config.speed_changes_mps2:g} m/s^2" if config.speed_changes_mps2 else "")
           + (f", {config.range_noise_m * 100:g} cm range noise" if config.range_noise_m else "")
+          + (f", labels {config.box_slack_m * 100:g} cm wide of their objects" if config.box_slack_m else "")
           + (f", rear axles {config.rear_axle_fraction:g} of the length behind the centre"
              if config.rear_axle_fraction else "")
           + ")", file=sys.stdout)

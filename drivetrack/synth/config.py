@@ -53,7 +53,11 @@ class SynthConfig:
     0 (the box centre of every mover follows its path, heading its tangent: no slip at the centre)
     or where the point without lateral slip lies behind the centre of each moving vehicle and
     cyclist, as a fraction of its length (about 0.3 for a car's rear axle): on a turn the centre
-    then moves sideways, as real cars' do (:attr:`drivetrack.synth.world.SynthObject.axle_offset_m`)."""
+    then moves sideways, as real cars' do (:attr:`drivetrack.synth.world.SynthObject.axle_offset_m`).
+    ``box_slack_m``: 0 (every written box is its object's extent) or how much wider than its object
+    every written box is drawn on each side (metres), as hand-drawn labels are: the written sizes
+    (``lidar_box``, ``lidar_camera_synced_box``, ``projected_lidar_box``) grow by twice this, the
+    centres stay; the ground truth keeps the objects' own sizes."""
     seed: int = 7
     frames: int = 40
     preset: str = "small"
@@ -69,6 +73,7 @@ class SynthConfig:
     speed_changes_mps2: float = 0.0
     range_noise_m: float = 0.0
     rear_axle_fraction: float = 0.0
+    box_slack_m: float = 0.0
 
     def __post_init__(self):
         from drivetrack.synth.world import CAR_SHAPES, WORLDS
@@ -85,6 +90,8 @@ class SynthConfig:
         if not (isinstance(self.rear_axle_fraction, (int, float)) and 0 <= self.rear_axle_fraction < 0.5):
             raise ValueError(f"SynthConfig.rear_axle_fraction: expected a fraction of the length in [0, 0.5), "
                              f"found {self.rear_axle_fraction!r}")
+        if not (isinstance(self.box_slack_m, (int, float)) and 0 <= self.box_slack_m <= 0.5):
+            raise ValueError(f"SynthConfig.box_slack_m: expected metres in [0, 0.5], found {self.box_slack_m!r}")
         if not (isinstance(self.speed_changes_mps2, (int, float)) and 0 <= self.speed_changes_mps2 < 20):
             raise ValueError(f"SynthConfig.speed_changes_mps2: expected a number of m/s^2 in [0, 20), "
                              f"found {self.speed_changes_mps2!r}")

@@ -89,7 +89,8 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
     tables["lidar"] = range_image_table("lidar", lidar_rows)
     tables["lidar_pose"] = range_image_table("lidar_pose", pose_rows, returns=1)
     tables["lidar_camera_projection"] = range_image_table("lidar_camera_projection", proj_rows)
-    # lidar_box
+    # lidar_box: boxes drawn box_slack_m wider than their objects on every side (0: their extent)
+    label_sizes = g.sizes + 2.0 * float(g.config.box_slack_m)
     lb = C["lidar_box"]
     kt = [(k, t) for t in range(T) for k in range(K) if g.labelled[k, t]]
     ks = np.array([k for k, _ in kt], np.int64)
@@ -100,7 +101,7 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
         **key_cols(lb, len(kt)), "key.frame_timestamp_micros": ts[tt] if kt else [],
         "key.laser_object_id": [world.objects[k].object_id for k in ks],
         **{lb.col(f"box.center.{a}"): label_center[ks, tt, i] for i, a in enumerate("xyz")},
-        **{lb.col(f"box.size.{a}"): g.sizes[ks, i] for i, a in enumerate("xyz")},
+        **{lb.col(f"box.size.{a}"): label_sizes[ks, i] for i, a in enumerate("xyz")},
         lb.col("box.heading"): label_heading[ks, tt],
         lb.col("type"): np.array([world.objects[k].type for k in ks], np.int8),
         lb.col("num_lidar_points_in_box"): npts, lb.col("num_top_lidar_points_in_box"): num_top[ks, tt],
@@ -118,14 +119,14 @@ def _build_tables(g: _Generator, jpegs, lidar_rows, pose_rows, proj_rows, label_
         "key.laser_object_id": [world.objects[k].object_id for k in ks],
         sb.col("most_visible_camera_name"): np.where(most_any[tt, ks], cam_values[most[tt, ks]], 0).astype(np.int8),
         **{sb.col(f"camera_synced_box.center.{a}"): synced_center[ks, tt, i] for i, a in enumerate("xyz")},
-        **{sb.col(f"camera_synced_box.size.{a}"): g.sizes[ks, i] for i, a in enumerate("xyz")},
+        **{sb.col(f"camera_synced_box.size.{a}"): label_sizes[ks, i] for i, a in enumerate("xyz")},
         sb.col("camera_synced_box.heading"): synced_heading[ks, tt]}
     # projected_lidar_box: the written (possibly noisy) label box projected into each camera
     pb_rows = []
     for ci, (cam, model) in enumerate(models):
         for k, t in kt:
             box = _box_matrix(label_center[k, t], label_heading[k, t])
-            samples_v = transform_points(box, _box_edge_samples(g.sizes[k]))
+            samples_v = transform_points(box, _box_edge_samples(label_sizes[k]))
             pc = transform_points(model.camera_from_vehicle, samples_v)
             if not (pc[:, 0] > 0.05).all():
                 continue

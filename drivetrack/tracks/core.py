@@ -1009,13 +1009,16 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # image pose and the row's time: centimetres, inside the margin). Only within
     # ``own_surface_max_gap_m`` in front of the point: farther, a part of the object itself (a
     # cabin in front of a bonnet) hides it, if the surface lies inside the box itself and not in
-    # its margin (where no part of it is: a roof seen at a grazing angle). [0, 8]: off.
-    own_box, own_points = np.zeros((0, 8)), np.zeros(n, dtype=bool)
+    # its margin (where no part of it is: a roof seen at a grazing angle). The box itself is the part
+    # its returns fill (drivetrack.visibility.solid_extents: a label is drawn wider than its
+    # object). [0, 13]: off.
+    own_box, own_points = np.zeros((0, 13)), np.zeros(n, dtype=bool)
     if surfels is not None and config.own_surface_margin_m is not None:
-        from drivetrack.visibility import own_box_parameters
+        from drivetrack.visibility import own_box_parameters, solid_extents
 
+        own_cloud = segment_surface(plan, job.object_id, poses) if poses.trajectory is not None else p_box
         own_box = own_box_parameters(centres_box, boxes.size[rows], float(config.own_surface_margin_m),
-                                     config.own_surface_max_gap_m)
+                                     config.own_surface_max_gap_m, solid_extents(own_cloud, boxes.size[rows]))
         own_points = np.ascontiguousarray(surfels.reliable, dtype=bool)
 
     def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
@@ -1352,7 +1355,7 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     ``clip_maps`` float32 [T, H, W] the clip's depth maps; ``project(points_box [k, 3])`` returns
     ``(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k])`` as the track path projected
     them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
-    candidates, None when that test is off; ``own_box`` float64 [T, 8] or [0, 8] (off) and
+    candidates, None when that test is off; ``own_box`` float64 [T, 13] or [0, 13] (off) and
     ``own_points`` bool [n]: where the depth map's surface is the object's own
     (:func:`drivetrack.visibility.own_surface`) at a point it applies to, or another labelled
     object's spread beyond its outline (``others`` float64 [T, K, 21],

@@ -46,10 +46,11 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
              px, py, pz):
     """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
 
-    ``own`` float64 [T, 8] (or [0, 8]: off): per frame the camera centre in the box frame, the
+    ``own`` float64 [T, 13] (or [0, 13]: off): per frame the camera centre in the box frame, the
     half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``,
-    ``own_surface_max_gap_m`` and the depth inside the grown box's faces at which a ray passes
-    through the box itself; a surface whose point on the ray to the box-frame point (px, py, pz)
+    ``own_surface_max_gap_m``, and the half extents and centre of the box itself a ray must pass
+    through (the part its returns fill, less ``OWN_BOX_DEPTH_M``:
+    :func:`drivetrack.visibility.own_box_parameters`); a surface whose point on the ray to the box-frame point (px, py, pz)
     lies in that grown box, at most the gap in front of the point or farther with the ray from it
     to the gap not passing through the box itself, does not hide it; where not ``own_point`` (the
     point's normal is unreliable, so the back-face test cannot decide) the gap is 0: only the ray
@@ -57,7 +58,8 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 21] (K may be 0; used
     only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
     translation values taking this object's box frame to theirs, their half extents grown by the
-    margin (negative: an unused slot), then their half extents; a surface whose point lies in a
+    margin (negative: an unused slot), then the half extents and centre of the part their returns
+    fill; a surface whose point lies in a
     grown one while the ray to the point misses the box itself is that object's outline spread by
     the map, and the z-buffer decides instead (:func:`drivetrack.visibility.other_surface`)."""
     if not valid:
@@ -103,7 +105,7 @@ def _max4(depth_maps, tau, height, width, pix_x, pix_y):
 def _surface_is_theirs(tau, scale, own, own_point, others, px, py, pz):
     """The depth map's surface at ``scale`` (its depth over the point's) on the ray to the box-frame
     point (px, py, pz) is the object's own or another labelled object's spread, so it hides
-    nothing (:func:`_visible`; False when ``own`` is [0, 8]: off)."""
+    nothing (:func:`_visible`; False when ``own`` is [0, 13]: off)."""
     if own.shape[0] == 0:
         return False
     # the surface's point on the ray from the camera centre e through p: e + (best / x) (p - e)
@@ -120,8 +122,8 @@ def _surface_is_theirs(tau, scale, own, own_point, others, px, py, pz):
         if gap <= limit:
             return True
         w = limit / gap
-        if not _segment_in_box(qx, qy, qz, px + (qx - px) * w, py + (qy - py) * w, pz + (qz - pz) * w,
-                                   e[3] - e[7], e[4] - e[7], e[5] - e[7]):
+        if not _segment_in_box(qx - e[10], qy - e[11], qz - e[12], px + (qx - px) * w - e[10],
+                               py + (qy - py) * w - e[11], pz + (qz - pz) * w - e[12], e[7], e[8], e[9]):
             return True
     for k in range(others.shape[1]):
         o = others[tau, k]
@@ -204,7 +206,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
         camera: float64 [11], :func:`camera_parameters`.
         depth_maps: float32 [T, H, W], z-depth, metres, 0 = unknown.
         occlusion_ratio: occluded iff ``0 < surface < occlusion_ratio * z``.
-        own: float64 [T, 8] or [0, 8]: the object's own box for the depth test (:func:`_visible`),
+        own: float64 [T, 13] or [0, 13]: the object's own box for the depth test (:func:`_visible`),
             ``drivetrack.visibility.own_box_parameters``; own_points: bool [N] (any length when
             ``own`` is [0, 7]), the points it applies to (reliable normals).
         others: float64 [T, K, 21], the other labelled objects' boxes (:func:`_visible`).

@@ -546,20 +546,25 @@ OWN_BOX_DEPTH_M = 0.1
 
 
 def own_box_parameters(centres_box: np.ndarray, size: np.ndarray, margin_m: float,
-                       max_gap_m: float | None = None) -> np.ndarray:
-    """float64 [T, 8]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
+                       max_gap_m: float | None = None, solid: np.ndarray | None = None) -> np.ndarray:
+    """float64 [T, 13]: per frame the camera centre in the box frame (``centres_box`` float [T, 3],
     :func:`camera_centres_box`), the half extents of the box of ``size`` float [T, 3] (metres)
     grown by ``margin_m`` on every side, ``max_gap_m`` (metres; None: +inf), the farthest in
     front of the point along its ray that a surface inside that box is always taken for the
-    object's own (farther, only if the ray from it does not run through the box itself), and
-    ``margin_m`` + :data:`OWN_BOX_DEPTH_M`, how far inside the grown box's faces a ray must run
-    to pass through the box itself: what :func:`own_surface` and the track kernel's depth test
-    (``drivetrack.tracks.kernel``) take."""
+    object's own (farther, only if the ray from it does not run through the box itself), then the
+    half extents and the centre of the box itself, the ray must run through: the part of the box
+    the object fills (``solid`` float [T, 2, 3], low and high corners, :func:`solid_extents`; None:
+    the box) less :data:`OWN_BOX_DEPTH_M` on every side (at least 0): what :func:`own_surface`
+    and the track kernel's depth test (``drivetrack.tracks.kernel``) take."""
     centres_box = np.asarray(centres_box, dtype=np.float64)
-    half = 0.5 * np.asarray(size, dtype=np.float64) + float(margin_m)
+    size = np.broadcast_to(np.asarray(size, dtype=np.float64), centres_box.shape)
+    half = 0.5 * size + float(margin_m)
     gap = np.full((centres_box.shape[0], 1), np.inf if max_gap_m is None else float(max_gap_m))
-    margin = np.full((centres_box.shape[0], 1), float(margin_m) + OWN_BOX_DEPTH_M)
-    return np.ascontiguousarray(np.concatenate([centres_box, np.broadcast_to(half, centres_box.shape), gap, margin],
+    if solid is None:
+        solid = np.stack([-0.5 * size, 0.5 * size], axis=1)
+    solid = np.asarray(solid, dtype=np.float64)
+    itself = np.maximum(0.5 * (solid[:, 1] - solid[:, 0]) - OWN_BOX_DEPTH_M, 0.0)
+    return np.ascontiguousarray(np.concatenate([centres_box, half, gap, itself, 0.5 * (solid[:, 1] + solid[:, 0])],
                                                axis=-1))
 
 
@@ -570,10 +575,10 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
     ``points_box`` float [n, 3]; ``depth_ratio`` float [T, n] = the depth map's value at the
     point's pixel over the point's own z-depth (the surface's point on the ray from the camera
     centre ``e`` is ``e + depth_ratio (p - e)``: the pixel is the projection of the point, so they
-    share the ray); ``own`` float64 [T, 8] from :func:`own_box_parameters`. True where that
+    share the ray); ``own`` float64 [T, 13] from :func:`own_box_parameters`. True where that
     surface point lies inside the grown box and either at most ``own[:, 6]`` metres in front of
     the point along the ray, or farther but with the ray from it to ``own[:, 6]`` in front of the
-    point not running through the box itself, :data:`OWN_BOX_DEPTH_M` deep (through the margin,
+    point not running through the box itself (the part its returns fill), :data:`OWN_BOX_DEPTH_M` deep (through the margin,
     where no part of the object is, only the map's spread: over a roof seen at a grazing angle the
     ray runs a few centimetres above the roof); where that stretch of the ray passes through the
     box, a part of the object itself hides the point (a cabin in front of a bonnet; a box has no
@@ -603,7 +608,8 @@ def own_surface(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.ndarray
             f = np.flatnonzero(far)
             p = points_box[n_idx[f]]
             stop = p + (surface[f] - p) * (limit[f] / gap[f])[:, None]
-            through[f] = _segment_enters_box(surface[f], stop, own[t_idx[f], 3:6] - own[t_idx[f], 7:8])
+            middle = own[t_idx[f], 10:13]
+            through[f] = _segment_enters_box(surface[f] - middle, stop - middle, own[t_idx[f], 7:10])
         out[t_idx, n_idx] = np.all(np.abs(surface) <= own[t_idx, 3:6], axis=-1) & ~through
     return out
 
@@ -621,7 +627,7 @@ def _surface_points(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.nda
 #: a static object's box grown to hold its returns); farther (a face no sweep reached, the bottom
 #: below the ground clearance, the last centimetres a sparse object's returns did not reach), up to
 #: the face itself.
-SOLID_FACE_MAX_M = 0.05
+SOLID_FACE_MAX_M = 0.15
 
 
 def solid_extents(points_box: np.ndarray, size: np.ndarray, max_gap_m: float = SOLID_FACE_MAX_M) -> np.ndarray:
