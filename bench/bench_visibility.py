@@ -35,7 +35,9 @@ of centre noise and 1 deg of heading noise per 5 cm (``SynthConfig(box_noise_m=M
 are drawn by hand around their returns) and the block ``bench_visibility_noise`` is written; with
 ``--range-noise M`` every written lidar range carries M metres of noise
 (``SynthConfig(range_noise_m=M)``: real returns do) and the block ``bench_visibility_range`` is
-written. Each
+written; with ``--box-slack M`` every written box is drawn M metres wider than its object on each
+side (``SynthConfig(box_slack_m=M)``: hand-drawn labels are) and the block
+``bench_visibility_slack`` is written. Each
 block counts the wrong calls by kind (truly visible called hidden, back faces called visible,
 hidden by another object called visible).
 
@@ -49,6 +51,8 @@ hidden by another object called visible).
 + normals among 30 neighbours,+ returns moved onto their surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ shifted neighbourhoods,+ returns moved onto their surface (default)"   # ~15 min
+    .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --variants "depth-ratio (paper),\
++ returns moved onto their surface (default)"   # ~6 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -250,6 +254,7 @@ ROLLING_START, ROLLING_END = "<!-- bench_visibility_rolling:start -->", "<!-- be
 CABIN_START, CABIN_END = "<!-- bench_visibility_cabin:start -->", "<!-- bench_visibility_cabin:end -->"
 NOISE_START, NOISE_END = "<!-- bench_visibility_noise:start -->", "<!-- bench_visibility_noise:end -->"
 RANGE_START, RANGE_END = "<!-- bench_visibility_range:start -->", "<!-- bench_visibility_range:end -->"
+SLACK_START, SLACK_END = "<!-- bench_visibility_slack:start -->", "<!-- bench_visibility_slack:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
@@ -259,10 +264,12 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     cabin = setup.get("car_shape", "box") == "cabin"
     noise = float(setup.get("label_noise_m", 0.0))
     range_noise = float(setup.get("range_noise_m", 0.0))
+    slack = float(setup.get("box_slack_m", 0.0))
     title = ("## Visibility on the hard world read out by a rolling shutter" if rolling
              else "## Visibility on the hard world with cabin-shaped cars" if cabin
              else f"## Visibility on the hard world with {noise * 100:g} cm label noise" if noise
              else f"## Visibility on the hard world with {range_noise * 100:g} cm lidar range noise" if range_noise
+             else f"## Visibility on the hard world with labels {slack * 100:g} cm wide of their objects" if slack
              else "## Visibility on the hard world: back faces from each object's own surface")
     world = ("the hard world of the block above rendered with rolling-shutter cameras "
              "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
@@ -274,9 +281,13 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              else f"the hard world of the block above with {range_noise * 100:g} cm (sigma) of noise on every written lidar "
                   f"range (`SynthConfig(world=\"hard\", range_noise_m={range_noise:g})`), same scoring: preset "
              if range_noise
+             else f"the hard world of the block above with every written box drawn {slack * 100:g} cm wider than "
+                  f"its object on each side (`SynthConfig(world=\"hard\", box_slack_m={slack:g})`), same scoring: "
+                  "preset " if slack
              else "same segment and scoring as the block above: preset ")
     options = ((" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
-               + (f" --label-noise {noise:g}" if noise else "") + (f" --range-noise {range_noise:g}" if range_noise else ""))
+               + (f" --label-noise {noise:g}" if noise else "") + (f" --range-noise {range_noise:g}" if range_noise else "")
+               + (f" --box-slack {slack:g}" if slack else ""))
     lines = [title, "",
              f"`bench/bench_visibility.py{options}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
@@ -343,11 +354,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--range-noise", type=float, default=0.0, metavar="M",
                     help="sigma (metres) of the noise on every written lidar range (SynthConfig.range_noise_m; "
                          "writes the bench_visibility_range block)")
+    ap.add_argument("--box-slack", type=float, default=0.0, metavar="M",
+                    help="every written box drawn this much (metres) wider than its object on each side "
+                         "(SynthConfig.box_slack_m; writes the bench_visibility_slack block)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
-    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0, args.range_noise > 0)) > 1:
-        ap.error("--rolling-shutter, --car-shape cabin, --label-noise and --range-noise: one at a time (one block each)")
+    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0, args.range_noise > 0,
+            args.box_slack > 0)) > 1:
+        ap.error("--rolling-shutter, --car-shape cabin, --label-noise, --range-noise and --box-slack: one at a time "
+                 "(one block each)")
+    if not 0 <= args.box_slack <= 0.5:
+        ap.error(f"--box-slack must be in [0, 0.5] metres, got {args.box_slack}")
     if args.label_noise < 0:
         ap.error(f"--label-noise must be >= 0 metres, got {args.label_noise}")
     if not 0 <= args.range_noise <= 0.5:
@@ -367,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
                                                          cameras=CAMERAS, world="hard",
                                                          rolling_shutter=args.rolling_shutter,
                                                          car_shape=args.car_shape, box_noise_m=args.label_noise,
-                                                         range_noise_m=args.range_noise),
+                                                         range_noise_m=args.range_noise, box_slack_m=args.box_slack),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
         objects = load_ground_truth(f"{tmp}/src", "training", seg).objects
@@ -391,7 +409,8 @@ def main(argv: list[str] | None = None) -> int:
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
              "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
-             "car_shape": args.car_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise}
+             "car_shape": args.car_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise,
+             "box_slack_m": args.box_slack}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
@@ -399,7 +418,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_docs:
         start, end = ((ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
                       if args.car_shape == "cabin" else (NOISE_START, NOISE_END) if args.label_noise
-                      else (RANGE_START, RANGE_END) if args.range_noise else (COMPARE_START, COMPARE_END))
+                      else (RANGE_START, RANGE_END) if args.range_noise
+                      else (SLACK_START, SLACK_END) if args.box_slack else (COMPARE_START, COMPARE_END))
         replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
     return 0
 

@@ -770,8 +770,8 @@ def test_a_loose_label_box_leaves_the_points_beside_its_object_to_the_zbuffer():
     returns[:2, 1:] = [[-0.14, -2.3], [0.16, 2.5]]
     label = np.array([[0.36, 0.36, 5.0]])
     solid = solid_extents(returns, label)
-    # the faces within 5 cm of its returns move in; the unseen far face and the bottom (20 cm
-    # below the lowest return) stay; a face never moves out
+    # the faces within 30 cm of its returns move in; the unseen far face (33 cm) and the bottom
+    # (the ground clearance ends the returns there) stay; a face never moves out
     np.testing.assert_allclose(solid[0], [[-0.15, -0.14, -2.5], [0.18, 0.16, 2.5]])
     np.testing.assert_allclose(solid_extents(returns * [1.0, 2.0, 1.0], label)[0], [[-0.15, -0.18, -2.5], [0.18, 0.18, 2.5]])
     camera_from_other = np.eye(4)[None].copy()

@@ -622,12 +622,11 @@ def _surface_points(points_box: np.ndarray, depth_ratio: np.ndarray, own: np.nda
     return centre + depth_ratio[t_idx, n_idx, None] * (points_box[n_idx] - centre)
 
 
-#: A face of another object's box counts as solid up to its outermost return (:func:`solid_extents`)
-#: when those returns come within this of the face (metres: a label drawn a few centimetres wide,
-#: a static object's box grown to hold its returns); farther (a face no sweep reached, the bottom
-#: below the ground clearance, the last centimetres a sparse object's returns did not reach), up to
-#: the face itself.
-SOLID_FACE_MAX_M = 0.15
+#: A face of an object's box counts as solid up to its outermost return (:func:`solid_extents`) when
+#: those returns come within this of the face (metres: a label drawn a few centimetres to decimetres
+#: wide, a static object's box grown to hold its returns); farther (a face no sweep reached), up to
+#: the face itself. The bottom face always stays (the ground clearance ends the returns there).
+SOLID_FACE_MAX_M = 0.3
 
 
 def solid_extents(points_box: np.ndarray, size: np.ndarray, max_gap_m: float = SOLID_FACE_MAX_M) -> np.ndarray:
@@ -635,17 +634,21 @@ def solid_extents(points_box: np.ndarray, size: np.ndarray, max_gap_m: float = S
     ``size`` float [r, 3] its object fills, from the object's returns ``points_box`` float [m, 3]
     in that frame.
 
-    Each face moves in to the outermost return when that return lies within ``max_gap_m`` inside
-    it, else stays (never moves out). A label is drawn a few centimetres wide of its object (by
-    hand, or a static object's box grown to hold the returns of its one pose), so a ray that
-    crosses the label box near its face may pass beside the object itself: the depth-map test
-    leaves such a ray to the z-buffer (:func:`other_surface`)."""
+    Each face but the bottom moves in to the outermost return when that return lies within
+    ``max_gap_m`` inside it, else stays (never moves out; the bottom always stays: the returns end
+    at the ground clearance above it, not where the object does). A label is drawn a few
+    centimetres to decimetres wide of its object (by hand, or a static object's box grown to hold
+    the returns of its one pose), so a ray that crosses the label box near its face may pass beside
+    the object itself: the depth-map tests leave such a ray to the z-buffer (:func:`other_surface`)
+    and take a surface there for the object's own smear (:func:`own_surface`)."""
     half = 0.5 * np.asarray(size, dtype=np.float64).reshape(-1, 3)
     lo, hi = -half, half.copy()
     points_box = np.asarray(points_box, dtype=np.float64)
     if points_box.shape[0]:
         p_lo, p_hi = points_box.min(axis=0), points_box.max(axis=0)
-        lo = np.where((p_lo > lo) & (p_lo - lo <= max_gap_m), p_lo, lo)
+        move_lo = (p_lo > lo) & (p_lo - lo <= max_gap_m)
+        move_lo[..., 2] = False         # the bottom: the ground clearance, not the object, ends the returns there
+        lo = np.where(move_lo, p_lo, lo)
         hi = np.where((p_hi < hi) & (hi - p_hi <= max_gap_m), p_hi, hi)
     return np.stack([lo, hi], axis=1)
 
