@@ -50,16 +50,15 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     half extents of the object's own box grown by ``TrackConfig.own_surface_margin_m``,
     ``own_surface_max_gap_m``, and the half extents and centre of the box itself a ray must pass
     through (the part its returns fill, less ``OWN_BOX_DEPTH_M``:
-    :func:`drivetrack.visibility.own_box_parameters`); a surface whose point on the ray to the box-frame point (px, py, pz)
-    lies in that grown box, at most the gap in front of the point or farther with the ray from it
-    to the gap not passing through the box itself, does not hide it; where not ``own_point`` (the
-    point's normal is unreliable, so the back-face test cannot decide) the gap is 0: only the ray
-    test
-    (:func:`drivetrack.visibility.own_surface`). ``others`` float64 [T, K, 21] (K may be 0; used
-    only with ``own``): per frame the other labelled objects' boxes as 9 rotation and 3
-    translation values taking this object's box frame to theirs, their half extents grown by the
-    margin (negative: an unused slot), then the half extents and centre of the part their returns
-    fill; a surface whose point lies in a
+    :func:`drivetrack.visibility.own_box_parameters`); a surface whose point on the ray to the
+    box-frame point (px, py, pz) lies in that grown box, at most the gap in front of the point or
+    farther with the ray from it to the gap not passing through the box itself, does not hide it;
+    where not ``own_point`` (the point's normal is unreliable, so the back-face test cannot
+    decide) the gap is 0: only the ray test (:func:`drivetrack.visibility.own_surface`). ``others``
+    float64 [T, K, 21] (K may be 0; used only with ``own``): per frame the other labelled objects'
+    boxes as 9 rotation and 3 translation values taking this object's box frame to theirs, their
+    half extents grown by the margin (negative: an unused slot), then the half extents and centre
+    of the part their returns fill; a surface whose point lies in a
     grown one while the ray to the point misses the box itself is that object's outline spread by
     the map, and the z-buffer decides instead (:func:`drivetrack.visibility.other_surface`)."""
     if not valid:
