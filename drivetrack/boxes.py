@@ -13,6 +13,15 @@ Two stages ask, with different tolerances, so there are two gathers over the sam
   itself (its boxes are grown by ``candidate_margin_m``, with no ground clearance). Its fused twin
   is ``drivetrack.refine.kernel.gather`` (same result, tested equal).
 
+Two rules keep returns that are not the object's out of the refinement's candidates (labels drawn
+loosely reach below the ground and round their neighbours):
+
+- :func:`ground_under_boxes`: the height of the ground under each box, measured from the returns
+  in a ring round its footprint, so that returns near it are left out even when the box's bottom
+  lies below the ground;
+- :func:`claimed_by_other_boxes`: a return that another object's box of the same frame holds more
+  deeply than its own box is that object's.
+
 Both filter returns with :func:`return_mask` and test body-frame points with :func:`inside_box`.
 The two coarse passes are not interchangeable bit for bit (horizontal slab, half-open in x, vs
 closed cube in x, y and z), so each stage keeps its own; only the exact test decides membership.
@@ -21,10 +30,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.geometry import invert_rigid, transform_points
+from drivetrack.geometry import invert_rigid, transform_points, vectors_to_box
 from drivetrack.parallel import pool_map
 
-__all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates"]
+__all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates", "ground_under_boxes",
+           "fill_ground_over_time", "claimed_by_other_boxes", "box_depth"]
 
 SCAN_MAX_BOXES = 24
 """:func:`returns_in_boxes` scans a frame's returns once per box when it has at most this many
@@ -176,3 +186,156 @@ def gather_candidates(points: np.ndarray, laser: np.ndarray, return_index: np.nd
     index, owner = index[near], owner[near]
     order = np.lexsort((index, owner))
     return index[order].astype(np.int64), owner[order].astype(np.int64)
+
+
+#: :func:`ground_under_boxes`: the ring round a box's footprint whose returns measure the ground:
+#: from this far outside its side faces to this far (metres). Its inner edge keeps the object's
+#: own returns out (they lie inside the box or within a label's slack of it).
+GROUND_RING_M = (0.3, 1.5)
+#: ... the returns of the ring within this of the box's bottom (metres, body z) ...
+GROUND_WINDOW_M = 0.5
+#: ... at least this many (fewer: the ground is unknown, NaN) ...
+GROUND_MIN_RETURNS = 5
+#: ... and this quantile of their heights: the ground is the lowest large surface round an object;
+#: the lower parts of neighbours (a parked car's sill, legs) in the ring lie above it.
+GROUND_QUANTILE = 0.25
+
+
+def box_depth(points_box: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """float64 [N]: how deep body-frame points float [N, 3] lie inside boxes of half-size ``half``
+    ([N, 3] or [3], metres): the distance to the nearest face, negative outside (then the largest
+    excess over the faces, not the Euclidean distance)."""
+    return np.min(half - np.abs(points_box), axis=-1)
+
+
+def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, frame_offsets: np.ndarray,
+                       box_frame: np.ndarray, center: np.ndarray, heading: np.ndarray, size: np.ndarray,
+                       lasers=None, returns=None, gather=gather_candidates) -> np.ndarray:
+    """float64 [B]: the ground's height under each box, as body-frame z (metres; the box's bottom
+    is ``-size[:, 2] / 2``), NaN where it cannot be measured.
+
+    The ground is measured from box b's frame's returns (``points`` float64 [M, 3] vehicle frame,
+    sorted by frame, ``frame_offsets`` int64 [T + 1]; ``laser`` / ``return_index`` with ``lasers`` /
+    ``returns`` as in :func:`return_mask`) in a ring round its footprint (:data:`GROUND_RING_M`
+    outside its side faces) within :data:`GROUND_WINDOW_M` of its bottom: the
+    :data:`GROUND_QUANTILE` quantile of their heights when there are at least
+    :data:`GROUND_MIN_RETURNS`. Boxes: ``box_frame`` int [B], ``center`` float [B, 3], ``heading``
+    float [B] rad, ``size`` float [B, 3] (yaw-only: the labels). ``gather``:
+    :func:`gather_candidates` or its fused twin ``drivetrack.refine.kernel.gather``.
+
+    Why: a label drawn a little wider than its object reaches below the road, and its lowest
+    returns are the road's; the ground clearance of the stages is kept above the ground measured
+    here as well as above the box's bottom."""
+    count = np.shape(box_frame)[0]
+    out = np.full(count, np.nan)
+    if count == 0:
+        return out
+    inner, outer = GROUND_RING_M
+    half = 0.5 * np.asarray(size, np.float64)
+    radius = np.hypot(half[:, 0] + outer, half[:, 1] + outer)
+    radius = np.maximum(radius, half[:, 2] + GROUND_WINDOW_M)
+    index, owner = gather(points, laser, return_index, lasers, returns, frame_offsets,
+                          np.asarray(box_frame, np.int64), np.asarray(center, np.float64), radius)
+    q = vectors_to_box(points[index] - center[owner], np.asarray(heading, np.float64), rows=owner)
+    h = half[owner]
+    ring = (np.all(np.abs(q[:, :2]) <= h[:, :2] + outer, axis=-1)
+            & ~np.all(np.abs(q[:, :2]) <= h[:, :2] + inner, axis=-1)
+            & (np.abs(q[:, 2] + h[:, 2]) <= GROUND_WINDOW_M))
+    owner, z = owner[ring], q[ring, 2]
+    order = np.lexsort((z, owner))
+    owner, z = owner[order], z[order]
+    counts = np.bincount(owner, minlength=count)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    known = counts >= GROUND_MIN_RETURNS
+    out[known] = z[start[known] + np.floor(GROUND_QUANTILE * (counts[known] - 1)).astype(np.int64)]
+    return out
+
+
+def fill_ground_over_time(ground: np.ndarray, box_frame: np.ndarray, box_object: np.ndarray, center: np.ndarray,
+                          world_from_vehicle: np.ndarray) -> np.ndarray:
+    """float64 [B]: ``ground`` (:func:`ground_under_boxes`, body-frame z, NaN where unmeasured)
+    with each object's unmeasured boxes given the ground's world height under their centre
+    interpolated over its measured boxes (linearly in frame index, held beyond the ends).
+
+    Boxes: ``box_frame`` int [B], ``box_object`` [B] ids, ``center`` float [B, 3] vehicle frame of
+    the box's frame (yaw-only: body z is vehicle z); ``world_from_vehicle`` float [T, 4, 4]. An
+    object with no measured box stays NaN. Why: the ring round a box can be empty in a frame (a
+    neighbour or the sweep's gap hides the road) while the label's depth under the road is the
+    same as in the frames round it, up to its noise."""
+    ground = np.array(ground, dtype=np.float64)
+    box_frame = np.asarray(box_frame, np.int64)
+    pose = np.asarray(world_from_vehicle, np.float64)[box_frame]                   # [B, 4, 4]
+    base = np.einsum("bj,bj->b", pose[:, 2, :3], center) + pose[:, 2, 3]           # world z of the centre
+    up = pose[:, 2, 2]                                                              # world z per body z
+    world = base + up * ground
+    box_object = np.asarray(box_object)
+    for oid in np.unique(box_object[~np.isfinite(ground)]):
+        rows = np.flatnonzero(box_object == oid)
+        known = np.isfinite(ground[rows])
+        if not known.any():
+            continue
+        order = np.argsort(box_frame[rows[known]], kind="stable")
+        filled = np.interp(box_frame[rows[~known]], box_frame[rows[known]][order], world[rows[known]][order])
+        ground[rows[~known]] = (filled - base[rows[~known]]) / up[rows[~known]]
+    return ground
+
+
+def claimed_by_other_boxes(points: np.ndarray, owner: np.ndarray, box_frame: np.ndarray, box_object: np.ndarray,
+                           center: np.ndarray, heading: np.ndarray, size: np.ndarray,
+                           tolerance_m: float = 0.02) -> np.ndarray:
+    """bool [N]: points another object's box holds more deeply than their own box does.
+
+    Point n (``points`` float [N, 3], vehicle frame of its box's frame) belongs to box row
+    ``owner[n]`` of the box arrays (``box_frame`` int [B], ``box_object`` [B] any comparable ids,
+    ``center`` [B, 3], ``heading`` [B] rad, ``size`` [B, 3] m: yaw-only). It is claimed when a box
+    of the same frame and another object holds it at a depth (:func:`box_depth`) above
+    ``-tolerance_m`` (a return exactly on a label's face counts as inside) and above its depth in
+    its own box. Only box pairs whose footprints' circles overlap the points' reach are tested.
+
+    Why: labels drawn loosely, and the margins the stages grow them by, overlap where objects stand
+    close (a pedestrian beside a car, cars queueing): the neighbour's returns, which do not move
+    with the object, would be registered and tracked as its own."""
+    points = np.asarray(points, np.float64)
+    owner = np.asarray(owner, np.int64)
+    claimed = np.zeros(owner.size, dtype=bool)
+    if owner.size == 0:
+        return claimed
+    box_frame = np.asarray(box_frame, np.int64)
+    box_object = np.asarray(box_object)
+    half = 0.5 * np.asarray(size, np.float64)
+    own_depth = box_depth(vectors_to_box(points - center[owner], np.asarray(heading, np.float64), rows=owner),
+                          half[owner])
+    # each owner row's reach (its points' farthest horizontal distance from its centre) against
+    # every box of its frame and another object
+    rows = np.unique(owner)
+    reach = np.zeros(box_frame.size)
+    np.maximum.at(reach, owner, np.hypot(*(points[:, :2] - center[owner, :2]).T))
+    other_radius = np.hypot(half[:, 0], half[:, 1])
+    pair_a, pair_b = [], []
+    for t in np.unique(box_frame[rows]):
+        a = rows[box_frame[rows] == t]
+        b = np.flatnonzero(box_frame == t)
+        gap = np.hypot(*(center[a, None, :2] - center[None, b, :2]).transpose(2, 0, 1))
+        near = (gap <= reach[a, None] + other_radius[None, b]) & (box_object[a, None] != box_object[None, b])
+        ia, ib = np.nonzero(near)
+        pair_a.append(a[ia])
+        pair_b.append(b[ib])
+    if not pair_a:
+        return claimed
+    pair_a, pair_b = np.concatenate(pair_a), np.concatenate(pair_b)
+    if pair_a.size == 0:
+        return claimed
+    # the points of each pair's owner row: owner need not be sorted
+    order = np.argsort(owner, kind="stable")
+    counts = np.bincount(owner, minlength=box_frame.size)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    length = counts[pair_a]
+    which = np.repeat(np.arange(pair_a.size), length)
+    offset = np.arange(which.size) - np.repeat(np.cumsum(length) - length, length)
+    point = order[starts[pair_a][which] + offset]
+    other = pair_b[which]
+    depth = box_depth(vectors_to_box(points[point] - center[other], np.asarray(heading, np.float64), rows=other),
+                      half[other])
+    hit = (depth > -tolerance_m) & (depth > own_depth[point])
+    claimed[point[hit]] = True
+    return claimed

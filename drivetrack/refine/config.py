@@ -144,6 +144,14 @@ class RefineConfig:
             bit for bit): the registration then matches surfaces instead of each return's
             centimetres of noise; whether the result beats the labels is still decided on the
             returns as measured (docs/refinement.md, "Range noise").
+        ground_ring: leave out of an object's candidates the returns within ``ground_clearance_m``
+            of the ground measured round each label box (``drivetrack.boxes.ground_under_boxes``)
+            where the box reaches more than 3 cm below it (a label drawn wider than its object:
+            the road's returns would be registered as the object's and pull it back along its
+            path). True (default); False: the clearance is over the box's bottom only.
+        exclusive_returns: leave out of an object's candidates the returns another object's label
+            box of the frame holds more deeply (``drivetrack.boxes.claimed_by_other_boxes``): a
+            pedestrian beside a car, cars queueing. True (default).
         kernel: ``numba`` (default: k-nearest search, normals and normal equations in the fused
             kernels of ``drivetrack.refine.kernel``) or ``numpy`` (the scipy/numpy reference,
             same results up to floating-point rounding and ties).
@@ -193,6 +201,8 @@ class RefineConfig:
     extent_margin_m: float = 0.02
     max_extent_growth_m: float = 0.1
     sweep_surface_max_m: float | None = 0.1
+    ground_ring: bool = True
+    exclusive_returns: bool = True
     kernel: str = "numba"
 
     def __post_init__(self):
@@ -210,8 +220,9 @@ class RefineConfig:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"RefineConfig.{name} must be a positive number, got {value!r}")
-        if not isinstance(self.sample_normals, (bool, np.bool_)):
-            raise ValueError(f"RefineConfig.sample_normals must be True or False, got {self.sample_normals!r}")
+        for name in ("sample_normals", "ground_ring", "exclusive_returns"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"RefineConfig.{name} must be True or False, got {getattr(self, name)!r}")
         if self.sample_voxel_m is not None and not (isinstance(self.sample_voxel_m, (int, float))
                                                     and np.isfinite(self.sample_voxel_m) and self.sample_voxel_m > 0):
             raise ValueError(f"RefineConfig.sample_voxel_m must be None or a positive number, got {self.sample_voxel_m!r}")

@@ -6,8 +6,9 @@ import dataclasses
 
 import numpy as np
 
-from drivetrack.boxes import gather_candidates, inside_box
-from drivetrack.geometry import vectors_from_box
+from drivetrack.boxes import (claimed_by_other_boxes, fill_ground_over_time, gather_candidates, ground_under_boxes,
+                              inside_box)
+from drivetrack.geometry import vectors_from_box, vectors_to_box
 from drivetrack.parallel import pool_map
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
@@ -24,6 +25,16 @@ __all__ = ["refine_scene_boxes"]
 #: their sweep's surface (an even subset by :func:`drivetrack.refine.select.point_priority`) and
 #: registered; every candidate makes the surface
 SWEEP_RETURNS_PER_FRAME = 2000
+#: ``RefineConfig.ground_ring``: returns less than this above the ground measured round a box
+#: (:func:`drivetrack.boxes.ground_under_boxes`) are not the object's candidates, whatever the
+#: box's bottom (metres: the road's returns scatter by a few centimetres about its mean surface and
+#: slope across a car's footprint). It only acts where the box reaches more than
+#: ``ground_clearance_m`` minus this below the ground: a label's usual noise leaves the cut at
+#: the bottom's clearance, as before.
+GROUND_BAND_M = 0.1
+#: A ground measured more than this above the box's bottom is not trusted (a label is not drawn
+#: that deep into the road; the ring then holds a neighbour's sill or a kerb).
+GROUND_MAX_RISE_M = 0.5
 
 
 def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=None, lasers=None,
@@ -102,6 +113,8 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         from drivetrack.refine.kernel import frame_time_candidates, gather
     index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
                                   lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
+    index_all, owner_all = _own_candidates(lidar, boxes, scene.world_from_vehicle, all_rows, index_all, owner_all,
+                                           lasers, returns, config, gather)
     row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
     bounds = np.searchsorted(owner_all, row_start)
 
@@ -211,6 +224,41 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         done.update(run(again, motion))
     results = {oid: done[k][0] for k, oid in enumerate(ids)}
     return with_updates(done), results
+
+
+def _own_candidates(lidar, boxes, world_from_vehicle: np.ndarray, all_rows: np.ndarray, index: np.ndarray,
+                    owner: np.ndarray, lasers, returns, config: RefineConfig, gather) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates ``(index, owner)`` (returns ``index`` int [N] of box ``all_rows[owner]``) that
+    may be the object's: with ``config.ground_ring``, none within :data:`GROUND_BAND_M` of the
+    ground measured round the box (:func:`drivetrack.boxes.ground_under_boxes`) where that is
+    higher than the box's own clearance (``config.ground_clearance_m`` over its bottom, which the
+    registration applies to the current box); with ``config.exclusive_returns``, none that another object's box of
+    the frame holds more deeply (:func:`drivetrack.boxes.claimed_by_other_boxes`; every box of the
+    scene, annotated or not). Loosely drawn labels reach below the road and round their
+    neighbours; their returns do not move with the object (docs/refinement.md, "Returns that are
+    not the object's")."""
+    if index.size == 0 or not (config.ground_ring or config.exclusive_returns):
+        return index, owner
+    rows = all_rows[owner]
+    points = lidar.points_vehicle[index]
+    keep = np.ones(index.size, dtype=bool)
+    if config.ground_ring:
+        ground = ground_under_boxes(lidar.points_vehicle, lidar.laser, lidar.return_index, lidar.frame_offsets,
+                                    boxes.frame[all_rows], boxes.center[all_rows], boxes.heading[all_rows],
+                                    boxes.size[all_rows], lasers, returns, gather=gather)
+        ground = fill_ground_over_time(ground, boxes.frame[all_rows], boxes.object_id[all_rows].astype(str),
+                                       boxes.center[all_rows], world_from_vehicle)
+        bottom = -0.5 * boxes.size[all_rows, 2]
+        lift = ground - bottom
+        measured = np.isfinite(lift) & (lift <= GROUND_MAX_RISE_M)
+        raised = measured & (ground + GROUND_BAND_M > bottom + config.ground_clearance_m)
+        if np.any(raised):
+            z = vectors_to_box(points - boxes.center[rows], boxes.heading[rows])[:, 2]
+            keep &= ~raised[owner] | (z >= ground[owner] + GROUND_BAND_M)
+    if config.exclusive_returns:
+        keep &= ~claimed_by_other_boxes(points, rows, boxes.frame, boxes.object_id.astype(str), boxes.center,
+                                        boxes.heading, boxes.size)
+    return index[keep], owner[keep]
 
 
 def _frame_time_candidates(points: np.ndarray, index: np.ndarray, owner: np.ndarray, rows: np.ndarray,
