@@ -46,17 +46,17 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ returns moved onto their surface (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ normals from the plane through the point (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ returns moved onto their surface (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ returns moved onto their surface (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods,+ returns moved onto their surface (default)"   # ~15 min
++ normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point (default)"   # ~15 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --variants "depth-ratio (paper),\
-+ returns moved onto their surface (default)"   # ~6 min
++ normals from the plane through the point (default)"   # ~6 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --label-noise 0.05 --variants "depth-ratio (paper),\
-registration takes the road and neighbours (before),+ returns moved onto their surface (default)"   # ~8 min
+registration takes the road and neighbours (before),+ normals from the plane through the point (default)"   # ~8 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -246,8 +246,13 @@ VARIANTS = {
     # each point's normal from the flattest neighbourhood through it: edges kept sharp
     "+ shifted neighbourhoods": {**_BEFORE_SNAP},
     # each return moved along its ray onto its sweep's surface (range noise; exact ranges: as above)
-    "+ returns moved onto their surface (default)": {},
+    "+ returns moved onto their surface": {},
 }
+# the variants above take each tracked point's normal from its nearest cloud point, as they did
+_BEFORE_PLANE = {"normal_transfer": "nearest"}
+VARIANTS = {name: {**_BEFORE_PLANE, **overrides} for name, overrides in VARIANTS.items()}
+# the normal of the cloud point whose plane passes nearest the point: its own face's at an edge
+VARIANTS["+ normals from the plane through the point (default)"] = {}
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
     "own-box rule without a gap limit (before)": {"own_surface_max_gap_m": None},

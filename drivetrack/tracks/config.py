@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 
 from drivetrack.depth.config import DEPTH_FIELDS, DepthConfig
-from drivetrack.visibility.facing import NEIGHBOURHOODS
+from drivetrack.visibility.facing import NEIGHBOURHOODS, NORMAL_TRANSFERS
 from drivetrack.waymo.schema import BoxType, CameraName, LaserName
 
 __all__ = ["TrackConfig", "FOV_RUN_POLICIES", "TRACK_KERNELS"]
@@ -95,6 +95,14 @@ class TrackConfig:
             near a sharp edge takes its own face's normal; ``centred`` its own neighbourhood's,
             which straddles the edge (before 2026-11-27, twelfth session;
             :func:`drivetrack.visibility.cloud_normals`, docs/visibility.md "Shifted neighbourhoods").
+        normal_transfer: how a tracked point takes a normal from the segment cloud's:
+            ``plane`` (default since 2026-11-28, twenty-third session) that of the cloud point,
+            among the 12 nearest its nearest cloud point, whose plane passes nearest it, so a
+            point a centimetre from an edge keeps its own face's
+            (:meth:`drivetrack.visibility.CloudNormals.on_plane`); ``nearest`` its nearest
+            cloud point's (before; a 2.5 cm
+            cube's mean across the edge gave the other face's normal: docs/visibility.md
+            "Normals near an edge").
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -206,6 +214,7 @@ class TrackConfig:
     normals_from: str = "segment"
     normal_neighbours: int = 30
     normal_neighbourhood: str = "shifted"
+    normal_transfer: str = "plane"
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
@@ -288,6 +297,8 @@ class TrackConfig:
         if self.normal_neighbourhood not in NEIGHBOURHOODS:
             raise ValueError(f"TrackConfig.normal_neighbourhood must be 'shifted' or 'centred', "
                              f"got {self.normal_neighbourhood!r}")
+        if self.normal_transfer not in NORMAL_TRANSFERS:
+            raise ValueError(f"TrackConfig.normal_transfer must be 'plane' or 'nearest', got {self.normal_transfer!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
             raise ValueError(f"TrackConfig.normal_neighbours must be an integer >= 3, got {self.normal_neighbours!r}")
         if self.occlusion not in OCCLUSION_METHODS:

@@ -981,7 +981,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
         if poses.trajectory is not None and config.normals_from == "segment":
             fitted = segment_cloud_normals(plan, job.object_id, poses)
-            surfels = (surfel_normals(p_box, sensor_box, fitted=fitted) if fitted is not None    # too few: none
+            surfels = (surfel_normals(p_box, sensor_box, fitted=fitted, transfer=config.normal_transfer)
+                       if fitted is not None    # too few: none
                        else SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool)))
             # range noise: each return moved along its ray onto its sweep's surface (exact ranges stay)
             if fitted is not None and config.surface_snap_max_m is not None:

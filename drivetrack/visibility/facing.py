@@ -96,6 +96,15 @@ SHIFT_SIGMAS = 3.0
 #: ... and whose normal lies within this angle (degrees) of the point's own neighbourhood's.
 SHIFT_MAX_TILT_DEG = 45.0
 NEIGHBOURHOODS = ("shifted", "centred")
+#: :meth:`CloudNormals.on_plane`: a point takes the normal of the one of this many cloud points
+#: (its nearest cloud point's nearest, itself included) whose plane passes nearest it.
+PLANE_CANDIDATES = 12
+#: ... when its nearest cloud point's plane misses it by more than this (metres); closer, it keeps
+#: the nearest's (the same face: the cost of the search is spent near edges and on noisy returns).
+PLANE_GATE_M = 0.0005
+#: :func:`surfel_normals`: how a point takes a normal from the cloud's (``nearest`` cloud point,
+#: or the cloud point whose plane passes nearest it among the nearest few, ``plane``).
+NORMAL_TRANSFERS = ("nearest", "plane")
 
 
 @dataclass
@@ -115,6 +124,9 @@ class CloudNormals:
     reach_m: np.ndarray
     #: the search structure of :meth:`nearest`, built on its first call
     _tree: object = field(default=None, repr=False, compare=False)
+    #: int64 [m, k] or None: each cloud point's nearest cloud points (itself first), the
+    #: candidates of :meth:`on_plane`
+    neighbours: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
         """int64 [n]: the index of the cloud point nearest each of ``points`` float [n, 3] (finite;
@@ -137,6 +149,32 @@ class CloudNormals:
         if not isinstance(self._tree, cKDTree):
             self._tree = cKDTree(self.cloud)
         return np.asarray(self._tree.query(points, k=1)[1], dtype=np.int64).reshape(-1)
+
+
+    def on_plane(self, points: np.ndarray, candidates: int = PLANE_CANDIDATES) -> np.ndarray:
+        """int64 [n]: for each of ``points`` float [n, 3] (finite; box frame, metres), the cloud
+        point whose plane (through it, with its normal) passes nearest the point, among the
+        ``candidates`` nearest cloud points of its own nearest cloud point (:meth:`nearest`; itself
+        included), when the nearest's plane misses the point by more than :data:`PLANE_GATE_M`;
+        ties to the nearer in that order.
+
+        Why not the nearest cloud point's normal alone: the cloud is the means of 2.5 cm cubes, so
+        a point within a cube's width of an edge often has its nearest cloud point on the other
+        face (or the cube astride the edge) and took that face's normal: on a box car's back face
+        1 cm from a face that sees the camera, the back face was called visible
+        (docs/visibility.md, "Normals near an edge"). Its own face's cloud points' planes pass
+        through it; the other face's miss it by its distance from the edge."""
+        points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        nearest = self.nearest(points)
+        k = 0 if self.neighbours is None else min(int(candidates), self.neighbours.shape[1])
+        if k <= 1 or points.shape[0] == 0:
+            return nearest
+        gap = np.abs(np.einsum("nj,nj->n", self.normal[nearest], points - self.cloud[nearest]))
+        redo = np.flatnonzero(gap > PLANE_GATE_M)
+        index = self.neighbours[nearest[redo], :k]                                    # [r, k]
+        gaps = np.abs(np.einsum("nkj,nkj->nk", self.normal[index], points[redo, None, :] - self.cloud[index]))
+        nearest[redo] = index[np.arange(redo.size), np.argmin(gaps, axis=1)]
+        return nearest
 
 
 def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shifted") -> CloudNormals | None:
@@ -172,13 +210,14 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     if neighbourhood == "shifted":
         choice = shifted_neighbourhoods(cloud, index, normal, centroid, eigen, SHIFT_TOLERANCE_M, SHIFT_SIGMAS,
                                         SHIFT_MAX_TILT_DEG)
-    return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1])
+    return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1],
+                        neighbours=np.ascontiguousarray(index[:, :PLANE_CANDIDATES], dtype=np.int64))
 
 
 def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: int = 12,
                    max_neighbour_m: float = 0.5, min_planarity: float = 0.2,
                    cloud: np.ndarray | None = None, neighbourhood: str = "shifted",
-                   fitted: CloudNormals | None = None) -> SurfelNormals:
+                   fitted: CloudNormals | None = None, transfer: str = "nearest") -> SurfelNormals:
     """Normals of every point float64 [n, 3] of one object, from its own point cloud.
 
     Args:
@@ -196,7 +235,12 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
         fitted: :func:`cloud_normals` of ``cloud`` (or of ``points_box``) computed before (an
             object seen by several cameras); ``cloud``, ``neighbours`` and ``neighbourhood`` are
             then not used.
+        transfer: with ``cloud`` or ``fitted``, how each point takes a cloud point's normal
+            (:data:`NORMAL_TRANSFERS`): ``nearest`` (:meth:`CloudNormals.nearest`) or ``plane``
+            (:meth:`CloudNormals.on_plane`: right at an edge; the track stage's back-face normals).
     """
+    if transfer not in NORMAL_TRANSFERS:
+        raise ValueError(f"surfel_normals: transfer must be one of {NORMAL_TRANSFERS}, got {transfer!r}")
     points_box = np.ascontiguousarray(points_box, dtype=np.float64)
     n = points_box.shape[0]
     own = cloud is None and fitted is None
@@ -204,7 +248,7 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
         fitted = cloud_normals(points_box if cloud is None else cloud, neighbours, neighbourhood)
     if fitted is None:
         return SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool))
-    at = np.arange(n) if own else fitted.nearest(points_box)
+    at = np.arange(n) if own else fitted.on_plane(points_box) if transfer == "plane" else fitted.nearest(points_box)
     normal = fitted.normal[at]
     normal[orient_outward(normal, points_box, sensor_box)] *= -1.0
     reliable = (fitted.reach_m[at] <= max_neighbour_m) & (fitted.planarity[at] >= min_planarity)
