@@ -30,6 +30,20 @@ def _box_cloud(rng, half=(2.0, 0.9, 0.75), per_face=400):
     return np.concatenate(points), np.concatenate(normals)
 
 
+def _edge_box(seed: int):
+    """A dense car-sized box cloud seen from a sensor at (8, 3, 1.5) m, for the edge tests of the
+    normals: ``(rng, points [n, 3], true_normal [n, 3], ray [n, 3], to_edge [n])``: the unit
+    sensor-to-point rays and each point's distance (metres) to the nearest edge of its own face."""
+    rng = np.random.default_rng(seed)
+    half = np.array([2.0, 0.9, 0.75])
+    points, true_normal = _box_cloud(rng, half=tuple(half), per_face=40000)
+    ray = points - np.array([8.0, 3.0, 1.5])
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    inside = half[None, :] - np.abs(points)                                            # [n, 3]
+    inside[np.abs(true_normal) > 0] = np.inf
+    return rng, points, true_normal, ray, inside.min(axis=1)
+
+
 def test_normals_point_outward_and_back_faces_turn_away():
     rng = np.random.default_rng(0)
     points, true_normal = _box_cloud(rng)
@@ -472,16 +486,7 @@ def test_shifted_neighbourhoods_keep_a_boxs_edges_sharp():
     from drivetrack.visibility import cloud_normals
     from drivetrack.visibility.zbuffer import surfel_means
 
-    rng = np.random.default_rng(5)
-    half = np.array([2.0, 0.9, 0.75])
-    points, true_normal = _box_cloud(rng, half=tuple(half), per_face=40000)
-    sensor = np.array([8.0, 3.0, 1.5])
-    ray = points - sensor
-    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-    # the distance of each point to the nearest edge of its own face
-    inside = half[None, :] - np.abs(points)                                            # [n, 3]
-    inside[np.abs(true_normal) > 0] = np.inf
-    to_edge = inside.min(axis=1)
+    rng, points, true_normal, ray, to_edge = _edge_box(5)
     for noise in (0.0, 0.02):
         noisy = points + rng.normal(0.0, noise, size=(len(points), 1)) * ray
         cloud = surfel_means(noisy, 0.025)
@@ -826,15 +831,8 @@ def test_a_point_beside_an_edge_takes_its_own_faces_normal_not_its_nearest_cube_
     from drivetrack.visibility import cloud_normals, surfel_normals
     from drivetrack.visibility.zbuffer import surfel_means
 
-    rng = np.random.default_rng(11)
-    half = np.array([2.0, 0.9, 0.75])
-    points, true_normal = _box_cloud(rng, half=tuple(half), per_face=40000)
+    rng, points, true_normal, ray, to_edge = _edge_box(11)
     sensor = np.array([8.0, 3.0, 1.5])
-    ray = points - sensor
-    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-    inside = half[None, :] - np.abs(points)
-    inside[np.abs(true_normal) > 0] = np.inf
-    to_edge = inside.min(axis=1)
     near = np.flatnonzero((to_edge > 0.003) & (to_edge < 0.025))
     far = np.flatnonzero(to_edge > 0.2)[:3000]
     for noise in (0.0, 0.02):
