@@ -232,9 +232,9 @@ def _own_candidates(lidar, boxes, world_from_vehicle: np.ndarray, all_rows: np.n
     may be the object's: with ``config.ground_ring``, none within :data:`GROUND_BAND_M` of the
     ground measured round the box (:func:`drivetrack.boxes.ground_under_boxes`) where that is
     higher than the box's own clearance (``config.ground_clearance_m`` over its bottom, which the
-    registration applies to the current box); with ``config.exclusive_returns``, none that another object's box of
-    the frame holds more deeply (:func:`drivetrack.boxes.claimed_by_other_boxes`; every box of the
-    scene, annotated or not). Loosely drawn labels reach below the road and round their
+    registration applies to the current box); with ``config.exclusive_returns``, none that
+    another object's box of the frame holds more deeply
+    (:func:`drivetrack.boxes.claimed_by_other_boxes`; every box of the scene, annotated or not). Loosely drawn labels reach below the road and round their
     neighbours; their returns do not move with the object (docs/refinement.md, "Returns that are
     not the object's")."""
     if index.size == 0 or not (config.ground_ring or config.exclusive_returns):

@@ -150,7 +150,6 @@ class CloudNormals:
             self._tree = cKDTree(self.cloud)
         return np.asarray(self._tree.query(points, k=1)[1], dtype=np.int64).reshape(-1)
 
-
     def on_plane(self, points: np.ndarray, candidates: int = PLANE_CANDIDATES) -> np.ndarray:
         """int64 [n]: for each of ``points`` float [n, 3] (finite; box frame, metres), the cloud
         point whose plane (through it, with its normal) passes nearest the point, among the
