@@ -127,7 +127,7 @@ def _candidate_owners(src: str, seg: str, config: RefineConfig) -> dict[str, np.
         cand, owner = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, None, None, lidar.frame_offsets,
                              boxes.frame[rows], boxes.center[rows], radius)
         cand, owner = _own_candidates(lidar, boxes, scene.world_from_vehicle, rows, cand, owner, None, None, config,
-                                      gather)
+                                      use_kernel=True)
         r = rows[owner]
         q = vectors_to_box(lidar.points_vehicle[cand] - boxes.center[r], boxes.heading, rows=r)
         half = boxes.size[r] / 2
@@ -156,3 +156,65 @@ def test_loose_labels_leave_the_road_and_the_neighbours_out_of_the_registration(
         assert not np.any(v == -1), (role, int((v == -1).sum()))
         assert not np.any(v == 2), (role, int((v == 2).sum()))
         assert (v == 1).sum() >= 0.9 * (before[role] == 1).sum(), role   # less the band over the road
+
+
+def test_the_ground_kernel_gives_the_numpy_references_values():
+    """``drivetrack.refine.kernel.ground_under_boxes`` (returns bucketed by x per frame, the ring
+    tested as it goes) gives exactly the values of ``drivetrack.boxes.ground_under_boxes``: boxes
+    in any order and heading over several frames, a laser / return filter, a box whose ring
+    holds too few returns, a box beyond every return, run serially and on a pool of two."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from drivetrack import parallel
+    from drivetrack.refine.kernel import ground_under_boxes as ground_kernel
+
+    rng = np.random.default_rng(3)
+    t_count, per_frame = 5, 20000
+    points = np.concatenate([np.column_stack([rng.uniform(-30.0, 30.0, (per_frame, 2)),
+                                              rng.normal(-2.0, 0.3, per_frame)]) for _ in range(t_count)])
+    offsets = np.arange(t_count + 1) * per_frame
+    laser = rng.integers(1, 6, points.shape[0]).astype(np.int8)
+    return_index = rng.integers(1, 3, points.shape[0]).astype(np.int8)
+    count = 40
+    box_frame = rng.integers(0, t_count, count)
+    center = np.column_stack([rng.uniform(-28.0, 28.0, (count, 2)), rng.uniform(-1.5, -0.5, count)])
+    center[0] = (80.0, 0.0, -1.0)                                                  # nothing round it
+    size = np.column_stack([rng.uniform(0.5, 5.0, count), rng.uniform(0.5, 2.5, count), rng.uniform(0.8, 2.0, count)])
+    size[1] = (0.3, 0.3, 0.3)
+    center[1, 2] = 4.0                                                             # too few returns
+    heading = rng.uniform(-np.pi, np.pi, count)
+    for lasers, returns in ((None, None), ((1, 3), (1,))):
+        args = (points, laser, return_index, offsets, box_frame, center, heading, size, lasers, returns)
+        expect = ground_under_boxes(*args)
+        assert np.isnan(expect[:2]).all() and np.isfinite(expect[2:]).sum() > 30
+        np.testing.assert_array_equal(ground_kernel(*args), expect)
+        with ThreadPoolExecutor(2) as pool, parallel.using(pool.map):
+            np.testing.assert_array_equal(ground_kernel(*args), expect)
+
+
+def test_the_claim_kernel_gives_the_numpy_references_values():
+    """``drivetrack.refine.kernel.claimed_by_other_boxes`` gives exactly the claims of
+    ``drivetrack.boxes.claimed_by_other_boxes``: overlapping boxes of several objects over several
+    frames, points of unsorted owners, two boxes of one object in a frame, serially and on a pool."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from drivetrack import parallel
+    from drivetrack.refine.kernel import claimed_by_other_boxes as claim_kernel
+
+    rng = np.random.default_rng(4)
+    count = 60
+    box_frame = rng.integers(0, 4, count)
+    box_object = rng.choice(np.array(["a", "b", "c", "d", "e", "f", "g"]), count)
+    center = np.column_stack([rng.uniform(-6.0, 6.0, (count, 2)), rng.uniform(-1.5, -0.5, count)])
+    size = np.column_stack([rng.uniform(0.5, 5.0, count), rng.uniform(0.5, 2.5, count), rng.uniform(0.8, 2.0, count)])
+    heading = rng.uniform(-np.pi, np.pi, count)
+    owner = rng.integers(0, count, 30000)
+    points = center[owner] + rng.normal(0.0, 1.5, (owner.size, 3))
+    expect = claimed_by_other_boxes(points, owner, box_frame, box_object, center, heading, size)
+    assert 0.05 < expect.mean() < 0.95
+    np.testing.assert_array_equal(claim_kernel(points, owner, box_frame, box_object, center, heading, size), expect)
+    with ThreadPoolExecutor(2) as pool, parallel.using(pool.map):
+        np.testing.assert_array_equal(claim_kernel(points, owner, box_frame, box_object, center, heading, size,
+                                                   tolerance_m=0.1),
+                                      claimed_by_other_boxes(points, owner, box_frame, box_object, center, heading,
+                                                             size, tolerance_m=0.1))

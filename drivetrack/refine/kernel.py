@@ -18,6 +18,10 @@ tree, each with the numpy/scipy reference it must reproduce:
 - :func:`cholesky_solve`: single-threaded Cholesky solve of the normal equations on their
   envelope (reference: ``scipy.linalg.cho_solve``).
 - :func:`gather`: the candidate returns of every box (reference: ``drivetrack.boxes.gather_candidates``).
+- :func:`ground_under_boxes`: the ground's height under every box, from the ring of returns round
+  it (reference: ``drivetrack.boxes.ground_under_boxes``).
+- :func:`claimed_by_other_boxes`: the returns another object's box holds more deeply than their own
+  (reference: ``drivetrack.boxes.claimed_by_other_boxes``).
 - :func:`frame_time_candidates`: an object's candidates moved to the frame (label) time, the
   grown-box test and the kept returns back in the vehicle frame, in one pass (reference:
   ``drivetrack.refine.scene._frame_time_candidates``).
@@ -29,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["NUMBA_AVAILABLE", "knn", "normals", "normal_equations", "gather", "select", "cholesky_solve",
-           "frame_time_candidates", "inside_counts"]
+           "frame_time_candidates", "inside_counts", "ground_under_boxes",
+           "claimed_by_other_boxes"]
 
 from drivetrack.numba_compat import NUMBA_AVAILABLE, njit
 from drivetrack.parallel import pool_map
@@ -331,6 +336,16 @@ def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
         s = e
 
 
+def _value_table(values) -> np.ndarray:
+    """bool [256]: entry v + 128 is True iff int8 value v is in ``values`` (None: all)."""
+    ok = np.zeros(256, np.bool_)
+    if values is None:
+        ok[:] = True
+    else:
+        ok[np.asarray(values, dtype=np.int64).reshape(-1) + 128] = True
+    return ok
+
+
 def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lasers, returns,
            frame_offsets: np.ndarray, box_frame: np.ndarray, box_center: np.ndarray,
            box_radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -343,17 +358,9 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     rows i of its frame with ``|points[i] - box_center[b]| <= box_radius[b]`` on every axis, in
     (box, row) order; ``owner`` is b. One pass over each box's frame, no sort of all returns.
     Reference: ``drivetrack.boxes.gather_candidates``."""
-    def table(values):
-        ok = np.zeros(256, np.bool_)
-        if values is None:
-            ok[:] = True
-        else:
-            ok[np.asarray(values, dtype=np.int64).reshape(-1) + 128] = True
-        return ok
-
     points = np.ascontiguousarray(points, dtype=np.float64)
     args = (points, np.ascontiguousarray(laser, dtype=np.int8), np.ascontiguousarray(return_index, dtype=np.int8),
-            table(lasers), table(returns), np.ascontiguousarray(frame_offsets, dtype=np.int64),
+            _value_table(lasers), _value_table(returns), np.ascontiguousarray(frame_offsets, dtype=np.int64),
             np.ascontiguousarray(box_frame, dtype=np.int64), np.ascontiguousarray(box_center, dtype=np.float64),
             np.ascontiguousarray(box_radius, dtype=np.float64))
     counts = np.zeros(box_frame.shape[0], np.int64)
@@ -366,6 +373,194 @@ def gather(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, lase
     index, owner = np.empty(int(counts.sum()), np.int64), np.empty(int(counts.sum()), np.int64)
     pool_map(lambda r: _gather_kernel(*args, False, counts, index, owner, *r), ranges)
     return index, owner
+
+
+@njit(cache=True, nogil=True)
+def _ground_kernel(points, laser, return_index, laser_ok, return_ok, frame_offsets, box_frame, center, cos_h, sin_h,
+                   half, radius, inner, outer, window, min_returns, quantile, out, frame_lo, frame_hi):
+    # per frame: its chosen returns bucketed by vehicle x (1 m cells or coarser, a counting sort),
+    # so each box reads only the cells its bounding cube spans; the tests of ground_under_boxes
+    # in its order of operations, then the quantile of the ring's heights
+    n_box = box_frame.shape[0]
+    by_frame = np.argsort(box_frame, kind="mergesort")
+    s = 0
+    while s < n_box:
+        f = box_frame[by_frame[s]]
+        e = s
+        while e < n_box and box_frame[by_frame[e]] == f:
+            e += 1
+        if f < frame_lo or f >= frame_hi:
+            s = e
+            continue
+        lo, hi = frame_offsets[f], frame_offsets[f + 1]
+        rows = np.empty(hi - lo, np.int64)
+        k = 0
+        x_min, x_max = np.inf, -np.inf
+        for i in range(lo, hi):
+            if laser_ok[laser[i] + 128] and return_ok[return_index[i] + 128]:
+                rows[k] = i
+                k += 1
+                x_min = min(x_min, points[i, 0])
+                x_max = max(x_max, points[i, 0])
+        if k == 0:
+            s = e
+            continue
+        cell = max(1.0, (x_max - x_min) / 4096.0)
+        n_cell = int((x_max - x_min) / cell) + 1
+        start = np.zeros(n_cell + 1, np.int64)
+        cell_of = np.empty(k, np.int64)
+        for j in range(k):
+            c = min(int((points[rows[j], 0] - x_min) / cell), n_cell - 1)
+            cell_of[j] = c
+            start[c + 1] += 1
+        for c in range(n_cell):
+            start[c + 1] += start[c]
+        fill = start[:-1].copy()
+        bucketed = np.empty(k, np.int64)
+        for j in range(k):
+            bucketed[fill[cell_of[j]]] = rows[j]
+            fill[cell_of[j]] += 1
+        heights = np.empty(k)
+        for m in range(s, e):
+            b = by_frame[m]
+            r = radius[b]
+            cx, cy, cz = center[b, 0], center[b, 1], center[b, 2]
+            c_lo = int(np.floor((cx - r - x_min) / cell)) - 1          # a cell either side: rounding
+            c_hi = int(np.floor((cx + r - x_min) / cell)) + 1
+            c_lo, c_hi = max(c_lo, 0), min(c_hi, n_cell - 1)
+            if c_lo > c_hi:
+                continue
+            co, si = cos_h[b], sin_h[b]
+            hx, hy, hz = half[b, 0], half[b, 1], half[b, 2]
+            count = 0
+            for j in range(start[c_lo], start[c_hi + 1]):
+                i = bucketed[j]
+                dx, dy, dz = points[i, 0] - cx, points[i, 1] - cy, points[i, 2] - cz
+                if abs(dx) > r or abs(dy) > r or abs(dz) > r:
+                    continue
+                if abs(dz + hz) > window:
+                    continue
+                ax, ay = abs(co * dx + si * dy), abs(-si * dx + co * dy)
+                if ax > hx + outer or ay > hy + outer:
+                    continue
+                if ax <= hx + inner and ay <= hy + inner:
+                    continue
+                heights[count] = dz
+                count += 1
+            if count >= min_returns:
+                ordered = np.sort(heights[:count])
+                out[b] = ordered[int(np.floor(quantile * (count - 1)))]
+        s = e
+
+
+def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, frame_offsets: np.ndarray,
+                       box_frame: np.ndarray, center: np.ndarray, heading: np.ndarray, size: np.ndarray,
+                       lasers=None, returns=None) -> np.ndarray:
+    """float64 [B]: the ground's height under each box (body-frame z, NaN where unmeasured), the
+    same values as ``drivetrack.boxes.ground_under_boxes`` (same arguments, no ``gather``) without
+    its temporaries: each frame's returns are bucketed by x once and each box reads only the
+    buckets its bounding cube spans, testing the ring as it goes; the frames' two halves run on
+    the segment's pool."""
+    from drivetrack.boxes import GROUND_MIN_RETURNS, GROUND_QUANTILE, GROUND_RING_M, GROUND_WINDOW_M
+
+    count = np.shape(box_frame)[0]
+    out = np.full(count, np.nan)
+    if count == 0:
+        return out
+    inner, outer = GROUND_RING_M
+    half = 0.5 * np.asarray(size, np.float64)
+    radius = np.maximum(np.hypot(half[:, 0] + outer, half[:, 1] + outer), half[:, 2] + GROUND_WINDOW_M)
+    heading = np.asarray(heading, np.float64)
+    args = (np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(laser, dtype=np.int8),
+            np.ascontiguousarray(return_index, dtype=np.int8), _value_table(lasers), _value_table(returns),
+            np.ascontiguousarray(frame_offsets, dtype=np.int64), np.ascontiguousarray(box_frame, dtype=np.int64),
+            np.ascontiguousarray(center, dtype=np.float64), np.cos(heading), np.sin(heading),
+            np.ascontiguousarray(half), radius, float(inner), float(outer), float(GROUND_WINDOW_M),
+            int(GROUND_MIN_RETURNS), float(GROUND_QUANTILE), out)
+    n_frames = frame_offsets.shape[0] - 1
+    ranges = [(0, n_frames // 2), (n_frames // 2, n_frames)] if n_frames > 1 else [(0, n_frames)]
+    pool_map(lambda r: _ground_kernel(*args, *r), ranges)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _claim_pairs_kernel(points, owner, box_frame, box_object, center, cos_h, sin_h, half):
+    # claimed_by_other_boxes' pairs: each owner row's reach, then the boxes of its frame and
+    # another object within it, as lists per row (CSR); and every point's depth in its own box
+    n_box = box_frame.shape[0]
+    reach = np.zeros(n_box)
+    used = np.zeros(n_box, np.bool_)
+    own_depth = np.empty(owner.shape[0])
+    for n in range(owner.shape[0]):
+        o = owner[n]
+        used[o] = True
+        dx, dy, dz = points[n, 0] - center[o, 0], points[n, 1] - center[o, 1], points[n, 2] - center[o, 2]
+        reach[o] = max(reach[o], np.hypot(dx, dy))
+        own_depth[n] = min(half[o, 0] - abs(cos_h[o] * dx + sin_h[o] * dy),
+                           half[o, 1] - abs(-sin_h[o] * dx + cos_h[o] * dy), half[o, 2] - abs(dz))
+    by_frame = np.argsort(box_frame, kind="mergesort")
+    frame_start = np.searchsorted(box_frame[by_frame], box_frame, side="left")
+    frame_end = np.searchsorted(box_frame[by_frame], box_frame, side="right")
+    start = np.zeros(n_box + 1, np.int64)
+    for a in range(n_box):
+        if used[a]:
+            for m in range(frame_start[a], frame_end[a]):
+                b = by_frame[m]
+                if box_object[b] != box_object[a] and np.hypot(center[a, 0] - center[b, 0], center[a, 1] - center[b, 1]) \
+                        <= reach[a] + np.hypot(half[b, 0], half[b, 1]):
+                    start[a + 1] += 1
+    for a in range(n_box):
+        start[a + 1] += start[a]
+    pair = np.empty(start[n_box], np.int64)
+    for a in range(n_box):
+        k = start[a]
+        if used[a]:
+            for m in range(frame_start[a], frame_end[a]):
+                b = by_frame[m]
+                if box_object[b] != box_object[a] and np.hypot(center[a, 0] - center[b, 0], center[a, 1] - center[b, 1]) \
+                        <= reach[a] + np.hypot(half[b, 0], half[b, 1]):
+                    pair[k] = b
+                    k += 1
+    return own_depth, start, pair
+
+
+@njit(cache=True, nogil=True)
+def _claim_kernel(points, owner, center, cos_h, sin_h, half, own_depth, start, pair, tolerance, claimed, lo, hi):
+    for n in range(lo, hi):
+        o = owner[n]
+        for k in range(start[o], start[o + 1]):
+            b = pair[k]
+            dx, dy, dz = points[n, 0] - center[b, 0], points[n, 1] - center[b, 1], points[n, 2] - center[b, 2]
+            depth = min(half[b, 0] - abs(cos_h[b] * dx + sin_h[b] * dy),
+                        half[b, 1] - abs(-sin_h[b] * dx + cos_h[b] * dy), half[b, 2] - abs(dz))
+            if depth > -tolerance and depth > own_depth[n]:
+                claimed[n] = True
+                break
+
+
+def claimed_by_other_boxes(points: np.ndarray, owner: np.ndarray, box_frame: np.ndarray, box_object: np.ndarray,
+                           center: np.ndarray, heading: np.ndarray, size: np.ndarray,
+                           tolerance_m: float = 0.02) -> np.ndarray:
+    """bool [N]: the points another object's box holds more deeply than their own, the same values
+    as ``drivetrack.boxes.claimed_by_other_boxes`` (same arguments) without its pair temporaries:
+    each owner row's neighbouring boxes are listed once, then every point is tested against its
+    row's list; the points' two halves run on the segment's pool."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    owner = np.ascontiguousarray(owner, dtype=np.int64)
+    claimed = np.zeros(owner.size, dtype=bool)
+    if owner.size == 0:
+        return claimed
+    heading = np.asarray(heading, np.float64)
+    cos_h, sin_h = np.cos(heading), np.sin(heading)
+    center = np.ascontiguousarray(center, dtype=np.float64)
+    half = np.ascontiguousarray(0.5 * np.asarray(size, np.float64))
+    codes = np.unique(np.asarray(box_object), return_inverse=True)[1].reshape(-1).astype(np.int64)
+    own_depth, start, pair = _claim_pairs_kernel(points, owner, np.ascontiguousarray(box_frame, dtype=np.int64),
+                                                 codes, center, cos_h, sin_h, half)
+    middle = owner.size // 2
+    pool_map(lambda r: _claim_kernel(points, owner, center, cos_h, sin_h, half, own_depth, start, pair,
+                                     float(tolerance_m), claimed, *r), [(0, middle), (middle, owner.size)])
+    return claimed
 
 
 @njit(cache=True, nogil=True)

@@ -8,7 +8,7 @@ import numpy as np
 
 from drivetrack.boxes import (claimed_by_other_boxes, fill_ground_over_time, gather_candidates, ground_under_boxes,
                               inside_box)
-from drivetrack.geometry import vectors_from_box, vectors_to_box
+from drivetrack.geometry import vectors_from_box
 from drivetrack.parallel import pool_map
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.poses import grown_extent, refine_object_poses
@@ -114,7 +114,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     index_all, owner_all = gather(lidar.points_vehicle, lidar.laser, lidar.return_index, lasers, returns,
                                   lidar.frame_offsets, boxes.frame[all_rows], boxes.center[all_rows], radius_all)
     index_all, owner_all = _own_candidates(lidar, boxes, scene.world_from_vehicle, all_rows, index_all, owner_all,
-                                           lasers, returns, config, gather)
+                                           lasers, returns, config, _use_kernel(config))
     row_start = np.concatenate([[0], np.cumsum([r.size for r in object_rows])]).astype(np.int64)
     bounds = np.searchsorted(owner_all, row_start)
 
@@ -227,25 +227,31 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
 
 
 def _own_candidates(lidar, boxes, world_from_vehicle: np.ndarray, all_rows: np.ndarray, index: np.ndarray,
-                    owner: np.ndarray, lasers, returns, config: RefineConfig, gather) -> tuple[np.ndarray, np.ndarray]:
+                    owner: np.ndarray, lasers, returns, config: RefineConfig,
+                    use_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The candidates ``(index, owner)`` (returns ``index`` int [N] of box ``all_rows[owner]``) that
     may be the object's: with ``config.ground_ring``, none within :data:`GROUND_BAND_M` of the
     ground measured round the box (:func:`drivetrack.boxes.ground_under_boxes`) where that is
     higher than the box's own clearance (``config.ground_clearance_m`` over its bottom, which the
     registration applies to the current box); with ``config.exclusive_returns``, none that
     another object's box of the frame holds more deeply
-    (:func:`drivetrack.boxes.claimed_by_other_boxes`; every box of the scene, annotated or not). Loosely drawn labels reach below the road and round their
-    neighbours; their returns do not move with the object (docs/refinement.md, "Returns that are
-    not the object's")."""
+    (:func:`drivetrack.boxes.claimed_by_other_boxes`; every box of the scene, annotated or not).
+    Loosely drawn labels reach below the road and round their neighbours; their returns do not move
+    with the object (docs/refinement.md, "Returns that are not the object's"). ``use_kernel``:
+    both measured by their numba twins in ``drivetrack.refine.kernel`` (the same values)."""
     if index.size == 0 or not (config.ground_ring or config.exclusive_returns):
         return index, owner
+    measure_ground, claimed = ground_under_boxes, claimed_by_other_boxes
+    if use_kernel:
+        from drivetrack.refine.kernel import claimed_by_other_boxes as claimed
+        from drivetrack.refine.kernel import ground_under_boxes as measure_ground
     rows = all_rows[owner]
     points = lidar.points_vehicle[index]
     keep = np.ones(index.size, dtype=bool)
     if config.ground_ring:
-        ground = ground_under_boxes(lidar.points_vehicle, lidar.laser, lidar.return_index, lidar.frame_offsets,
-                                    boxes.frame[all_rows], boxes.center[all_rows], boxes.heading[all_rows],
-                                    boxes.size[all_rows], lasers, returns, gather=gather)
+        ground = measure_ground(lidar.points_vehicle, lidar.laser, lidar.return_index, lidar.frame_offsets,
+                                boxes.frame[all_rows], boxes.center[all_rows], boxes.heading[all_rows],
+                                boxes.size[all_rows], lasers, returns)
         ground = fill_ground_over_time(ground, boxes.frame[all_rows], boxes.object_id[all_rows].astype(str),
                                        boxes.center[all_rows], world_from_vehicle)
         bottom = -0.5 * boxes.size[all_rows, 2]
@@ -253,11 +259,11 @@ def _own_candidates(lidar, boxes, world_from_vehicle: np.ndarray, all_rows: np.n
         measured = np.isfinite(lift) & (lift <= GROUND_MAX_RISE_M)
         raised = measured & (ground + GROUND_BAND_M > bottom + config.ground_clearance_m)
         if np.any(raised):
-            z = vectors_to_box(points - boxes.center[rows], boxes.heading[rows])[:, 2]
+            z = points[:, 2] - boxes.center[rows, 2]              # body z: the labels are yaw-only
             keep &= ~raised[owner] | (z >= ground[owner] + GROUND_BAND_M)
     if config.exclusive_returns:
-        keep &= ~claimed_by_other_boxes(points, rows, boxes.frame, boxes.object_id.astype(str), boxes.center,
-                                        boxes.heading, boxes.size)
+        keep &= ~claimed(points, rows, boxes.frame, boxes.object_id.astype(str), boxes.center, boxes.heading,
+                         boxes.size)
     return index[keep], owner[keep]
 
 
