@@ -625,7 +625,10 @@ def _pocket_points(plan, object_id: str, poses, p_box: np.ndarray, size: np.ndar
             rows = _object_rows(plan.scene.boxes, object_id)
             half = 0.5 * np.median(plan.scene.boxes.size[rows], axis=0)
             plan.occluder_cache[key] = pocket_points(fitted.cloud, half, fitted.cloud)
-        return plan.occluder_cache[key][fitted.nearest(p_box)]
+        flags = plan.occluder_cache[key]
+        if not flags.any():                       # a convex object (any box-shaped one): nothing to look up
+            return np.zeros(p_box.shape[0], dtype=bool)
+        return flags[fitted.nearest(p_box)]
     return pocket_points(p_box, 0.5 * np.asarray(size, np.float64), p_box[surfel_subsample(p_box, _surfel_cube_m(plan.config))])
 
 
