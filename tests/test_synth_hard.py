@@ -292,3 +292,41 @@ def _box_world(tmp_path, config):
     root = str(tmp_path / "box")
     generate_segment(root, dataclasses.replace(config, car_shape="box"), 0)
     return (root,)
+
+
+def test_body_pedestrians_are_legs_torso_arms_and_head_inside_their_label_box(tmp_path):
+    """``pedestrian_shape="body"``: every pedestrian is six solids whose tight bounding box is its
+    label box; the LiDAR sees those solids (every return on the surface of one of them, both legs
+    hit, none in the empty space between the legs) and the truth's visibility follows them."""
+    from drivetrack.synth.world import body_parts
+
+    size = (0.8, 0.7, 1.8)
+    parts = body_parts(size)
+    lo = np.min([np.subtract(o, h) for o, h in parts], axis=0)
+    hi = np.max([np.add(o, h) for o, h in parts], axis=0)
+    np.testing.assert_allclose(lo, -np.array(size) / 2, atol=1e-12)
+    np.testing.assert_allclose(hi, np.array(size) / 2, atol=1e-12)
+
+    root = str(tmp_path / "body")
+    config = SynthConfig(seed=7, frames=4, preset="small", cameras=("FRONT", "SIDE_RIGHT"), world="hard",
+                         pedestrian_shape="body")
+    seg = generate_segment(root, config, 0)["segment"]
+    truth = load_ground_truth(root, "training", seg)
+    objects, hits = truth.objects, truth.hits
+    walkers = np.flatnonzero(objects["type"] == int(BoxType.PEDESTRIAN))
+    on = np.isin(hits["object_index"], walkers)
+    assert on.sum() > 200
+    point, k = hits["point_box"][on], hits["object_index"][on]
+    depth = np.full(point.shape[0], -np.inf)            # the deepest inside any solid (0 on its surface)
+    which = np.full(point.shape[0], -1)
+    for i in walkers.tolist():
+        rows = np.flatnonzero(k == i)
+        for p, (offset, half) in enumerate(body_parts(objects["size"][i])):
+            inside = np.min(np.asarray(half) - np.abs(point[rows] - offset), axis=1)
+            better = inside > depth[rows]
+            depth[rows[better]], which[rows[better]] = inside[better], p
+    assert (np.abs(depth) < 1e-6).all()                 # on a solid's surface, never between them
+    assert {0, 1} <= set(which.tolist())                 # both legs are seen
+    assert not (hits["visible"] & ~hits["facing"]).any()
+    with pytest.raises(ValueError, match="pedestrian_shape"):
+        SynthConfig(pedestrian_shape="stick")

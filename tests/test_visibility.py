@@ -1243,11 +1243,11 @@ def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     cameras = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
     segment = generate_segment(root, SynthConfig(seed=7, frames=20, preset="small", cameras=cameras,
                                                  world="hard", car_shape="cabin"), 0)["segment"]
-    before_calls, after_calls, before_others, after_others = [], [], [], []
+    before_calls, after_calls, own_calls, before_others, after_others, own_others = [], [], [], [], [], []
     _back_face_calls(root, segment, str(tmp_path / "before"), 90.0, "numba", "surface", before_others,
-                     before_calls, own_surface_max_gap_m=None, cameras=cameras)
+                     before_calls, own_surface_max_gap_m=None, cameras=cameras, self_occlusion=False)
     _back_face_calls(root, segment, str(tmp_path / "after"), 90.0, "numba", "surface", after_others, after_calls,
-                     cameras=cameras)
+                     cameras=cameras, self_occlusion=False)
     before, after = np.concatenate(before_others), np.concatenate(after_others)
     assert before.size > 20000
     assert after.mean() < 0.8 * before.mean()
@@ -1256,6 +1256,15 @@ def test_a_cars_own_cabin_hides_its_bonnet(tmp_path):
     wrong_before = both["pred_before"] != both["visible_before"]
     wrong_after = both["pred_after"] != both["visible_before"]
     assert wrong_after.sum() < wrong_before.sum()
+    # The object's own z-buffer (``self_occlusion``, default): the cabin less than the gap limit in
+    # front of the bonnet hides it too (docs/visibility.md "The object's own surface").
+    _back_face_calls(root, segment, str(tmp_path / "own"), 90.0, "numba", "surface", own_others, own_calls,
+                     cameras=cameras)
+    own = np.concatenate(own_others)
+    assert own.mean() < 0.8 * after.mean(), (own.mean(), after.mean())
+    both = pd.concat(after_calls).merge(pd.concat(own_calls), on=["camera", "point", "frame"],
+                                        suffixes=("_after", "_own"))
+    assert (both["pred_own"] != both["visible_after"]).sum() < (both["pred_after"] != both["visible_after"]).sum()
 
 
 def _noisy_faces(rng, per_face, sigma_m, sensor):
@@ -1394,3 +1403,59 @@ def test_noisy_ranges_tracked_from_their_surface_and_exact_ones_untouched(tmp_pa
     for a, b in zip(exact_off, exact_on):
         np.testing.assert_array_equal(a.points_box, b.points_box)
         np.testing.assert_array_equal(a.visibles, b.visibles)
+
+
+def test_own_plane_slack_is_the_depth_a_footprint_of_the_points_plane_spans():
+    """``own_plane_slack``: a point's own plane seen at angle a from the line of sight spans
+    ``radius * cot(a)`` of depth over a footprint of ``radius`` (its own splats reach that far in
+    front of it without hiding it): 0 head-on, 5 cm at 45 degrees, 2.86 m at one degree, +inf
+    edge-on or where the normal is unreliable; either sign of the normal."""
+    from drivetrack.visibility.zbuffer import own_plane_slack
+
+    points = np.zeros((5, 3))
+    normal = np.array([[0.0, 0.0, 1.0]] * 4 + [[0.0, 0.0, -1.0]])
+    reliable = np.array([True, True, True, False, True])
+    angles = np.radians([90.0, 45.0, 1.0])
+    centres = np.column_stack([10.0 * np.cos(angles), np.zeros(3), 10.0 * np.sin(angles)])       # [3, 3]
+    centres = np.concatenate([centres, [[10.0, 0.0, 0.0]]])                                         # edge-on
+    slack = own_plane_slack(points, normal, reliable, centres, 0.05)
+    assert slack.shape == (4, 5) and slack.dtype == np.float32
+    np.testing.assert_allclose(slack[:3, 0], [0.0, 0.05, 0.05 / np.tan(np.radians(1.0))], atol=1e-6, rtol=1e-5)
+    np.testing.assert_array_equal(slack[:3, 4], slack[:3, 0])                    # the normal's sign
+    assert np.isinf(slack[:, 3]).all() and np.isinf(slack[3, 0])
+
+
+def test_pocket_points_are_the_parts_of_a_concave_object_inside_its_hull():
+    """``pocket_points``: a box's surface has none (convex: only the back-face test can hide its
+    points); a car shaped as a body and a narrower, shorter cabin has its bonnet and boot near the
+    cabin in pockets of its hull (the cabin can stand in front of them) and the cabin's roof and the
+    body's sides not; a flat or tiny cloud has none."""
+    from drivetrack.visibility.zbuffer import pocket_points
+
+    rng = np.random.default_rng(0)
+
+    def box_surface(lo, hi, count):
+        p = rng.uniform(lo, hi, size=(count, 3))
+        axis = rng.integers(0, 3, count)
+        side = rng.integers(0, 2, count)
+        p[np.arange(count), axis] = np.where(side == 1, np.asarray(hi)[axis], np.asarray(lo)[axis])
+        return p
+
+    half = np.array([2.2, 0.9, 0.75])
+    box = box_surface(-half, half, 20000)
+    assert not pocket_points(box, half, box).any()
+    body = box_surface([-2.2, -0.9, -0.75], [2.2, 0.9, 0.05], 20000)
+    body = body[~((np.abs(body[:, 0]) < 1.0) & (np.abs(body[:, 1]) < 0.75) & (body[:, 2] > 0.04))]  # under the cabin
+    cabin = box_surface([-1.0, -0.75, 0.05], [1.0, 0.75, 0.75], 10000)
+    cabin = cabin[cabin[:, 2] > 0.06]
+    car = np.concatenate([body, cabin])
+    pocket = pocket_points(car, half, car)
+    top = car[:, 2] > 0.04
+    # the bonnet and boot up to 0.6 m from the cabin (nearer the car's ends the hull comes down to
+    # them: within 10 cm of it they cannot be hidden by more than the tolerance)
+    bonnet = top & (np.abs(car[:, 0]) > 1.05) & (np.abs(car[:, 0]) < 1.6) & (np.abs(car[:, 1]) < 0.5) & (car[:, 2] < 0.06)
+    roof = car[:, 2] > 0.74
+    sides = np.abs(car[:, 1]) > 0.89
+    assert pocket[bonnet].all() and not pocket[roof].any() and not pocket[sides].any()
+    assert not pocket_points(car, half, car[:3]).any()
+    assert not pocket_points(car, half, car * [1.0, 1.0, 0.0]).any()                         # a flat cloud

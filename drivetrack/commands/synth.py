@@ -51,6 +51,10 @@ def add_parser(sub) -> None:
                         "narrower, shorter cabin on it, the label box their bounding box (bonnet "
                         "and boot below the glasshouse: faces the box does not have, and empty "
                         "corners inside the label box)")
+    p.add_argument("--pedestrian-shape", choices=["box", "body"], default="box",
+                   help="box: every pedestrian is its label box (default); body: legs mid-stride, a "
+                        "torso, swinging arms and a head, the label box their bounding box (a near "
+                        "leg hides the far one: faces the camera sees turned to it yet hidden)")
     p.add_argument("--speed-changes", type=float, default=0.0, metavar="MPS2",
                    help="moving vehicles and cyclists brake and speed up with accelerations up to "
                         "this (m/s^2, periods of 4-8 s); 0 (default): every mover keeps its speed")
@@ -108,6 +112,7 @@ def run(args) -> int:
         seed=args.seed, frames=args.frames, preset=args.preset, cameras=cameras, split=args.split,
         box_noise_m=args.box_noise, rolling_shutter=args.rolling_shutter, world=args.world,
         camera_trigger=args.camera_trigger, label_time=args.label_time, car_shape=args.car_shape,
+        pedestrian_shape=args.pedestrian_shape,
         speed_changes_mps2=args.speed_changes, range_noise_m=args.range_noise, rear_axle_fraction=args.rear_axle,
         box_slack_m=args.box_slack,
         heading_noise_rad=None if args.heading_noise_deg is None else float(np.deg2rad(args.heading_noise_deg)))
@@ -134,6 +139,7 @@ def run(args) -> int:
           + (f", world {config.world}, cameras at {config.trigger} time, lidar_box at {config.label_time} time"
              if config.extended_truth else "")
           + (f", {config.car_shape} vehicles" if config.car_shape != "box" else "")
+          + (f", {config.pedestrian_shape} pedestrians" if config.pedestrian_shape != "box" else "")
           + (f", speed changes up to {config.speed_changes_mps2:g} m/s^2" if config.speed_changes_mps2 else "")
           + (f", {config.range_noise_m * 100:g} cm range noise" if config.range_noise_m else "")
           + (f", labels {config.box_slack_m * 100:g} cm wide of their objects" if config.box_slack_m else "")

@@ -44,7 +44,9 @@ class SynthConfig:
     frame time) or "sweep" (the box where the object was when the TOP sweep passed its centre,
     still expressed in the vehicle frame of the frame time). ``car_shape``: "box" (every vehicle is
     its label box) or "cabin" (a body and a cabin inside the label box, see
-    :func:`drivetrack.synth.world.cabin_parts`). ``speed_changes_mps2``: 0 (every mover keeps its
+    :func:`drivetrack.synth.world.cabin_parts`). ``pedestrian_shape``: "box" (every pedestrian is its
+    label box) or "body" (legs, torso, arms and head inside it, see
+    :func:`drivetrack.synth.world.body_parts`). ``speed_changes_mps2``: 0 (every mover keeps its
     speed, the worlds before) or the largest along-track acceleration (m/s^2) with which moving
     vehicles and cyclists brake and speed up (:func:`drivetrack.synth.world.make_world`); the
     world is otherwise the same. ``range_noise_m``: 0 (exact ranges) or the sigma (metres) of
@@ -70,18 +72,20 @@ class SynthConfig:
     camera_trigger: str | None = None
     label_time: str = "frame"
     car_shape: str = "box"
+    pedestrian_shape: str = "box"
     speed_changes_mps2: float = 0.0
     range_noise_m: float = 0.0
     rear_axle_fraction: float = 0.0
     box_slack_m: float = 0.0
 
     def __post_init__(self):
-        from drivetrack.synth.world import CAR_SHAPES, WORLDS
+        from drivetrack.synth.world import CAR_SHAPES, PEDESTRIAN_SHAPES, WORLDS
 
         for name, value, allowed in (("world", self.world, WORLDS),
                                      ("camera_trigger", self.camera_trigger, (None, "frame", "sweep")),
                                      ("label_time", self.label_time, ("frame", "sweep")),
-                                     ("car_shape", self.car_shape, CAR_SHAPES)):
+                                     ("car_shape", self.car_shape, CAR_SHAPES),
+                                     ("pedestrian_shape", self.pedestrian_shape, PEDESTRIAN_SHAPES)):
             if value not in allowed:
                 raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
         if not (isinstance(self.range_noise_m, (int, float)) and 0 <= self.range_noise_m <= 0.5):

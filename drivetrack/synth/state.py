@@ -16,7 +16,7 @@ from drivetrack.synth.config import (FRAME_PERIOD_S, LABEL_RANGE_M, T0_MICROS, S
 from drivetrack.synth.lidar_cast import _LidarCasting
 from drivetrack.synth.render import _CameraRendering
 from drivetrack.synth.sensors import GLOBAL_SHUTTER, PRESETS, READOUT_S, SHUTTER_S, camera_models, lidar_specs
-from drivetrack.synth.world import World, make_world, with_car_shape
+from drivetrack.synth.world import World, make_world, with_car_shape, with_pedestrian_shape
 
 
 class _Generator(_CameraRendering, _LidarCasting):
@@ -39,6 +39,7 @@ class _Generator(_CameraRendering, _LidarCasting):
                                                       config.world, config.speed_changes_mps2,
                                                       np.random.default_rng(speed_seq),
                                                       config.rear_axle_fraction), config.car_shape)
+        self.world = with_pedestrian_shape(self.world, config.pedestrian_shape)
         self.id_rng = np.random.default_rng(id_seq)
         self.noise_rng = np.random.default_rng(noise_seq)
         self.rolling = bool(config.rolling_shutter)

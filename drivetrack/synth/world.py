@@ -32,7 +32,7 @@ import numpy as np
 from drivetrack.geometry import rigid_from_rotation_translation, rotation_from_rpy
 from drivetrack.waymo.schema import BoxType
 
-__all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "world_overlaps", "LANE_WIDTH", "WORLDS",
+__all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "with_pedestrian_shape", "world_overlaps", "LANE_WIDTH", "WORLDS",
            "CAR_SHAPES", "EGO_BOX", "CLEARANCE_M"]
 
 #: ``SynthConfig.world`` values: the default scene, and the one adding the cases of issues 15/16.
@@ -47,6 +47,11 @@ CAR_SHAPES = ("box", "cabin")
 #: is ``_CABIN_LENGTH`` of L long, centred ``_CABIN_SHIFT`` of L behind the box centre, and
 #: ``_CABIN_WIDTH`` of W wide (a saloon's glasshouse; bonnet ahead of it, boot behind).
 _BODY_HEIGHT, _CABIN_LENGTH, _CABIN_SHIFT, _CABIN_WIDTH = 0.55, 0.5, 0.06, 0.86
+
+#: ``SynthConfig.pedestrian_shape`` values: "box" (every pedestrian is its label box) or "body" (two
+#: legs mid-stride, a torso, two arms swinging the other way and a head; the label box is their
+#: tight bounding box: :func:`body_parts`).
+PEDESTRIAN_SHAPES = ("box", "body")
 
 LANE_WIDTH = 3.5
 #: lane centres (world y, metres): ego direction at negative y, oncoming at positive y.
@@ -304,6 +309,38 @@ def cabin_parts(size) -> tuple:
     return (((0.0, 0.0, -height / 2 + body / 2), (length / 2, width / 2, body / 2)),
             ((-_CABIN_SHIFT * length, 0.0, height / 2 - cabin / 2),
              (_CABIN_LENGTH * length / 2, _CABIN_WIDTH * width / 2, cabin / 2)))
+
+
+def body_parts(size) -> tuple:
+    """``parts`` (:class:`SynthObject`) of a pedestrian of label ``size`` (L along its heading, W
+    across, H) shaped as a walking body (:data:`PEDESTRIAN_SHAPES`), as (centre, half size) boxes
+    in its box frame from (low, high) corners given as fractions of (L, W, H) from the box's
+    centre: the right leg forward, the left back (the lower 46% of H), a torso, the left arm
+    forward and the right back (a gap of 4% of W beside the torso), a head; the label box is their
+    tight bounding box. Unlike a box it hides parts of itself from cameras its faces turn to: the
+    near leg the far one, the torso an arm."""
+    length, width, height = (float(s) for s in size)
+    extents = (((0.05, -0.28, -0.5), (0.5, -0.02, -0.04)),         # right leg, forward
+               ((-0.5, 0.02, -0.5), (-0.05, 0.28, -0.04)),         # left leg, back
+               ((-0.15, -0.3, -0.04), (0.15, 0.3, 0.33)),          # torso
+               ((0.0, 0.34, 0.0), (0.35, 0.5, 0.32)),              # left arm, forward
+               ((-0.35, -0.5, 0.0), (0.0, -0.34, 0.32)),           # right arm, back
+               ((-0.12, -0.13, 0.36), (0.12, 0.13, 0.5)))          # head
+    scale = np.array([length, width, height])
+    return tuple(((tuple((np.add(lo, hi) / 2 * scale).tolist())), tuple((np.subtract(hi, lo) / 2 * scale).tolist()))
+                 for lo, hi in extents)
+
+
+def with_pedestrian_shape(world: World, pedestrian_shape: str) -> World:
+    """``world`` with every pedestrian given ``pedestrian_shape`` (:data:`PEDESTRIAN_SHAPES`);
+    nothing else changes (the labels are the same), as :func:`with_car_shape` for vehicles."""
+    if pedestrian_shape not in PEDESTRIAN_SHAPES:
+        raise ValueError(f"unknown pedestrian shape {pedestrian_shape!r}; choose from {', '.join(PEDESTRIAN_SHAPES)}")
+    if pedestrian_shape == "box":
+        return world
+    objects = tuple(dataclasses.replace(o, parts=body_parts(o.size)) if o.type == int(BoxType.PEDESTRIAN) else o
+                    for o in world.objects)
+    return dataclasses.replace(world, objects=objects)
 
 
 def with_car_shape(world: World, car_shape: str) -> World:

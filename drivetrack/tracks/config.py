@@ -160,6 +160,14 @@ class TrackConfig:
             Each object's splats are closed on their own, so a gap between two objects stays.
         occluder_subpixels: the z-buffer's resolution, buffer pixels per image pixel along each
             axis (1-4; default 2: outlines placed to half a pixel; 1 before 2026-11-27).
+        self_occlusion: the tracked object's own returns are splatted into a z-buffer of their
+            own too, so a part of the object in front of another part hides it (a cabin before
+            the deck behind it, a near leg before a far one), which neither the back-face test
+            nor the other objects' z-buffer sees. Its own surface hides a point only beyond the
+            depth the point's own plane spans over a footprint
+            (:func:`drivetrack.visibility.zbuffer.own_plane_slack`); needs the back-face test's
+            normals (``back_face_max_deg`` set). Default true (since 2026-11-29, twenty-fourth
+            session; docs/visibility.md "The object's own surface").
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -227,6 +235,7 @@ class TrackConfig:
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
     occluder_subpixels: int = 2
+    self_occlusion: bool = True
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -321,6 +330,8 @@ class TrackConfig:
         if not isinstance(self.depth_defers_to_zbuffer, bool):
             raise ValueError(f"TrackConfig.depth_defers_to_zbuffer must be true or false, got "
                              f"{self.depth_defers_to_zbuffer!r}")
+        if not isinstance(self.self_occlusion, bool):
+            raise ValueError(f"TrackConfig.self_occlusion must be true or false, got {self.self_occlusion!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

@@ -607,6 +607,31 @@ def segment_cloud_normals(plan, object_id: str, poses):
     return plan.occluder_cache[key]
 
 
+def _pocket_points(plan, object_id: str, poses, p_box: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """bool [n]: the points ``p_box`` float [n, 3] (box frame) of ``object_id`` that lie in a pocket
+    of its convex hull (:func:`drivetrack.visibility.zbuffer.pocket_points`; ``size`` float [3],
+    its label box's). On the trajectory with the segment's normals the pockets are found once per
+    object among the cubes of :func:`segment_normals_cloud` (``plan.occluder_cache``) and each
+    point takes its nearest cube's; otherwise among the points themselves, against the hull of
+    their own thinned cloud."""
+    from drivetrack.visibility.zbuffer import pocket_points, surfel_subsample
+
+    if poses.trajectory is not None and plan.config.normals_from == "segment":
+        fitted = segment_cloud_normals(plan, object_id, poses)
+        if fitted is None:
+            return np.zeros(p_box.shape[0], dtype=bool)
+        key = f"{object_id}#pockets"
+        if key not in plan.occluder_cache:
+            rows = _object_rows(plan.scene.boxes, object_id)
+            half = 0.5 * np.median(plan.scene.boxes.size[rows], axis=0)
+            plan.occluder_cache[key] = pocket_points(fitted.cloud, half, fitted.cloud)
+        flags = plan.occluder_cache[key]
+        if not flags.any():                       # a convex object (any box-shaped one): nothing to look up
+            return np.zeros(p_box.shape[0], dtype=bool)
+        return flags[fitted.nearest(p_box)]
+    return pocket_points(p_box, 0.5 * np.asarray(size, np.float64), p_box[surfel_subsample(p_box, _surfel_cube_m(plan.config))])
+
+
 def _grown_selection(plan) -> tuple[np.ndarray, np.ndarray]:
     """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of every box row
     of the plan's tracked objects, grown by ``surface_snap_margin_m``: one pass over the segment's
@@ -811,8 +836,8 @@ def _occluder_poses(plan, camera: int, object_id: str, frames: np.ndarray, rows:
 
 
 def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_radius_m: np.ndarray,
-               shutter=None, use_kernel: bool = False):
-    """``(returns, boxes, seen)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
+               shutter=None, use_kernel: bool = False, with_own: bool = False):
+    """``(returns, boxes, seen, own)``: per clip frame, (pixels float64 [m, 2], depth float64 [m], footprint
     radius float64 [m], metres, object int32 [m], which object each return is of, numbered from
     0 in the clip) of the other labelled objects' returns, and the boxes of those
     objects as posed for the image: (camera_from_box float64 [k, 4, 4] with each object's shift
@@ -839,7 +864,9 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     footprints round the tracked points. ``seen``: some return of an object kept above projected
     validly into some clip frame's image, near the target or not. ``use_kernel``: project with the
     numba kernel (:func:`drivetrack.visibility.kernel.project_in_window`; the global shutter
-    only), else with numpy.
+    only), else with numpy. ``own``: with ``with_own``, ``job``'s own object's returns placed
+    the same way, per clip frame like ``returns`` (object 0), for its own z-buffer
+    (``TrackConfig.self_occlusion``); None without, or when none of them projects validly.
     """
     from drivetrack.visibility import solid_extents
     from drivetrack.visibility.zbuffer import surfel_subsample
@@ -871,9 +898,14 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         from drivetrack.visibility.kernel import project_in_window
 
         params = camera_parameters(model)
-    seen = False
-    for label, object_id in enumerate(np.unique(boxes.object_id[in_clip]).tolist()):
-        obj_rows = in_clip[boxes.object_id[in_clip] == object_id]
+    seen = own_seen = False
+    others = np.unique(boxes.object_id[in_clip]).tolist()
+    own_rows = (np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id == job.object_id))
+                if with_own else np.zeros(0, np.int64))
+    own_frame: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(t_count)]
+    for label, object_id in enumerate(others + ([job.object_id] if own_rows.size else [])):
+        is_own = label == len(others)
+        obj_rows = own_rows if is_own else in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
         poses = _occluder_poses(plan, job.camera, object_id, obj_frames, obj_rows)
@@ -887,7 +919,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         else:
             radius_m = None
             # the clip's returns (of the frames it has a box in, before the skips above)
-            clip_rows = candidates[boxes.object_id[candidates] == object_id]
+            clip_rows = own_rows if is_own else candidates[boxes.object_id[candidates] == object_id]
             clip_rows = clip_rows[np.argsort(boxes.frame[clip_rows], kind="stable")]
             lidar_rows, source = plan.box_points(clip_rows)
             points_box = _points_box(plan, boxes.frame[clip_rows].astype(np.int64), clip_rows,
@@ -909,13 +941,19 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
             pixels, valid = model.pixels_from_camera(points_camera)
             valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
-            seen = seen or bool(valid.any())
+            if is_own:
+                own_seen = own_seen or bool(valid.any())
+            else:
+                seen = seen or bool(valid.any())
         for k, t in enumerate(obj_frames.tolist()):
             x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
             if use_kernel:
                 kept, valid_count = project_in_window(points_box, placed[k], params, x_lo, x_hi, y_lo, y_hi, pixels,
                                                       depth, index)
-                seen = seen or valid_count > 0
+                if is_own:
+                    own_seen = own_seen or valid_count > 0
+                else:
+                    seen = seen or valid_count > 0
                 splats = (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]])
             else:
                 near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
@@ -924,15 +962,23 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                     splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
                 else:
                     splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
+            if is_own:
+                own_frame[slot[t]].append(splats + (np.zeros(splats[1].shape[0], dtype=np.int32),))
+                continue
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
-    returns = [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
-                np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
-                np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32)) for parts in per_frame]
-    return returns, [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
-                      np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
-                      np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes], seen
+    def joined(frames_parts):
+        return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
+                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
+                for parts in frames_parts]
+
+    return (joined(per_frame),
+            [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
+              np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
+              np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
+            seen, joined(own_frame) if own_seen else None)
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -1081,6 +1127,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # own box (the global-shutter image pose); [T, 0, 21]: off.
     others = np.zeros((0, 0, 21))
     occluders = []
+    own_splats = None
 
     def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      tau: int | None = None) -> None:
@@ -1089,24 +1136,41 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
+        zbuffer = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
+                   int(config.surfel_max_px), float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
+                   int(config.occluder_fill_px), int(config.occluder_subpixels))
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
-            points_camera, pixels, valid, occluders[at], int(model.width), int(model.height),
-            float(model.f_u), float(config.surfel_radius_m), int(config.surfel_max_px),
-            float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-            int(config.occluder_fill_px), int(config.occluder_subpixels), use_kernel=use_kernel)
+            points_camera, pixels, valid, occluders[at], *zbuffer, use_kernel=use_kernel)
+        pocket = None if own_splats is None else start + np.flatnonzero(in_pocket[start:stop])
+        if pocket is not None and pocket.size:
+            # the object's own surface in front of the point (a cabin before its deck), beyond the
+            # depth its own plane spans over the footprints (drivetrack.visibility.zbuffer.own_plane_slack);
+            # only points in its hull's pockets can be (pocket_points). The own buffer is not
+            # closed: on a surface seen obliquely a closing carries the nearer returns' depth over
+            # the farther ones between scan lines, and the object would hide itself.
+            sub = pocket - start
+            _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at],
+                                             *zbuffer[:7], 0, zbuffer[8], use_kernel=use_kernel)
+            own_margin += own_plane_slack(p_box[pocket], surfels.normal[pocket], surfels.reliable[pocket],
+                                          centres_box[at], float(config.surfel_radius_m))
+            hidden_other[at, pocket] |= own_margin < 0
+            zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
 
     if by_surface:
-        from drivetrack.visibility.zbuffer import hidden_by_others
+        from drivetrack.visibility.zbuffer import hidden_by_others, own_plane_slack
 
         centre_camera = camera_from_box[:, :3, 3] + shift_camera
-        occluders, occluder_boxes, any_occluder = _occluders(plan, job, frames, centre_camera,
-                                                             0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
-                                                             shutter_meta if rolling else None, use_kernel)
+        in_pocket = None
+        if config.self_occlusion and surfels is not None:
+            in_pocket = _pocket_points(plan, job.object_id, poses, p_box, np.median(boxes.size[rows], axis=0))
+        occluders, occluder_boxes, any_occluder, own_splats = _occluders(
+            plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
+            shutter_meta if rolling else None, use_kernel, with_own=in_pocket is not None and bool(in_pocket.any()))
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
             from drivetrack.visibility import other_boxes
 
             others = other_boxes(camera_from_box, shift_camera, occluder_boxes, float(config.own_surface_margin_m))
-        if any_occluder:
+        if any_occluder or own_splats is not None:
             hidden_other = np.zeros((t_count, n), dtype=bool)
             zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
         if surfels is not None:
@@ -1114,7 +1178,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
             face_margin = np.full((t_count, n), np.inf, dtype=np.float32)
             front_facing = np.ones((t_count, n), dtype=bool)
-        if any_occluder and not rolling:          # rolling: in the numpy path's loop, from its projection
+        if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
             for tau in range(t_count):

@@ -8,7 +8,9 @@ returns, in its box frame and carried by its pose at the image's capture time
 image: each return is splatted as a square footprint of ``radius_m`` at its depth (``f * radius_m /
 z`` pixels, at most ``max_px``) into a per-pixel nearest-depth buffer. A point of the tracked object
 is hidden by another object when that buffer at its pixel is nearer than its own depth by more than
-``abs_m + rel * z``.
+``abs_m + rel * z``. The tracked object's own surface is splatted into a buffer of its own and
+hides a point in a pocket of its hull (:func:`pocket_points`) beyond that tolerance plus the depth
+the point's own plane spans over a footprint (:func:`own_plane_slack`): a cabin before its deck.
 
 Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x forward = depth).
 """
@@ -17,8 +19,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "surfel_cells",
-           "surfel_first_and_means", "surfel_means", "surfel_subsample"]
+__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points",
+           "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
 def surfel_cells(points_box: np.ndarray, radius_m: float) -> np.ndarray:
@@ -343,6 +345,71 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         covered = np.isfinite(farthest)
         margin[tau, on[covered]] = (farthest[covered] - threshold[covered]).astype(np.float32)
     return hidden, margin
+
+
+#: :func:`own_plane_slack`: the span of a point's own plane that may stand in front of it, in
+#: footprint radii (one: a splat's half side; docs/visibility.md "The object's own surface")
+OWN_PLANE_FOOTPRINTS = 1.0
+
+
+#: :func:`pocket_points`: how deep inside the convex hull of its object's surface a point must lie
+#: for the object itself to be able to hide it (metres)
+OWN_POCKET_DEPTH_M = 0.1
+
+
+def pocket_points(points_box: np.ndarray, half: np.ndarray, cloud: np.ndarray,
+                  min_depth_m: float = OWN_POCKET_DEPTH_M) -> np.ndarray:
+    """bool [n]: the points ``points_box`` float [n, 3] (box frame) lying more than ``min_depth_m``
+    inside the convex hull of their object's surface ``cloud`` float [m, 3] (box frame): a cabin
+    car's bonnet and boot, a pedestrian's far leg; False for a convex object's whole surface.
+
+    Only such a point can be hidden by its own object beyond the back-face test: a point on the
+    hull that faces the camera sees it past the hull's supporting plane. The hull lies inside the
+    label box (half-size ``half`` float [3]), so a point within ``min_depth_m`` of the box's faces
+    is within it of the hull too and is not measured against the hull at all (on a box-shaped car
+    under tight labels, none is). A cloud too small or too flat for a hull: none."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    from drivetrack.boxes import box_depth
+
+    points_box = np.asarray(points_box, np.float64)
+    out = np.zeros(points_box.shape[0], dtype=bool)
+    candidate = np.flatnonzero(box_depth(points_box, np.asarray(half, np.float64)) > min_depth_m)
+    if candidate.size == 0 or np.shape(cloud)[0] < 4:
+        return out
+    try:
+        facets = ConvexHull(np.asarray(cloud, np.float64)).equations                     # [F, 4], outward
+    except QhullError:
+        return out
+    for start in range(0, candidate.size, 8192):
+        rows = candidate[start:start + 8192]
+        outside = points_box[rows] @ facets[:, :3].T + facets[:, 3]                        # [k, F], <= 0 inside
+        out[rows] = -outside.max(axis=1) > min_depth_m
+    return out
+
+
+def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
+                    radius_m: float) -> np.ndarray:
+    """float32 [T, n]: how far (metres) in front of a tracked point its own surface's splats may
+    lie without hiding it: the depth its own plane spans over :data:`OWN_PLANE_FOOTPRINTS`
+    footprints of ``radius_m`` seen from the camera, ``OWN_PLANE_FOOTPRINTS * radius_m * cot(a)``
+    with ``a`` the angle between the line of sight and the plane; +inf where the normal is
+    unreliable or the plane is seen edge-on.
+
+    Points ``points_box`` float [n, 3] with normals ``normal`` float [n, 3] (unit, box frame) and
+    ``reliable`` bool [n]; camera centres ``centres_box`` float [T, 3] (box frame).
+
+    Why: the splats are squares facing the camera; a surface seen at a grazing angle (a roof from
+    just above it, a car's side from behind) has its nearer returns' squares reach over its
+    farther ones, metres deeper at a degree's grazing, and the object would hide itself. Its own
+    plane can never hide a point; only a part of the object standing in front of it (a cabin
+    before the deck behind it, a far leg behind a near one) by more than that depth can."""
+    ray = centres_box[:, None, :] - np.asarray(points_box, np.float64)[None]              # [T, n, 3]
+    sine = np.abs(np.einsum("tnk,nk->tn", ray, normal)) / np.linalg.norm(ray, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slack = OWN_PLANE_FOOTPRINTS * radius_m * np.sqrt(np.maximum(1.0 - sine ** 2, 0.0)) / sine
+    slack[:, ~np.asarray(reliable, bool)] = np.inf
+    return np.where(np.isfinite(slack), slack, np.inf).astype(np.float32)
 
 
 def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m, max_px,
