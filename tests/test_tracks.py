@@ -64,6 +64,9 @@ class SceneBuilder:
         self.boxes = []        # (object_id, frame, center_world, size, heading_world, type, speed_world)
         self.points = [[] for _ in range(t)]
         self.wall = True
+        #: objects whose boxes do not block the lidar (their returns are given as they are: an
+        #: object that is not its box, with returns inside it)
+        self.hollow: set[str] = set()
         self.lidar_origin = CAMERA_IN_VEHICLE      # returns are only where this point sees a surface
 
     def add_object(self, object_id, centers_world, size=(4.0, 2.0, 1.5), headings=None, type_=1,
@@ -91,7 +94,7 @@ class SceneBuilder:
         seen = np.ones(len(points), bool)
         origin = np.asarray(self.lidar_origin, float)
         for object_id, frame, center, size, heading, *_ in self.boxes:
-            if frame != f:
+            if frame != f or object_id in self.hollow:
                 continue
             box_from_vehicle = invert_rigid(box_from_center_heading(center, heading))
             o = transform_points(box_from_vehicle, origin[None])[0]

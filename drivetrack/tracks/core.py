@@ -1128,6 +1128,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     others = np.zeros((0, 0, 21))
     occluders = []
     own_splats = None
+    defer_own = False
 
     def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      tau: int | None = None) -> None:
@@ -1141,20 +1142,30 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                    int(config.occluder_fill_px), int(config.occluder_subpixels))
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer, use_kernel=use_kernel)
-        pocket = None if own_splats is None else start + np.flatnonzero(in_pocket[start:stop])
-        if pocket is not None and pocket.size:
-            # the object's own surface in front of the point (a cabin before its deck), beyond the
-            # depth its own plane spans over the footprints (drivetrack.visibility.zbuffer.own_plane_slack);
-            # only points in its hull's pockets can be (pocket_points). The own buffer is not
-            # closed: on a surface seen obliquely a closing carries the nearer returns' depth over
-            # the farther ones between scan lines, and the object would hide itself.
-            sub = pocket - start
-            _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at],
-                                             *zbuffer[:7], 0, zbuffer[8], use_kernel=use_kernel)
-            own_margin += own_plane_slack(p_box[pocket], surfels.normal[pocket], surfels.reliable[pocket],
-                                          centres_box[at], float(config.surfel_radius_m))
-            hidden_other[at, pocket] |= own_margin < 0
-            zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
+        if own_splats is not None and not defer_own:
+            sub = np.flatnonzero(in_pocket[start:stop])
+            own_test(start + sub, sub, points_camera, pixels, valid, at)
+
+    def own_test(pocket: np.ndarray, sub: np.ndarray, points_camera: np.ndarray, pixels: np.ndarray,
+                 valid: np.ndarray, at: slice) -> None:
+        """The object's own surface in front of candidates ``pocket`` int [k] (rows of ``p_box``;
+        their projection is at columns ``sub`` int [k] of ``points_camera`` / ``pixels`` /
+        ``valid``, frames ``at``): beyond the depth their own plane spans over the footprints
+        (drivetrack.visibility.zbuffer.own_plane_slack); only points in its hull's pockets can be
+        hidden so (pocket_points). The own buffer is not closed: on a surface seen obliquely a
+        closing carries the nearer returns' depth over the farther ones between scan lines, and
+        the object would hide itself."""
+        if pocket.size == 0:
+            return
+        zbuffer = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
+                   int(config.surfel_max_px), float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
+                   0, int(config.occluder_subpixels))
+        _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at], *zbuffer,
+                                         use_kernel=use_kernel)
+        own_margin += own_plane_slack(p_box[pocket], surfels.normal[pocket], surfels.reliable[pocket],
+                                      centres_box[at], float(config.surfel_radius_m))
+        hidden_other[at, pocket] |= own_margin < 0
+        zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
 
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others, own_plane_slack
@@ -1178,6 +1189,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
 
             face_margin = np.full((t_count, n), np.inf, dtype=np.float32)
             front_facing = np.ones((t_count, n), dtype=bool)
+        # the kernel path keeps about half the candidates (screen_points, below): the own surface,
+        # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
+        defer_own = use_kernel and not rolling
         if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
@@ -1244,6 +1258,11 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         kept = int(keep.sum())
         kept_box = np.ascontiguousarray(p_box[keep])
         kept_rows = np.flatnonzero(keep)
+        if own_splats is not None:
+            own_rows = kept_rows[in_pocket[kept_rows]]
+            for tau in range(t_count):
+                own_test(own_rows, np.arange(own_rows.size), *project_frame(p_box[own_rows], tau),
+                         slice(tau, tau + 1))
         if surfels is not None:
             # the back-face test and its margin are read only at the candidates kept here (about
             # half of them on bench_visibility_cost's segment): computed for those alone
