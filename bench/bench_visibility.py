@@ -30,7 +30,9 @@ are) and the block ``bench_visibility_rolling`` is written instead; ``--variants
 entries of :data:`VARIANTS` or :data:`EXTRA_VARIANTS` (comma-separated names, default every
 :data:`VARIANTS` entry). With ``--car-shape cabin`` every vehicle is a body and a cabin inside its
 label box (``SynthConfig(car_shape="cabin")``: real cars are not boxes) and the block
-``bench_visibility_cabin`` is written; with ``--label-noise M`` the written boxes carry M metres
+``bench_visibility_cabin`` is written; with ``--pedestrian-shape body`` every pedestrian is two
+legs, a torso, two arms and a head inside its label box (``SynthConfig(pedestrian_shape="body")``)
+and the block ``bench_visibility_body`` is written; with ``--label-noise M`` the written boxes carry M metres
 of centre noise and 1 deg of heading noise per 5 cm (``SynthConfig(box_noise_m=M)``: real labels
 are drawn by hand around their returns) and the block ``bench_visibility_noise`` is written; with
 ``--range-noise M`` every written lidar range carries M metres of noise
@@ -49,6 +51,8 @@ hidden by another object called visible).
         --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface (default)"   # ~12 min
+    .venv/bin/python bench/bench_visibility.py --pedestrian-shape body --variants "depth-ratio (paper),\
++ normals from the plane through the point,+ the object's own surface (default)"   # ~10 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
@@ -274,6 +278,7 @@ NOISE_START, NOISE_END = "<!-- bench_visibility_noise:start -->", "<!-- bench_vi
 RANGE_START, RANGE_END = "<!-- bench_visibility_range:start -->", "<!-- bench_visibility_range:end -->"
 SLACK_START, SLACK_END = "<!-- bench_visibility_slack:start -->", "<!-- bench_visibility_slack:end -->"
 LOOSE_START, LOOSE_END = "<!-- bench_visibility_loose:start -->", "<!-- bench_visibility_loose:end -->"
+BODY_START, BODY_END = "<!-- bench_visibility_body:start -->", "<!-- bench_visibility_body:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
@@ -281,6 +286,7 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     names = list(results)
     rolling = setup.get("rolling_shutter", False)
     cabin = setup.get("car_shape", "box") == "cabin"
+    body = setup.get("pedestrian_shape", "box") == "body"
     noise = float(setup.get("label_noise_m", 0.0))
     range_noise = float(setup.get("range_noise_m", 0.0))
     slack = float(setup.get("box_slack_m", 0.0))
@@ -288,6 +294,7 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              .format(slack * 100, noise * 100) if slack and noise
              else "## Visibility on the hard world read out by a rolling shutter" if rolling
              else "## Visibility on the hard world with cabin-shaped cars" if cabin
+             else "## Visibility on the hard world with pedestrians that have legs and arms" if body
              else f"## Visibility on the hard world with {noise * 100:g} cm label noise" if noise
              else f"## Visibility on the hard world with {range_noise * 100:g} cm lidar range noise" if range_noise
              else f"## Visibility on the hard world with labels {slack * 100:g} cm wide of their objects" if slack
@@ -300,6 +307,9 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
              "(`SynthConfig(world=\"hard\", rolling_shutter=True)`), same scoring: preset " if rolling
              else "the hard world of the block above with every vehicle a body and a cabin inside its label "
                   "box (`SynthConfig(world=\"hard\", car_shape=\"cabin\")`), same scoring: preset " if cabin
+             else "the hard world of the block above with every pedestrian two legs, a torso, two arms and a head "
+                  "inside its label box (`SynthConfig(world=\"hard\", pedestrian_shape=\"body\")`), same scoring: "
+                  "preset " if body
              else f"the hard world of the block above with its written boxes' centres moved by {noise * 100:g} cm "
                   f"(sigma, per axis) and their headings by {noise / 0.05:g} deg "
                   f"(`SynthConfig(world=\"hard\", box_noise_m={noise:g})`), same scoring: preset " if noise
@@ -311,6 +321,7 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
                   "preset " if slack
              else "same segment and scoring as the block above: preset ")
     options = ((" --rolling-shutter" if rolling else "") + (" --car-shape cabin" if cabin else "")
+               + (" --pedestrian-shape body" if body else "")
                + (f" --label-noise {noise:g}" if noise else "") + (f" --range-noise {range_noise:g}" if range_noise else "")
                + (f" --box-slack {slack:g}" if slack else ""))
     lines = [title, "",
@@ -373,6 +384,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--car-shape", choices=["box", "cabin"], default="box",
                     help="cabin: every vehicle a body and a cabin inside its label box (writes the "
                          "bench_visibility_cabin block)")
+    ap.add_argument("--pedestrian-shape", choices=["box", "body"], default="box",
+                    help="body: every pedestrian two legs, a torso, two arms and a head inside its label box "
+                         "(writes the bench_visibility_body block)")
     ap.add_argument("--label-noise", type=float, default=0.0, metavar="M",
                     help="sigma (metres, per axis) of the noise on the written boxes' centres, with 1 deg of "
                          "heading noise per 5 cm (SynthConfig.box_noise_m; writes the bench_visibility_noise block)")
@@ -386,9 +400,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
     loose = args.label_noise > 0 and args.box_slack > 0      # the one pair allowed: its own block
-    if sum((args.rolling_shutter, args.car_shape == "cabin", args.label_noise > 0, args.range_noise > 0,
-            args.box_slack > 0)) > 1 + loose:
-        ap.error("--rolling-shutter, --car-shape cabin, --label-noise, --range-noise and --box-slack: one at a time "
+    if sum((args.rolling_shutter, args.car_shape == "cabin", args.pedestrian_shape == "body", args.label_noise > 0,
+            args.range_noise > 0, args.box_slack > 0)) > 1 + loose:
+        ap.error("--rolling-shutter, --car-shape cabin, --pedestrian-shape body, --label-noise, --range-noise and "
+                 "--box-slack: one at a time "
                  "(one block each), or --label-noise with --box-slack (the bench_visibility_loose block)")
     if not 0 <= args.box_slack <= 0.5:
         ap.error(f"--box-slack must be in [0, 0.5] metres, got {args.box_slack}")
@@ -410,7 +425,9 @@ def main(argv: list[str] | None = None) -> int:
         seg = generate_segment(f"{tmp}/src", SynthConfig(seed=args.seed, frames=args.frames, preset=args.preset,
                                                          cameras=CAMERAS, world="hard",
                                                          rolling_shutter=args.rolling_shutter,
-                                                         car_shape=args.car_shape, box_noise_m=args.label_noise,
+                                                         car_shape=args.car_shape,
+                                                         pedestrian_shape=args.pedestrian_shape,
+                                                         box_noise_m=args.label_noise,
                                                          range_noise_m=args.range_noise, box_slack_m=args.box_slack),
                                0, workers=args.workers)["segment"]
         generate_s = time.perf_counter() - start
@@ -437,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
             print(name, json.dumps({k2: v for k2, v in summary.items() if k2 not in ("per_clip_oa", "by_role")}))
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
              "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
-             "car_shape": args.car_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise,
+             "car_shape": args.car_shape, "pedestrian_shape": args.pedestrian_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise,
              "box_slack_m": args.box_slack}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
@@ -445,7 +462,8 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown)
     if not args.no_docs:
         start, end = ((LOOSE_START, LOOSE_END) if loose else (ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
-                      if args.car_shape == "cabin" else (NOISE_START, NOISE_END) if args.label_noise
+                      if args.car_shape == "cabin" else (BODY_START, BODY_END) if args.pedestrian_shape == "body"
+                      else (NOISE_START, NOISE_END) if args.label_noise
                       else (RANGE_START, RANGE_END) if args.range_noise
                       else (SLACK_START, SLACK_END) if args.box_slack else (COMPARE_START, COMPARE_END))
         replace_doc_block(DOC, start, end, f"{start}\n{markdown}{end}")
