@@ -33,7 +33,7 @@ import numpy as np
 from drivetrack.geometry import invert_rigid, transform_points, vectors_to_box
 from drivetrack.parallel import pool_map
 
-__all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates", "ground_under_boxes",
+__all__ = ["return_mask", "inside_box", "returns_in_boxes", "gather_candidates", "ground_reach", "ground_under_boxes",
            "fill_ground_over_time", "claimed_by_other_boxes", "box_depth"]
 
 SCAN_MAX_BOXES = 24
@@ -208,6 +208,15 @@ def box_depth(points_box: np.ndarray, half: np.ndarray) -> np.ndarray:
     return np.min(half - np.abs(points_box), axis=-1)
 
 
+def ground_reach(size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(half float64 [B, 3], radius float64 [B])``: boxes of ``size`` [B, 3]'s half sizes and the
+    half side of the cube round each centre that holds its ground ring (:data:`GROUND_RING_M`,
+    :data:`GROUND_WINDOW_M`) whole: the candidates :func:`ground_under_boxes` reads."""
+    half = 0.5 * np.asarray(size, np.float64)
+    outer = GROUND_RING_M[1]
+    return half, np.maximum(np.hypot(half[:, 0] + outer, half[:, 1] + outer), half[:, 2] + GROUND_WINDOW_M)
+
+
 def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, frame_offsets: np.ndarray,
                        box_frame: np.ndarray, center: np.ndarray, heading: np.ndarray, size: np.ndarray,
                        lasers=None, returns=None, gather=gather_candidates) -> np.ndarray:
@@ -231,9 +240,7 @@ def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.n
     if count == 0:
         return out
     inner, outer = GROUND_RING_M
-    half = 0.5 * np.asarray(size, np.float64)
-    radius = np.hypot(half[:, 0] + outer, half[:, 1] + outer)
-    radius = np.maximum(radius, half[:, 2] + GROUND_WINDOW_M)
+    half, radius = ground_reach(size)
     index, owner = gather(points, laser, return_index, lasers, returns, frame_offsets,
                           np.asarray(box_frame, np.int64), np.asarray(center, np.float64), radius)
     q = vectors_to_box(points[index] - center[owner], np.asarray(heading, np.float64), rows=owner)

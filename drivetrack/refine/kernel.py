@@ -299,24 +299,40 @@ def normal_equations(n: np.ndarray, qa: np.ndarray, qb: np.ndarray, fa: np.ndarr
 
 
 @njit(cache=True, nogil=True)
+def _frame_runs(box_frame):
+    """``(by_frame, starts)``: the boxes' indices int64 [B] sorted by frame (stable), and int64
+    [R + 1] where each frame's run of them starts (the last entry B)."""
+    n_box = box_frame.shape[0]
+    by_frame = np.argsort(box_frame, kind="mergesort")
+    count = 0
+    for m in range(n_box):
+        if m == 0 or box_frame[by_frame[m]] != box_frame[by_frame[m - 1]]:
+            count += 1
+    starts = np.empty(count + 1, np.int64)
+    r = 0
+    for m in range(n_box):
+        if m == 0 or box_frame[by_frame[m]] != box_frame[by_frame[m - 1]]:
+            starts[r] = m
+            r += 1
+    starts[count] = n_box
+    return by_frame, starts
+
+
+@njit(cache=True, nogil=True)
 def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offsets, box_frame, box_center,
                    box_radius, count_only, counts, index, owner, frame_lo, frame_hi):
     # boxes grouped by frame, so each return of a frame is read once whatever the number of boxes;
     # only boxes of frames [frame_lo, frame_hi) (calls on disjoint ranges write disjoint entries)
     n_box = box_frame.shape[0]
-    by_frame = np.argsort(box_frame, kind="mergesort")
+    by_frame, starts = _frame_runs(box_frame)
     fill = np.zeros(n_box, np.int64)
     if not count_only:
         for b in range(1, n_box):
             fill[b] = fill[b - 1] + counts[b - 1]                  # output in (box, row) order
-    s = 0
-    while s < n_box:
+    for run in range(starts.shape[0] - 1):
+        s, e = starts[run], starts[run + 1]
         f = box_frame[by_frame[s]]
-        e = s
-        while e < n_box and box_frame[by_frame[e]] == f:
-            e += 1
         if f < frame_lo or f >= frame_hi:
-            s = e
             continue
         for i in range(frame_offsets[f], frame_offsets[f + 1]):
             if not (laser_ok[laser[i] + 128] and return_ok[return_index[i] + 128]):
@@ -333,7 +349,6 @@ def _gather_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
                         index[fill[b]] = i
                         owner[fill[b]] = b
                         fill[b] += 1
-        s = e
 
 
 def _value_table(values) -> np.ndarray:
@@ -381,16 +396,11 @@ def _ground_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
     # per frame: its chosen returns bucketed by vehicle x (1 m cells or coarser, a counting sort),
     # so each box reads only the cells its bounding cube spans; the tests of ground_under_boxes
     # in its order of operations, then the quantile of the ring's heights
-    n_box = box_frame.shape[0]
-    by_frame = np.argsort(box_frame, kind="mergesort")
-    s = 0
-    while s < n_box:
+    by_frame, starts = _frame_runs(box_frame)
+    for run in range(starts.shape[0] - 1):
+        s, e = starts[run], starts[run + 1]
         f = box_frame[by_frame[s]]
-        e = s
-        while e < n_box and box_frame[by_frame[e]] == f:
-            e += 1
         if f < frame_lo or f >= frame_hi:
-            s = e
             continue
         lo, hi = frame_offsets[f], frame_offsets[f + 1]
         rows = np.empty(hi - lo, np.int64)
@@ -403,7 +413,6 @@ def _ground_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
                 x_min = min(x_min, points[i, 0])
                 x_max = max(x_max, points[i, 0])
         if k == 0:
-            s = e
             continue
         cell = max(1.0, (x_max - x_min) / 4096.0)
         n_cell = int((x_max - x_min) / cell) + 1
@@ -450,7 +459,6 @@ def _ground_kernel(points, laser, return_index, laser_ok, return_ok, frame_offse
             if count >= min_returns:
                 ordered = np.sort(heights[:count])
                 out[b] = ordered[int(np.floor(quantile * (count - 1)))]
-        s = e
 
 
 def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.ndarray, frame_offsets: np.ndarray,
@@ -461,15 +469,14 @@ def ground_under_boxes(points: np.ndarray, laser: np.ndarray, return_index: np.n
     its temporaries: each frame's returns are bucketed by x once and each box reads only the
     buckets its bounding cube spans, testing the ring as it goes; the frames' two halves run on
     the segment's pool."""
-    from drivetrack.boxes import GROUND_MIN_RETURNS, GROUND_QUANTILE, GROUND_RING_M, GROUND_WINDOW_M
+    from drivetrack.boxes import GROUND_MIN_RETURNS, GROUND_QUANTILE, GROUND_RING_M, GROUND_WINDOW_M, ground_reach
 
     count = np.shape(box_frame)[0]
     out = np.full(count, np.nan)
     if count == 0:
         return out
     inner, outer = GROUND_RING_M
-    half = 0.5 * np.asarray(size, np.float64)
-    radius = np.maximum(np.hypot(half[:, 0] + outer, half[:, 1] + outer), half[:, 2] + GROUND_WINDOW_M)
+    half, radius = ground_reach(size)
     heading = np.asarray(heading, np.float64)
     args = (np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(laser, dtype=np.int8),
             np.ascontiguousarray(return_index, dtype=np.int8), _value_table(lasers), _value_table(returns),

@@ -334,24 +334,24 @@ def body_parts(size) -> tuple:
 def with_pedestrian_shape(world: World, pedestrian_shape: str) -> World:
     """``world`` with every pedestrian given ``pedestrian_shape`` (:data:`PEDESTRIAN_SHAPES`);
     nothing else changes (the labels are the same), as :func:`with_car_shape` for vehicles."""
-    if pedestrian_shape not in PEDESTRIAN_SHAPES:
-        raise ValueError(f"unknown pedestrian shape {pedestrian_shape!r}; choose from {', '.join(PEDESTRIAN_SHAPES)}")
-    if pedestrian_shape == "box":
-        return world
-    objects = tuple(dataclasses.replace(o, parts=body_parts(o.size)) if o.type == int(BoxType.PEDESTRIAN) else o
-                    for o in world.objects)
-    return dataclasses.replace(world, objects=objects)
+    return _with_shape(world, pedestrian_shape, PEDESTRIAN_SHAPES, BoxType.PEDESTRIAN, body_parts, "pedestrian")
 
 
 def with_car_shape(world: World, car_shape: str) -> World:
     """``world`` with every vehicle given ``car_shape`` (:data:`CAR_SHAPES`); nothing else changes
     (the same objects, motions, colours and labels), so a segment differs from the box world's only
     where a vehicle's shape does."""
-    if car_shape not in CAR_SHAPES:
-        raise ValueError(f"unknown car shape {car_shape!r}; choose from {', '.join(CAR_SHAPES)}")
-    if car_shape == "box":
+    return _with_shape(world, car_shape, CAR_SHAPES, BoxType.VEHICLE, cabin_parts, "car")
+
+
+def _with_shape(world: World, shape: str, shapes: tuple, box_type, parts, what: str) -> World:
+    """``world`` with every object of ``box_type`` made of ``parts(size)`` unless ``shape`` is
+    "box" (one of ``shapes``)."""
+    if shape not in shapes:
+        raise ValueError(f"unknown {what} shape {shape!r}; choose from {', '.join(shapes)}")
+    if shape == "box":
         return world
-    objects = tuple(dataclasses.replace(o, parts=cabin_parts(o.size)) if o.type == int(BoxType.VEHICLE) else o
+    objects = tuple(dataclasses.replace(o, parts=parts(o.size)) if o.type == int(box_type) else o
                     for o in world.objects)
     return dataclasses.replace(world, objects=objects)
 
