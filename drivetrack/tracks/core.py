@@ -629,7 +629,8 @@ def _pocket_points(plan, object_id: str, poses, p_box: np.ndarray, size: np.ndar
         if not flags.any():                       # a convex object (any box-shaped one): nothing to look up
             return np.zeros(p_box.shape[0], dtype=bool)
         return flags[fitted.nearest(p_box)]
-    return pocket_points(p_box, 0.5 * np.asarray(size, np.float64), p_box[surfel_subsample(p_box, _surfel_cube_m(plan.config))])
+    cloud = p_box[surfel_subsample(p_box, _surfel_cube_m(plan.config))]
+    return pocket_points(p_box, 0.5 * np.asarray(size, np.float64), cloud)
 
 
 def _grown_selection(plan) -> tuple[np.ndarray, np.ndarray]:
@@ -1129,6 +1130,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     occluders = []
     own_splats = None
     defer_own = False
+    # the z-buffer's image, footprint and tolerance (drivetrack.visibility.zbuffer.hidden_by_others)
+    zbuffer_args = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
+                    int(config.surfel_max_px), float(config.occluder_tolerance_m),
+                    float(config.occluder_tolerance_rel))
 
     def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      tau: int | None = None) -> None:
@@ -1137,11 +1142,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
-        zbuffer = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
-                   int(config.surfel_max_px), float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-                   int(config.occluder_fill_px), int(config.occluder_subpixels))
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
-            points_camera, pixels, valid, occluders[at], *zbuffer, use_kernel=use_kernel)
+            points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
+            int(config.occluder_subpixels), use_kernel=use_kernel)
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1157,11 +1160,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         the object would hide itself."""
         if pocket.size == 0:
             return
-        zbuffer = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
-                   int(config.surfel_max_px), float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel),
-                   0, int(config.occluder_subpixels))
-        _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at], *zbuffer,
-                                         use_kernel=use_kernel)
+        _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at],
+                                         *zbuffer_args, 0, int(config.occluder_subpixels), use_kernel=use_kernel)
         own_margin += own_plane_slack(p_box[pocket], surfels.normal[pocket], surfels.reliable[pocket],
                                       centres_box[at], float(config.surfel_radius_m))
         hidden_other[at, pocket] |= own_margin < 0
