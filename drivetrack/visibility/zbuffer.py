@@ -11,6 +11,8 @@ is hidden by another object when that buffer at its pixel is nearer than its own
 ``abs_m + rel * z``. The tracked object's own surface is splatted into a buffer of its own and
 hides a point in a pocket of its hull (:func:`pocket_points`) beyond that tolerance plus the depth
 the point's own plane spans over a footprint (:func:`own_plane_slack`): a cabin before its deck.
+The other objects' surfaces also hold the parts of their roofs the lidar did not sample
+(:func:`roof_fill`).
 
 Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x forward = depth).
 """
@@ -19,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points",
+__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
            "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
@@ -386,6 +388,87 @@ def pocket_points(points_box: np.ndarray, half: np.ndarray, cloud: np.ndarray,
         outside = points_box[rows] @ facets[:, :3].T + facets[:, 3]                        # [k, F], <= 0 inside
         out[rows] = -outside.max(axis=1) > min_depth_m
     return out
+
+
+#: :func:`roof_fill`: a point of an object's roof is unsampled when no return lies within this
+#: (metres) of it
+ROOF_FILL_GAP_M = 0.05
+#: :func:`roof_fill`: the roof is the part of the hull's top whose facets tilt less than this
+#: (degrees) from level: a box car's or van's roof, the flat middle of a rounded one, a head's top;
+#: not a windscreen, nor the facet a cabin car's hull spans from its roof to its bonnet's edge
+#: (~23 degrees on the synthetic cabin car; at 25 degrees (cos 0.9) it was filled, and the air over
+#: the bonnet hid what lay behind: 16,270 -> 16,891 wrong calls on the cabin world)
+ROOF_MAX_TILT_DEG = 11.5
+
+
+def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MAX_TILT_DEG,
+              min_gap_m: float = ROOF_FILL_GAP_M, outline_step_m: float | None = None) -> np.ndarray:
+    """float64 [h, 3]: the unsampled part of an object's roof (box frame, metres): points of the
+    top of the convex hull of its surface ``cloud`` float [m, 3] (box frame, z up), on a grid of
+    ``spacing_m`` in x and y, where the hull's top is level to ``max_tilt_deg`` and no point of
+    ``cloud`` lies within ``min_gap_m``; and along the roof's outline (the hull edges between a
+    level facet and a tilted one) every ``outline_step_m`` (default a third of ``spacing_m``):
+    the grid stops up to a spacing short of the outline, and a z-buffer's outline is its
+    outermost splats' (measured on the medium hard world: the grid alone at 7.5 cm, 7,623 wrong
+    calls; at 2.5 cm, 7,112; at 7.5 cm with the outline at 2.5 cm, 6,970, a third of the points).
+
+    Why: the lidar sees a car's roof at a grazing angle from a few metres off, and an object's
+    returns over a whole segment may hold none of it, while a camera a little higher sees the
+    roof as a band of pixels above the car's side: a point of a farther object behind that band
+    is hidden by the roof, and a z-buffer of the returns alone has nothing there (on the medium
+    hard world, two thirds of the points hidden by another object and called visible lay behind
+    an occluder's top, over a third of those more than 5 cm from its every return). The returns on
+    the tops of its sides, ends and windows bound the roof, and the hull spans it.
+
+    The hull's top over ``(x, y)`` is the lowest of its upward facets' planes there; ``(x, y)``
+    lies over the hull when that top is above the highest of its downward facets' planes and
+    inside its vertical facets. A cloud too small or too flat for a hull: none."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    cloud = np.asarray(cloud, np.float64)
+    if cloud.shape[0] < 4:
+        return np.zeros((0, 3))
+    try:
+        hull = ConvexHull(cloud)
+    except QhullError:
+        return np.zeros((0, 3))
+    facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
+    level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
+    up, down = facets[facets[:, 2] > 1e-9], facets[facets[:, 2] < -1e-9]
+    wall = facets[np.abs(facets[:, 2]) <= 1e-9]
+    lo, hi = cloud[:, :2].min(axis=0), cloud[:, :2].max(axis=0)
+    xs = np.arange(lo[0], hi[0] + 0.5 * spacing_m, spacing_m)
+    ys = np.arange(lo[1], hi[1] + 0.5 * spacing_m, spacing_m)
+    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)           # [g, 2]
+    if up.shape[0] == 0 or down.shape[0] == 0 or xy.shape[0] == 0:
+        return np.zeros((0, 3))
+    # each facet's plane as a height over (x, y): z = -(n_x x + n_y y + d) / n_z
+    top_all = -(xy @ up[:, :2].T + up[:, 3]) / up[:, 2]                               # [g, U]
+    which = np.argmin(top_all, axis=1)
+    top = top_all[np.arange(xy.shape[0]), which]
+    bottom = (-(xy @ down[:, :2].T + down[:, 3]) / down[:, 2]).max(axis=1)
+    over = top >= bottom
+    if wall.shape[0]:
+        over &= (xy @ wall[:, :2].T + wall[:, 3]).max(axis=1) <= 1e-9
+    over &= up[which, 2] >= np.cos(np.radians(max_tilt_deg))     # the lowest plane there is a level facet's
+    points = np.column_stack([xy[over], top[over]])
+    # the roof's outline: the hull edges between a level facet and a tilted one (edge i of a
+    # facet is the one opposite its vertex i, shared with its neighbour i)
+    step = spacing_m / 3.0 if outline_step_m is None else float(outline_step_m)
+    ends = [np.stack([cloud[hull.simplices[outline, (i + 1) % 3]], cloud[hull.simplices[outline, (i + 2) % 3]]], axis=1)
+            for i in range(3) for outline in [level & ~level[hull.neighbors[:, i]]] if outline.any()]
+    if ends:
+        ends = np.concatenate(ends)                                                     # [E, 2, 3]
+        length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=-1)
+        count = np.ceil(length / step).astype(np.int64) + 1                           # samples per edge, ends included
+        edge = np.repeat(np.arange(ends.shape[0]), count)
+        first = np.repeat(np.cumsum(count) - count, count)
+        fraction = (np.arange(edge.size) - first) / np.maximum(count[edge] - 1, 1)
+        points = np.concatenate([points, ends[edge, 0] + fraction[:, None] * (ends[edge, 1] - ends[edge, 0])])
+    if points.shape[0] == 0:
+        return points
+    gap, _ = cKDTree(cloud).query(points, distance_upper_bound=min_gap_m)
+    return points[~np.isfinite(gap)]
 
 
 def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
