@@ -1500,16 +1500,25 @@ def test_roof_fill_spans_an_unsampled_roof_but_not_the_air_over_a_bonnet():
     near, _ = cKDTree(np.concatenate([fill, car])).query(roof)
     assert near.max() < 0.075
     assert np.abs(fill[:, 0]).max() <= 2.0 and np.abs(fill[:, 1]).max() <= 0.9
-    # sides sampled only up to 10 cm below the roof (its corners aside): the outline's samples lie
-    # on the roof's edges, where the grid stops short (it starts at the cloud's lowest x, and 4 m
-    # is no whole number of 7.5 cm steps: none of its points is on the front edge, x = 2)
-    low = car[(car[:, 2] < 0.65) | (np.abs(car[:, 2]) == 0.75)]
+    # sides sampled up to 10 cm below the roof, and the roof's edges by pairs of returns 3 cm
+    # apart every 40 cm: the outline's samples lie on the roof's edges between them, where the
+    # grid stops short (it starts at the cloud's lowest x, and 4 m is no whole number of 7.5 cm
+    # steps: none of its points is on the front edge, x = 2)
+    along_x, along_y = np.arange(-2.0, 2.01, 0.4), np.arange(-0.9, 0.91, 0.45)
+    pairs = np.concatenate([np.column_stack([along_x + d, np.full(along_x.size, y), np.full(along_x.size, 0.75)])
+                            for y in (-0.9, 0.9) for d in (0.0, -0.03)]
+                           + [np.column_stack([np.full(along_y.size, x), along_y + d, np.full(along_y.size, 0.75)])
+                              for x in (-2.0, 2.0) for d in (0.0, -0.03)])
+    low = np.concatenate([car[car[:, 2] < 0.65], pairs[np.abs(pairs).max(axis=1) <= 2.0]])
     edges = roof_fill(low, 0.075)
     assert np.isclose(edges[:, 0], 2.0).sum() > 20
     assert not np.isclose(roof_fill(low, 0.075, outline_step_m=100.0)[:, 0], 2.0).any()
     np.testing.assert_allclose(edges[:, 2], 0.75, atol=1e-9)
     near, _ = cKDTree(np.concatenate([edges, low])).query(roof)
     assert near.max() < 0.075
+    # a stray return 20 cm over the roof (a leaf, a badly registered frame's) does not shape it
+    stray = roof_fill(np.concatenate([car, [[0.3, 0.1, 0.95]]]), 0.075)
+    assert stray.shape[0] == fill.shape[0] and np.allclose(stray[:, 2], 0.75)
     # a roof the lidar sampled densely: nothing to fill
     top = np.column_stack([rng.uniform(-2, 2, 40000), rng.uniform(-0.9, 0.9, 40000), np.full(40000, 0.75)])
     assert roof_fill(np.concatenate([car, top]), 0.075).shape[0] == 0
