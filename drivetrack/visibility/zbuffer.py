@@ -427,17 +427,16 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     an occluder's top, over a third of those more than 5 cm from its every return). The returns on
     the tops of its sides, ends and windows bound the roof, and the hull spans it.
 
-    The hull's top over ``(x, y)`` is the lowest of its upward facets' planes there; ``(x, y)``
-    lies over the hull when that top is above the highest of its downward facets' planes and
-    inside its vertical facets. Points of ``cloud`` with no other within ``outlier_m`` are left
+    The upward facets' shadows tile the hull's in ``(x, y)``: a grid point in a level facet's
+    shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within ``outlier_m`` are left
     out first (of the hull and of the gaps). A cloud too small or too flat for a hull: none."""
     from scipy.spatial import ConvexHull, QhullError, cKDTree
 
     cloud = np.asarray(cloud, np.float64)
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
-    tree = cKDTree(cloud)
-    cloud = cloud[tree.query_ball_point(cloud, outlier_m, return_length=True) >= 2]
+    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)        # itself, then its nearest
+    cloud = cloud[np.isfinite(second[:, 1])]
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
     try:
@@ -446,24 +445,34 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         return np.zeros((0, 3))
     facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
     level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
-    up, down = facets[facets[:, 2] > 1e-9], facets[facets[:, 2] < -1e-9]
-    wall = facets[np.abs(facets[:, 2]) <= 1e-9]
-    lo, hi = cloud[:, :2].min(axis=0), cloud[:, :2].max(axis=0)
-    xs = np.arange(lo[0], hi[0] + 0.5 * spacing_m, spacing_m)
-    ys = np.arange(lo[1], hi[1] + 0.5 * spacing_m, spacing_m)
-    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)           # [g, 2]
-    if up.shape[0] == 0 or down.shape[0] == 0 or xy.shape[0] == 0:
-        return np.zeros((0, 3))
-    # each facet's plane as a height over (x, y): z = -(n_x x + n_y y + d) / n_z
-    top_all = -(xy @ up[:, :2].T + up[:, 3]) / up[:, 2]                               # [g, U]
-    which = np.argmin(top_all, axis=1)
-    top = top_all[np.arange(xy.shape[0]), which]
-    bottom = (-(xy @ down[:, :2].T + down[:, 3]) / down[:, 2]).max(axis=1)
-    over = top >= bottom
-    if wall.shape[0]:
-        over &= (xy @ wall[:, :2].T + wall[:, 3]).max(axis=1) <= 1e-9
-    over &= up[which, 2] >= np.cos(np.radians(max_tilt_deg))     # the lowest plane there is a level facet's
-    points = np.column_stack([xy[over], top[over]])
+    # The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
+    # shadow is on the roof there, at that facet's plane. Edge tests by broadcasting, not matrix
+    # products: no BLAS threads for these small arrays.
+    corners = cloud[hull.simplices[level]][:, :, :2]                                  # [L, 3, 2]
+    plane = facets[level]
+    if corners.shape[0] == 0:
+        points = np.zeros((0, 3))
+    else:
+        origin = cloud[:, :2].min(axis=0)                      # the grid's anchor: the cloud's corner
+        lo = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
+        hi = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
+        xs = origin[0] + spacing_m * np.arange(lo[0], hi[0] + 1)
+        ys = origin[1] + spacing_m * np.arange(lo[1], hi[1] + 1)
+        xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)       # [g, 2]
+        start = corners                                                                  # [L, 3, 2]
+        edge = np.roll(corners, -1, axis=1) - start                                      # edge i: corner i -> i + 1
+        sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])   # orientation, [L]
+        which = np.full(xy.shape[0], -1, dtype=np.int64)
+        for at in range(0, xy.shape[0], 2048):                       # bounded memory: [2048, L, 3]
+            q = xy[at:at + 2048]
+            side = (edge[None, :, :, 0] * (q[:, None, None, 1] - start[None, :, :, 1])
+                    - edge[None, :, :, 1] * (q[:, None, None, 0] - start[None, :, :, 0]))
+            inside = (side * sign[None, :, None] >= -1e-9).all(axis=2)                    # [k, L]
+            which[at:at + 2048] = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
+        over = which >= 0
+        which, xy = which[over], xy[over]
+        top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
+        points = np.column_stack([xy, top])
     # the roof's outline: the hull edges between a level facet and a tilted one (edge i of a
     # facet is the one opposite its vertex i, shared with its neighbour i)
     step = spacing_m / 3.0 if outline_step_m is None else float(outline_step_m)
