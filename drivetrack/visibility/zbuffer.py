@@ -428,8 +428,9 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     the tops of its sides, ends and windows bound the roof, and the hull spans it.
 
     The upward facets' shadows tile the hull's in ``(x, y)``: a grid point in a level facet's
-    shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within ``outlier_m`` are left
-    out first (of the hull and of the gaps). A cloud too small or too flat for a hull: none."""
+    shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within
+    ``outlier_m`` are left out first (of the hull and of the gaps). A cloud too small or too flat
+    for a hull: none."""
     from scipy.spatial import ConvexHull, QhullError, cKDTree
 
     cloud = np.asarray(cloud, np.float64)
@@ -482,10 +483,10 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         ends = np.concatenate(ends)                                                     # [E, 2, 3]
         length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=-1)
         count = np.ceil(length / step).astype(np.int64) + 1                           # samples per edge, ends included
-        edge = np.repeat(np.arange(ends.shape[0]), count)
+        of = np.repeat(np.arange(ends.shape[0]), count)                                # each sample's edge
         first = np.repeat(np.cumsum(count) - count, count)
-        fraction = (np.arange(edge.size) - first) / np.maximum(count[edge] - 1, 1)
-        points = np.concatenate([points, ends[edge, 0] + fraction[:, None] * (ends[edge, 1] - ends[edge, 0])])
+        fraction = (np.arange(of.size) - first) / np.maximum(count[of] - 1, 1)
+        points = np.concatenate([points, ends[of, 0] + fraction[:, None] * (ends[of, 1] - ends[of, 0])])
     if points.shape[0] == 0:
         return points
     gap, _ = cKDTree(cloud).query(points, distance_upper_bound=min_gap_m)
