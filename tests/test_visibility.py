@@ -523,6 +523,8 @@ def test_config_checks_the_surfel_radius():
     for bad in (0, 5, 1.5):
         with pytest.raises(ValueError, match="occluder_subpixels"):
             TrackConfig(occluder_subpixels=bad)
+    with pytest.raises(ValueError, match="roof_fill"):
+        TrackConfig(roof_fill="yes")
 
 
 def test_config_checks_the_angle():
@@ -1459,3 +1461,162 @@ def test_pocket_points_are_the_parts_of_a_concave_object_inside_its_hull():
     assert pocket[bonnet].all() and not pocket[roof].any() and not pocket[sides].any()
     assert not pocket_points(car, half, car[:3]).any()
     assert not pocket_points(car, half, car * [1.0, 1.0, 0.0]).any()                         # a flat cloud
+
+
+def _sides_and_ends(rng, x, y, z, per_m2=2500):
+    """float64 [n, 3] points on the four vertical faces of the box [x0, x1] x [y0, y1] x [z0, z1]
+    (no top, no bottom: a roof the lidar did not sample)."""
+    (x0, x1), (y0, y1), (z0, z1) = x, y, z
+    faces = []
+    for fixed, span, axis in (((x0, x1), (y0, y1), 0), ((y0, y1), (x0, x1), 1)):
+        for value in fixed:
+            n = int(per_m2 * (span[1] - span[0]) * (z1 - z0))
+            p = np.column_stack([rng.uniform(*span, n), rng.uniform(z0, z1, n)])
+            faces.append(np.insert(p, axis, value, axis=1) if axis == 0 else
+                         np.column_stack([p[:, 0], np.full(n, value), p[:, 1]]))
+    # the corners, so the hull reaches the box's top edges exactly
+    corners = np.array([[a, b, c] for a in (x0, x1) for b in (y0, y1) for c in (z0, z1)])
+    return np.concatenate(faces + [corners])
+
+
+def test_roof_fill_spans_an_unsampled_roof_but_not_the_air_over_a_bonnet():
+    """A car whose returns hold its sides and ends but not its roof: the fill is the roof, level
+    with the tops of the sides, at least 5 cm from every return, out to the roof's outline; a
+    sampled roof needs none. A cabin car: the cabin's roof is filled, the air between it and the
+    bonnet (under the hull's tilted facet) is not."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.visibility.zbuffer import ROOF_FILL_GAP_M, roof_fill
+
+    rng = np.random.default_rng(5)
+    car = _sides_and_ends(rng, (-2.0, 2.0), (-0.9, 0.9), (-0.75, 0.75))
+    fill = roof_fill(car, 0.075)
+    assert fill.shape[0] > 500
+    np.testing.assert_allclose(fill[:, 2], 0.75, atol=1e-9)
+    gap, _ = cKDTree(car).query(fill)
+    assert gap.min() > ROOF_FILL_GAP_M
+    # it covers the roof out to its edges, with the returns on the tops of the sides and ends
+    roof = np.column_stack([rng.uniform(-2.0, 2.0, 4000), rng.uniform(-0.9, 0.9, 4000), np.full(4000, 0.75)])
+    near, _ = cKDTree(np.concatenate([fill, car])).query(roof)
+    assert near.max() < 0.075
+    assert np.abs(fill[:, 0]).max() <= 2.0 and np.abs(fill[:, 1]).max() <= 0.9
+    # sides sampled up to 10 cm below the roof, and the roof's edges by pairs of returns 3 cm
+    # apart every 40 cm: the outline's samples lie on the roof's edges between them, where the
+    # grid stops short (it starts at the cloud's lowest x, and 4 m is no whole number of 7.5 cm
+    # steps: none of its points is on the front edge, x = 2)
+    along_x, along_y = np.arange(-2.0, 2.01, 0.4), np.arange(-0.9, 0.91, 0.45)
+    pairs = np.concatenate([np.column_stack([along_x + d, np.full(along_x.size, y), np.full(along_x.size, 0.75)])
+                            for y in (-0.9, 0.9) for d in (0.0, -0.03)]
+                           + [np.column_stack([np.full(along_y.size, x), along_y + d, np.full(along_y.size, 0.75)])
+                              for x in (-2.0, 2.0) for d in (0.0, -0.03)])
+    low = np.concatenate([car[car[:, 2] < 0.65], pairs[np.abs(pairs).max(axis=1) <= 2.0]])
+    edges = roof_fill(low, 0.075)
+    assert np.isclose(edges[:, 0], 2.0).sum() > 20
+    assert not np.isclose(roof_fill(low, 0.075, outline_step_m=100.0)[:, 0], 2.0).any()
+    np.testing.assert_allclose(edges[:, 2], 0.75, atol=1e-9)
+    near, _ = cKDTree(np.concatenate([edges, low])).query(roof)
+    assert near.max() < 0.075
+    # a stray return 20 cm over the roof (a leaf, a badly registered frame's) does not shape it
+    stray = roof_fill(np.concatenate([car, [[0.3, 0.1, 0.95]]]), 0.075)
+    assert stray.shape[0] == fill.shape[0] and np.allclose(stray[:, 2], 0.75)
+    # a roof the lidar sampled densely: nothing to fill
+    top = np.column_stack([rng.uniform(-2, 2, 40000), rng.uniform(-0.9, 0.9, 40000), np.full(40000, 0.75)])
+    assert roof_fill(np.concatenate([car, top]), 0.075).shape[0] == 0
+    # a cabin car: body 1 m high, cabin 2 m long and 0.5 m higher, none of the tops sampled
+    body = _sides_and_ends(rng, (-2.0, 2.0), (-0.9, 0.9), (-0.5, 0.5))
+    cabin = _sides_and_ends(rng, (-1.0, 1.0), (-0.8, 0.8), (0.5, 1.0))
+    fill = roof_fill(np.concatenate([body, cabin]), 0.075)
+    assert fill.shape[0] > 200
+    np.testing.assert_allclose(fill[:, 2], 1.0, atol=1e-9)                  # the cabin's roof alone
+    assert np.abs(fill[:, 0]).max() <= 1.0
+    # too few points, or a flat cloud: no hull, no fill
+    assert roof_fill(car[:3], 0.075).shape == (0, 3)
+    assert roof_fill(car[car[:, 0] == -2.0], 0.075).shape == (0, 3)
+
+
+def test_a_roof_fill_hides_what_lies_behind_an_unsampled_roof():
+    """A camera 0.5 m above a car's roof sees the roof as a band above the car's rear face; the
+    car's returns hold its rear face and sides but not its roof. A wall behind it: the points of
+    the wall behind the middle of the roof band are hidden only with the roof filled, and none
+    that the car leaves in sight is hidden by the fill."""
+    from drivetrack.visibility import hidden_by_others
+    from drivetrack.visibility.zbuffer import roof_fill
+
+    focal, width, height = 500.0, 400, 300
+    rng = np.random.default_rng(6)
+    # camera frame, x = depth, z up; the car from 6 to 10 m ahead, its roof 0.5 m below the camera
+    car = _sides_and_ends(rng, (6.0, 10.0), (-1.0, 1.0), (-1.5, -0.5), per_m2=4000)
+    car = car[car[:, 0] < 10.0]                                      # its front face is out of sight
+    wall = np.stack(np.meshgrid(np.full(1, 20.0), np.linspace(-1.5, 1.5, 61), np.linspace(-2.0, 0.0, 81),
+                                indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                -focal * points[:, 2] / points[:, 0] + height / 2])
+
+    def hidden(occluder):
+        return hidden_by_others(wall[None], project(wall)[None], np.ones((1, len(wall)), bool),
+                                [(project(occluder), occluder[:, 0])], width, height, focal, 0.05, 8, 0.15, 0.0,
+                                4, 2)[0][0]
+
+    # truly hidden: the ray to the wall point passes through the car (its roof at z = -0.5 from
+    # x = 6 to 10, its rear face at x = 6)
+    ray_z = lambda x: wall[:, 2] * x / 20.0                                        # noqa: E731
+    ray_y = lambda x: wall[:, 1] * x / 20.0                                        # noqa: E731
+    truly = (ray_z(6.0) <= -0.5) & (np.abs(ray_y(6.0)) <= 1.0) | (ray_z(10.0) <= -0.5) & (np.abs(ray_y(10.0)) <= 1.0)
+    band = truly & (ray_z(6.0) > -0.45) & (ray_z(10.0) < -0.55) & (np.abs(ray_y(10.0)) < 0.6)   # behind the roof alone
+    assert band.sum() > 50
+    returns_only = hidden(car)
+    fill = roof_fill(car, 0.075)
+    filled = hidden(np.concatenate([car, fill]))
+    assert not returns_only[band].any() and filled[band].all()
+    assert not filled[~truly].any()
+    assert (filled & truly).sum() > (returns_only & truly).sum() + 50
+
+
+def test_the_roof_fill_hides_a_far_object_behind_a_near_cars_unsampled_roof():
+    """The track stage end to end (``TrackConfig.roof_fill``): a car 8 m ahead whose returns hold its
+    rear face and the side facing the lidar, not its roof nor its far end; the camera, 0.5 m
+    above its roof, sees the roof as a band over the car's rear face, and a wide object 16 m
+    ahead behind it. Without the fill, the far object's points behind that band are called
+    visible; with it, those behind the part of the roof the hull spans (between the rear face's
+    and the side's top edges) are hidden and never tracked, and every point it drops lies inside
+    the near car's outline."""
+    import cv2
+
+    from drivetrack.geometry import box_from_center_heading, transform_points
+    from test_tracks import FRONT, SceneBuilder, annotate, world_center
+
+    b = SceneBuilder()
+    xs, zs = np.arange(-2.0, 2.001, 0.05), np.arange(-0.5, 0.501, 0.05)
+    side = np.stack(np.meshgrid(xs, [-0.9], zs, indexing="ij"), -1).reshape(-1, 3)
+    b.add_object("near", world_center(b, 8.0, y=1.0, z=0.5), size=(4.0, 1.8, 1.0), spacing=0.05, extra_local=side)
+    b.hollow.add("near")                           # the lidar sees the far object through it
+    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
+    scene = b.build()
+    far = {}
+    for roof_fill in (False, True):
+        # the depth map's test off: the z-buffer alone decides here
+        config = TrackConfig(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0},
+                             occlusion_ratio=1e-6, roof_fill=roof_fill)
+        far[roof_fill] = annotate(scene, config)[1]["far"]
+    model = scene.cameras[FRONT].model
+    row = np.flatnonzero(scene.boxes.object_id == "near")[0]
+    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.9, 0.9) for z in (-0.5, 0.5)], float)
+    pixels, _ = model.pixels_from_vehicle(transform_points(
+        box_from_center_heading(scene.boxes.center[row], scene.boxes.heading[row]), corners))
+    outline = cv2.convexHull(pixels.astype(np.float32))
+
+    def inside_px(points):                         # signed distance (px) inside the near car's outline
+        return np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in points])
+
+    # the scene is static: a point's pixel at the first frame names it
+    before, after = far[False].tracks[:, 0], far[True].tracks[:, 0]
+    inside_before, inside_after = inside_px(before), inside_px(after)
+    assert (inside_before > 1).sum() > 20000 and far[False].visibles[inside_before > 1].all()   # the defect
+    assert (inside_after > 1).sum() < 0.2 * (inside_before > 1).sum()
+    dropped = np.array(sorted({tuple(p) for p in np.round(before, 3).tolist()}
+                              - {tuple(p) for p in np.round(after, 3).tolist()}))
+    assert dropped.shape[0] > 500 and inside_px(dropped).min() > 0
+    # nothing outside the outline is hidden by the fill
+    assert far[True].visibles[inside_after < -1].all()

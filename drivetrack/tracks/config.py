@@ -168,6 +168,13 @@ class TrackConfig:
             (:func:`drivetrack.visibility.zbuffer.own_plane_slack`); needs the back-face test's
             normals (``back_face_max_deg`` set). Default true (since 2026-11-29, twenty-fourth
             session; docs/visibility.md "The object's own surface").
+        roof_fill: the other objects' z-buffer surface includes the part of each one's roof its
+            returns leave unsampled: the level top of the convex hull of its returns over the
+            segment (:func:`drivetrack.visibility.zbuffer.roof_fill`). The lidar sees a car's
+            roof at a grazing angle and samples little of it, while a camera a little higher sees
+            it as a band above the car's side, hiding what lies behind. Only under
+            ``time_model="trajectory"`` (the segment's surface). Default true (since 2026-11-29,
+            twenty-fifth session; docs/visibility.md "Roofs the lidar did not sample").
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -236,6 +243,7 @@ class TrackConfig:
     occluder_fill_px: int = 4
     occluder_subpixels: int = 2
     self_occlusion: bool = True
+    roof_fill: bool = True
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -332,6 +340,8 @@ class TrackConfig:
                              f"{self.depth_defers_to_zbuffer!r}")
         if not isinstance(self.self_occlusion, bool):
             raise ValueError(f"TrackConfig.self_occlusion must be true or false, got {self.self_occlusion!r}")
+        if not isinstance(self.roof_fill, bool):
+            raise ValueError(f"TrackConfig.roof_fill must be true or false, got {self.roof_fill!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

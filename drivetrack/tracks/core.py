@@ -586,6 +586,20 @@ def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     return _segment_clouds(plan, object_id, poses)[0]
 
 
+def segment_roof_fill(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [h, 3]: the unsampled part of ``object_id``'s roof over the segment (box frame;
+    :func:`drivetrack.visibility.zbuffer.roof_fill` of :func:`segment_surface`, on a grid of 1.5
+    ``surfel_radius_m``: each fill point's footprint, ``surfel_radius_m`` either side, overlaps
+    its neighbours'), computed once per object and segment (``plan.occluder_cache``)."""
+    from drivetrack.visibility.zbuffer import roof_fill
+
+    key = f"{object_id}#roof"
+    if key not in plan.occluder_cache:
+        plan.occluder_cache[key] = roof_fill(segment_surface(plan, object_id, poses),
+                                             1.5 * float(plan.config.surfel_radius_m))
+    return plan.occluder_cache[key]
+
+
 def segment_normals_cloud(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m, 3]: the same returns as :func:`segment_surface`, each cube's *mean* instead
     of its first return (:func:`drivetrack.visibility.zbuffer.surfel_means`): the neighbourhoods
@@ -851,7 +865,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     under the trajectory all its returns over the segment, computed once per object
     (``plan.occluder_cache``); under ``time_model="velocity"`` those of the clip frames. Both are
     thinned to one return per cube of half ``surfel_radius_m``
-    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). The tracked object is the sphere of
+    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). With ``roof_fill`` (on the
+    trajectory), each other object's surface also holds the part of its roof its returns leave
+    unsampled (:func:`segment_roof_fill`; splats only: the boxes' ``solid`` parts stay its
+    returns'). The tracked object is the sphere of
     centre ``target_camera`` float64 [T, 3] (camera frame, metres) and radius ``target_radius_m``
     float64 [T] at each clip frame; an object's box row is skipped when its own bounding sphere
     lies entirely farther from the camera than the target's far side, or is seen at an angle from
@@ -931,6 +948,11 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
         solid = solid_extents(points_box, boxes.size[obj_rows])
+        if plan.config.roof_fill and not is_own and poses.trajectory is not None:
+            # the roof its returns leave unsampled (splats only: the boxes' solid parts stay the returns')
+            fill = segment_roof_fill(plan, object_id, poses)
+            points_box = np.concatenate([points_box, fill])
+            radius_m = np.concatenate([radius_m, np.full(fill.shape[0], float(plan.config.surfel_radius_m))])
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
         if use_kernel:

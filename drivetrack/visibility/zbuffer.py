@@ -11,6 +11,8 @@ is hidden by another object when that buffer at its pixel is nearer than its own
 ``abs_m + rel * z``. The tracked object's own surface is splatted into a buffer of its own and
 hides a point in a pocket of its hull (:func:`pocket_points`) beyond that tolerance plus the depth
 the point's own plane spans over a footprint (:func:`own_plane_slack`): a cabin before its deck.
+The other objects' surfaces also hold the parts of their roofs the lidar did not sample
+(:func:`roof_fill`).
 
 Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x forward = depth).
 """
@@ -19,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points",
+__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
            "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
@@ -386,6 +388,109 @@ def pocket_points(points_box: np.ndarray, half: np.ndarray, cloud: np.ndarray,
         outside = points_box[rows] @ facets[:, :3].T + facets[:, 3]                        # [k, F], <= 0 inside
         out[rows] = -outside.max(axis=1) > min_depth_m
     return out
+
+
+#: :func:`roof_fill`: a point of an object's roof is unsampled when no return lies within this
+#: (metres) of it
+ROOF_FILL_GAP_M = 0.05
+#: :func:`roof_fill`: a point of the cloud with no other within this (metres) does not shape the
+#: hull: a return of a badly registered frame standing above the roof, a stray return in the box
+#: (on the medium hard world with 5 cm labels: 21,777 -> 21,551 wrong calls; with 2 cm range noise
+#: too 64,468 -> 64,330; exact labels unchanged)
+ROOF_OUTLIER_M = 0.1
+#: :func:`roof_fill`: the roof is the part of the hull's top whose facets tilt less than this
+#: (degrees) from level: a box car's or van's roof, the flat middle of a rounded one, a head's top;
+#: not a windscreen, nor the facet a cabin car's hull spans from its roof to its bonnet's edge
+#: (about 26 degrees on the synthetic cabin car, 38 to its boot's; at 25.8 degrees (cos 0.9) parts
+#: of it were filled, and the air over the bonnet hid what lay behind: 16,270 -> 16,891 wrong
+#: calls on the cabin world)
+ROOF_MAX_TILT_DEG = 11.5
+
+
+def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MAX_TILT_DEG,
+              min_gap_m: float = ROOF_FILL_GAP_M, outline_step_m: float | None = None,
+              outlier_m: float = ROOF_OUTLIER_M) -> np.ndarray:
+    """float64 [h, 3]: the unsampled part of an object's roof (box frame, metres): points of the
+    top of the convex hull of its surface ``cloud`` float [m, 3] (box frame, z up), on a grid of
+    ``spacing_m`` in x and y, where the hull's top is level to ``max_tilt_deg`` and no point of
+    ``cloud`` lies within ``min_gap_m``; and along the roof's outline (the hull edges between a
+    level facet and a tilted one) every ``outline_step_m`` (default a third of ``spacing_m``):
+    the grid stops up to a spacing short of the outline, and a z-buffer's outline is its
+    outermost splats' (measured on the medium hard world: the grid alone at 7.5 cm, 7,623 wrong
+    calls; at 2.5 cm, 7,112; at 7.5 cm with the outline at 2.5 cm, 6,970, with far fewer points).
+
+    Why: the lidar sees a car's roof at a grazing angle from a few metres off, and an object's
+    returns over a whole segment may hold none of it, while a camera a little higher sees the
+    roof as a band of pixels above the car's side: a point of a farther object behind that band
+    is hidden by the roof, and a z-buffer of the returns alone has nothing there (on the medium
+    hard world, two thirds of the points hidden by another object and called visible lay behind
+    an occluder's top, over a third of those more than 5 cm from its every return). The returns on
+    the tops of its sides, ends and windows bound the roof, and the hull spans it.
+
+    The upward facets' shadows tile the hull's in ``(x, y)``: a grid point in a level facet's
+    shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within
+    ``outlier_m`` are left out first (of the hull and of the gaps). A cloud too small or too flat
+    for a hull: none."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    cloud = np.asarray(cloud, np.float64)
+    if cloud.shape[0] < 4:
+        return np.zeros((0, 3))
+    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)        # itself, then its nearest
+    cloud = cloud[np.isfinite(second[:, 1])]
+    if cloud.shape[0] < 4:
+        return np.zeros((0, 3))
+    try:
+        hull = ConvexHull(cloud)
+    except QhullError:
+        return np.zeros((0, 3))
+    facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
+    level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
+    # The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
+    # shadow is on the roof there, at that facet's plane. Edge tests by broadcasting, not matrix
+    # products: no BLAS threads for these small arrays.
+    corners = cloud[hull.simplices[level]][:, :, :2]                                  # [L, 3, 2]
+    plane = facets[level]
+    if corners.shape[0] == 0:
+        points = np.zeros((0, 3))
+    else:
+        origin = cloud[:, :2].min(axis=0)                      # the grid's anchor: the cloud's corner
+        lo = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
+        hi = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
+        xs = origin[0] + spacing_m * np.arange(lo[0], hi[0] + 1)
+        ys = origin[1] + spacing_m * np.arange(lo[1], hi[1] + 1)
+        xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)       # [g, 2]
+        start = corners                                                                  # [L, 3, 2]
+        edge = np.roll(corners, -1, axis=1) - start                                      # edge i: corner i -> i + 1
+        sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])   # orientation, [L]
+        which = np.full(xy.shape[0], -1, dtype=np.int64)
+        for at in range(0, xy.shape[0], 2048):                       # bounded memory: [2048, L, 3]
+            q = xy[at:at + 2048]
+            side = (edge[None, :, :, 0] * (q[:, None, None, 1] - start[None, :, :, 1])
+                    - edge[None, :, :, 1] * (q[:, None, None, 0] - start[None, :, :, 0]))
+            inside = (side * sign[None, :, None] >= -1e-9).all(axis=2)                    # [k, L]
+            which[at:at + 2048] = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
+        over = which >= 0
+        which, xy = which[over], xy[over]
+        top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
+        points = np.column_stack([xy, top])
+    # the roof's outline: the hull edges between a level facet and a tilted one (edge i of a
+    # facet is the one opposite its vertex i, shared with its neighbour i)
+    step = spacing_m / 3.0 if outline_step_m is None else float(outline_step_m)
+    ends = [np.stack([cloud[hull.simplices[outline, (i + 1) % 3]], cloud[hull.simplices[outline, (i + 2) % 3]]], axis=1)
+            for i in range(3) for outline in [level & ~level[hull.neighbors[:, i]]] if outline.any()]
+    if ends:
+        ends = np.concatenate(ends)                                                     # [E, 2, 3]
+        length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=-1)
+        count = np.ceil(length / step).astype(np.int64) + 1                           # samples per edge, ends included
+        of = np.repeat(np.arange(ends.shape[0]), count)                                # each sample's edge
+        first = np.repeat(np.cumsum(count) - count, count)
+        fraction = (np.arange(of.size) - first) / np.maximum(count[of] - 1, 1)
+        points = np.concatenate([points, ends[of, 0] + fraction[:, None] * (ends[of, 1] - ends[of, 0])])
+    if points.shape[0] == 0:
+        return points
+    gap, _ = cKDTree(cloud).query(points, distance_upper_bound=min_gap_m)
+    return points[~np.isfinite(gap)]
 
 
 def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
