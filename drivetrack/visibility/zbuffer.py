@@ -436,8 +436,10 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     cloud = np.asarray(cloud, np.float64)
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
-    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)        # itself, then its nearest
-    cloud = cloud[np.isfinite(second[:, 1])]
+    tree = cKDTree(cloud)
+    second, _ = tree.query(cloud, k=2, distance_upper_bound=outlier_m)                 # itself, then its nearest
+    kept = np.isfinite(second[:, 1])
+    cloud = cloud[kept]
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
     try:
@@ -446,34 +448,9 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         return np.zeros((0, 3))
     facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
     level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
-    # The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
-    # shadow is on the roof there, at that facet's plane. Edge tests by broadcasting, not matrix
-    # products: no BLAS threads for these small arrays.
     corners = cloud[hull.simplices[level]][:, :, :2]                                  # [L, 3, 2]
-    plane = facets[level]
-    if corners.shape[0] == 0:
-        points = np.zeros((0, 3))
-    else:
-        origin = cloud[:, :2].min(axis=0)                      # the grid's anchor: the cloud's corner
-        lo = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
-        hi = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
-        xs = origin[0] + spacing_m * np.arange(lo[0], hi[0] + 1)
-        ys = origin[1] + spacing_m * np.arange(lo[1], hi[1] + 1)
-        xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)       # [g, 2]
-        start = corners                                                                  # [L, 3, 2]
-        edge = np.roll(corners, -1, axis=1) - start                                      # edge i: corner i -> i + 1
-        sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])   # orientation, [L]
-        which = np.full(xy.shape[0], -1, dtype=np.int64)
-        for at in range(0, xy.shape[0], 2048):                       # bounded memory: [2048, L, 3]
-            q = xy[at:at + 2048]
-            side = (edge[None, :, :, 0] * (q[:, None, None, 1] - start[None, :, :, 1])
-                    - edge[None, :, :, 1] * (q[:, None, None, 0] - start[None, :, :, 0]))
-            inside = (side * sign[None, :, None] >= -1e-9).all(axis=2)                    # [k, L]
-            which[at:at + 2048] = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
-        over = which >= 0
-        which, xy = which[over], xy[over]
-        top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
-        points = np.column_stack([xy, top])
+    origin = cloud[:, :2].min(axis=0)                          # the grid's anchor: the cloud's corner
+    points = _level_facet_grid(corners, facets[level], origin, spacing_m)
     # the roof's outline: the hull edges between a level facet and a tilted one (edge i of a
     # facet is the one opposite its vertex i, shared with its neighbour i)
     step = spacing_m / 3.0 if outline_step_m is None else float(outline_step_m)
@@ -489,8 +466,54 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         points = np.concatenate([points, ends[of, 0] + fraction[:, None] * (ends[of, 1] - ends[of, 0])])
     if points.shape[0] == 0:
         return points
-    gap, _ = cKDTree(cloud).query(points, distance_upper_bound=min_gap_m)
-    return points[~np.isfinite(gap)]
+    # the gaps, against the kept returns, from the tree of all of them: two left-out returns are
+    # more than ``outlier_m`` apart, so of the two nearest returns within ``min_gap_m`` <=
+    # ``outlier_m / 2`` at most one is left out
+    near, index = tree.query(points, k=2, distance_upper_bound=min_gap_m)
+    found = index < tree.n                                                    # [p, 2]: within min_gap_m
+    found[found] = kept[index[found]]
+    return points[~found.any(axis=1)]
+
+
+def _level_facet_grid(corners: np.ndarray, plane: np.ndarray, origin: np.ndarray, spacing_m: float) -> np.ndarray:
+    """float64 [g, 3]: the points of the grid of ``spacing_m`` anchored at ``origin`` float [2]
+    (x, y) that lie in the (x, y) shadow of a level hull facet (``corners`` float [L, 3, 2], its
+    corners' x, y; ``plane`` float [L, 4], its outward equation), each at its facet's plane (the
+    first facet holding it, facets on a shared edge), in the grid's x-major order.
+
+    The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
+    shadow is on the roof there. Each facet's edge tests run over the grid points of its own
+    bounding box only: a roof's facets are a few grid cells across."""
+    if corners.shape[0] == 0:
+        return np.zeros((0, 3))
+    lo_all = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
+    hi_all = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
+    ny = int(hi_all[1] - lo_all[1]) + 1
+    # each facet's grid bounding box (indices relative to lo_all), then its cells one by one
+    lo = np.floor((corners.min(axis=1) - origin) / spacing_m) - lo_all                    # [L, 2]
+    hi = np.ceil((corners.max(axis=1) - origin) / spacing_m) - lo_all
+    span = (hi - lo + 1).astype(np.int64)                                                 # [L, 2]
+    count = span[:, 0] * span[:, 1]
+    facet = np.repeat(np.arange(corners.shape[0]), count)
+    local = np.arange(facet.size) - np.repeat(np.cumsum(count) - count, count)
+    ix = lo[facet, 0].astype(np.int64) + local // span[facet, 1]
+    iy = lo[facet, 1].astype(np.int64) + local % span[facet, 1]
+    q = origin + spacing_m * np.column_stack([ix + lo_all[0], iy + lo_all[1]])          # [c, 2]
+    start = corners[facet]                                                               # [c, 3, 2]
+    edge = np.roll(corners, -1, axis=1)[facet] - start                                   # edge i: corner i -> i + 1
+    sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])       # orientation, [c]
+    side = edge[:, :, 0] * (q[:, None, 1] - start[:, :, 1]) - edge[:, :, 1] * (q[:, None, 0] - start[:, :, 0])
+    inside = (side * sign[:, None] >= -1e-9).all(axis=1)
+    cell = (ix * ny + iy)[inside]
+    facet = facet[inside]
+    order = np.lexsort((facet, cell))                      # by grid cell, then the first facet holding it
+    cell, facet = cell[order], facet[order]
+    first = np.ones(cell.size, dtype=bool)
+    first[1:] = cell[1:] != cell[:-1]
+    cell, which = cell[first], facet[first]
+    xy = origin + spacing_m * np.column_stack([cell // ny + lo_all[0], cell % ny + lo_all[1]])
+    top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
+    return np.column_stack([xy, top])
 
 
 def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
