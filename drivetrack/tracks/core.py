@@ -947,7 +947,15 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             continue
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
-        solid = solid_extents(points_box, boxes.size[obj_rows])
+        if poses.trajectory is not None:
+            # the object's surface is the segment's: its extent, once per object (the solid parts
+            # depend on the returns only through it)
+            key = f"{object_id}#extent"
+            if key not in plan.occluder_cache:
+                plan.occluder_cache[key] = np.stack([points_box.min(axis=0), points_box.max(axis=0)])
+            solid = solid_extents(plan.occluder_cache[key], boxes.size[obj_rows])
+        else:
+            solid = solid_extents(points_box, boxes.size[obj_rows])
         if plan.config.roof_fill and not is_own and poses.trajectory is not None:
             # the roof its returns leave unsampled (splats only: the boxes' solid parts stay the returns')
             fill = segment_roof_fill(plan, object_id, poses)
