@@ -244,6 +244,7 @@ class TrackConfig:
     occluder_subpixels: int = 2
     self_occlusion: bool = True
     roof_fill: bool = True
+    occluder_hulls: bool = True
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -342,6 +343,8 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.self_occlusion must be true or false, got {self.self_occlusion!r}")
         if not isinstance(self.roof_fill, bool):
             raise ValueError(f"TrackConfig.roof_fill must be true or false, got {self.roof_fill!r}")
+        if not isinstance(self.occluder_hulls, bool):
+            raise ValueError(f"TrackConfig.occluder_hulls must be true or false, got {self.occluder_hulls!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

@@ -904,6 +904,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     frame_boxes: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
+    frame_ids: list[list[str]] = [[] for _ in range(t_count)]
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
@@ -998,6 +999,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 continue
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
+            frame_ids[slot[t]].append(object_id)
     def joined(frames_parts):
         return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                  np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
@@ -1009,7 +1011,25 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
               np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
               np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
-            seen, joined(own_frame) if own_seen else None)
+            seen, joined(own_frame) if own_seen else None, frame_ids)
+
+
+def segment_hull(plan, object_id: str, poses):
+    """``(facets float64 [F, 4] or None, tree)``: the convex hull of ``object_id``'s segment surface
+    (:func:`drivetrack.visibility.zbuffer.occluder_hull` of :func:`segment_surface`) and a
+    ``cKDTree`` of that surface with its roof fill (:func:`segment_roof_fill`, with ``roof_fill``),
+    once per object and segment (``plan.occluder_cache``): :func:`drivetrack.visibility.zbuffer.hull_hidden`."""
+    from scipy.spatial import cKDTree
+
+    from drivetrack.visibility.zbuffer import occluder_hull
+
+    key = f"{object_id}#hull"
+    if key not in plan.occluder_cache:
+        surface = segment_surface(plan, object_id, poses)
+        if plan.config.roof_fill:
+            surface = np.concatenate([surface, segment_roof_fill(plan, object_id, poses)])
+        plan.occluder_cache[key] = (occluder_hull(segment_surface(plan, object_id, poses)), cKDTree(surface))
+    return plan.occluder_cache[key]
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -1172,9 +1192,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
+        by_hull = hull_test is not None and tau is not None
+        rescued = np.zeros((1, stop - start), dtype=bool) if by_hull else None
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
-            int(config.occluder_subpixels), use_kernel=use_kernel)
+            int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued)
+        if by_hull and rescued.any():
+            hull_test(tau, start + np.flatnonzero(rescued[0]), points_camera[0, np.flatnonzero(rescued[0]), 0])
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1197,6 +1221,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         hidden_other[at, pocket] |= own_margin < 0
         zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
 
+    hull_test = None
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others, own_plane_slack
 
@@ -1204,7 +1229,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         in_pocket = None
         if config.self_occlusion and surfels is not None:
             in_pocket = _pocket_points(plan, job.object_id, poses, p_box, np.median(boxes.size[rows], axis=0))
-        occluders, occluder_boxes, any_occluder, own_splats = _occluders(
+        occluders, occluder_boxes, any_occluder, own_splats, occluder_ids = _occluders(
             plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
             shutter_meta if rolling else None, use_kernel, with_own=in_pocket is not None and bool(in_pocket.any()))
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
@@ -1222,6 +1247,24 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # the kernel path keeps about half the candidates (screen_points, below): the own surface,
         # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
         defer_own = use_kernel and not rolling
+        if hidden_other is not None and not rolling and config.occluder_hulls and poses.trajectory is not None:
+            from drivetrack.visibility.zbuffer import hull_hidden
+
+            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray) -> None:
+                """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
+                ``depth`` float [k]) decided by the other objects' hulls (hull_hidden)."""
+                ids = occluder_ids[tau]
+                if not ids:
+                    return
+                placed_self = camera_from_box[tau].copy()
+                placed_self[:3, 3] += shift_camera[tau]
+                self_from_camera = invert_rigid(placed_self)
+                other_from_box = np.stack([invert_rigid(o) @ placed_self for o in occluder_boxes[tau][0]])
+                hulls = [segment_hull(plan, object_id, poses) for object_id in ids]
+                hit, hull_margin = hull_hidden(p_box[rows], self_from_camera[:3, 3], depth, other_from_box, hulls,
+                                               float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
+                hidden_other[tau, rows[hit]] = True
+                zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
         if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)

@@ -246,7 +246,7 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
                      radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0,
-                     subpixels: int = 1, use_kernel: bool = False):
+                     subpixels: int = 1, use_kernel: bool = False, rescued: np.ndarray | None = None):
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
@@ -271,6 +271,11 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         use_kernel: the passes over the points, the returns and the buffer's pixels in numba
             (:mod:`drivetrack.visibility.kernel`; the morphology stays OpenCV's): the same
             decisions and margins.
+        rescued: bool [T, n] or None: when given, set where the point's own buffer pixel holds an
+            occluder's depth nearer than its threshold while the footprint rule leaves it visible
+            (the occluders do not cover its whole footprint): the band along an occluder's outline
+            where the buffer cannot say on which side of it the point lies
+            (:func:`hull_hidden` decides there).
 
     Returns:
         ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
@@ -280,12 +285,13 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
     """
     if use_kernel:
         return _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m,
-                                        max_px, abs_m, rel, fill_px, subpixels)
+                                        max_px, abs_m, rel, fill_px, subpixels, rescued)
     if subpixels != 1:
         scale = int(subpixels)
         return hidden_by_others(points_camera, pixels * scale, valid,
                                 [(o[0] * scale,) + tuple(o[1:]) for o in occluders], width * scale, height * scale,
-                                focal * scale, radius_m, max_px * scale, abs_m, rel, fill_px * scale)
+                                focal * scale, radius_m, max_px * scale, abs_m, rel, fill_px * scale,
+                                rescued=rescued)
     t_count, n = valid.shape
     hidden = np.zeros((t_count, n), dtype=bool)
     margin = np.full((t_count, n), np.inf, dtype=np.float32)
@@ -346,6 +352,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         hidden[tau, on] = farthest < threshold
         covered = np.isfinite(farthest)
         margin[tau, on[covered]] = (farthest[covered] - threshold[covered]).astype(np.float32)
+        if rescued is not None:
+            rescued[tau, on] = (buffer[row_on, col_on] < threshold) & ~hidden[tau, on]
     return hidden, margin
 
 
@@ -516,6 +524,85 @@ def _level_facet_grid(corners: np.ndarray, plane: np.ndarray, origin: np.ndarray
     return np.column_stack([xy, top])
 
 
+#: :func:`hull_hidden`: an occluder's hull decides a ray only where the ray enters it within this
+#: (metres) of the occluder's surface (its returns and its roof fill): a hull facet spanning a
+#: concavity (between a pedestrian's legs, over a cabin car's bonnet) is air
+HULL_TRUST_M = 0.05
+
+
+def occluder_hull(cloud: np.ndarray, outlier_m: float = ROOF_OUTLIER_M) -> np.ndarray | None:
+    """float64 [F, 4]: the outward facet equations ``n . p + d`` (<= 0 inside) of the convex hull of
+    an object's surface ``cloud`` float [m, 3] (box frame), its returns with no other within
+    ``outlier_m`` left out (:func:`roof_fill`'s hull); None for a cloud too small or too flat."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    cloud = np.asarray(cloud, np.float64)
+    if cloud.shape[0] < 4:
+        return None
+    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)
+    cloud = cloud[np.isfinite(second[:, 1])]
+    if cloud.shape[0] < 4:
+        return None
+    try:
+        return ConvexHull(cloud).equations
+    except QhullError:
+        return None
+
+
+def hull_hidden(points_box: np.ndarray, centre_box: np.ndarray, depth: np.ndarray, other_from_box: np.ndarray,
+                hulls: list, abs_m: float, rel: float, trust_m: float = HULL_TRUST_M) -> tuple[np.ndarray, np.ndarray]:
+    """``(hidden bool [k], margin_m float32 [k])``: which of the points ``points_box`` float [k, 3]
+    (the tracked object's box frame, metres), seen from the camera centre ``centre_box`` float [3]
+    (same frame) at z-depths ``depth`` float [k], lie behind another object's convex hull: the ray
+    from the camera to the point enters the hull of object j (``hulls[j] = (facets float [F, 4]
+    outward in its box frame, surface tree)``, ``other_from_box[j]`` float [3, 4] this box frame
+    to its) at a depth nearer than ``z - (abs_m + rel z)``, within ``trust_m`` of its surface (the
+    tree's points); margin: the entry's depth minus that threshold (negative: hidden), +inf where
+    no hull is entered.
+
+    Why: near an occluder's outline the z-buffer is quantised to its buffer pixels and the
+    footprint rule leaves a point visible unless the occluders cover its whole footprint
+    (:func:`hidden_by_others`); a convex part of an occluder's surface has an exact outline.
+    The depth along the ray is linear in the ray parameter s (the camera is its origin), so the
+    entry's depth is ``s z``."""
+    points_box = np.asarray(points_box, np.float64).reshape(-1, 3)
+    depth = np.asarray(depth, np.float64).reshape(-1)
+    k = points_box.shape[0]
+    hidden = np.zeros(k, dtype=bool)
+    margin = np.full(k, np.inf)
+    if k == 0:
+        return hidden, margin.astype(np.float32)
+    threshold = depth - (abs_m + rel * depth)
+    s_max = threshold / depth
+    for (facets, tree), transform in zip(hulls, other_from_box):
+        if facets is None:
+            continue
+        rotation, translation = transform[:3, :3], transform[:3, 3]
+        centre = rotation @ np.asarray(centre_box, np.float64) + translation                    # [3]
+        points = points_box @ rotation.T + translation                                          # [k, 3]
+        a = facets[:, :3] @ centre + facets[:, 3]                                               # [F]
+        if (a <= 0).all():                                                   # the camera inside the hull
+            continue
+        b = (points - centre) @ facets[:, :3].T                                                 # [k, F]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -a[None] / b
+        enter = np.where(b < 0, s, -np.inf).max(axis=1)
+        leave = np.where(b > 0, s, np.inf).min(axis=1)
+        # a facet the ray runs parallel to and outside of: never inside
+        outside = ((b == 0) & (a[None] > 0)).any(axis=1)
+        enter = np.maximum(enter, 0.0)
+        hit = ~outside & (enter < leave) & (enter < s_max)
+        if not hit.any():
+            continue
+        rows = np.flatnonzero(hit)
+        entry = centre + enter[rows, None] * (points[rows] - centre)
+        gap, _ = tree.query(entry, distance_upper_bound=trust_m)
+        rows = rows[np.isfinite(gap)]
+        hidden[rows] = True
+        margin[rows] = np.minimum(margin[rows], enter[rows] * depth[rows] - threshold[rows])
+    return hidden, margin.astype(np.float32)
+
+
 def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
                     radius_m: float) -> np.ndarray:
     """float32 [T, n]: how far (metres) in front of a tracked point its own surface's splats may
@@ -541,7 +628,7 @@ def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.nda
 
 
 def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m, max_px,
-                             abs_m, rel, fill_px, subpixels):
+                             abs_m, rel, fill_px, subpixels, rescued=None):
     """:func:`hidden_by_others` with ``use_kernel``: its steps in the same order, each pass over
     the points, the returns or the buffer's pixels by :mod:`drivetrack.visibility.kernel`, the
     erosions and dilations by OpenCV."""
@@ -590,4 +677,8 @@ def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, hei
                 covered, done = _square_max(covered, r - done), r
             kernel.zbuffer_decide(covered, on[:count], size[:count], r, col, row, c0, r0, z, float(abs_m), float(rel),
                                   hidden[tau], margin[tau])
+        if rescued is not None:
+            at = on[:count]
+            z_at = z[at]
+            rescued[tau, at] = (buffer[row[at] - r0, col[at] - c0] < z_at - (abs_m + rel * z_at)) & ~hidden[tau, at]
     return hidden, margin
