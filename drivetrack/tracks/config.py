@@ -175,6 +175,15 @@ class TrackConfig:
             it as a band above the car's side, hiding what lies behind. Only under
             ``time_model="trajectory"`` (the segment's surface). Default true (since 2026-11-29,
             twenty-fifth session; docs/visibility.md "Roofs the lidar did not sample").
+        occluder_hulls: where the z-buffer's footprint rule leaves a point visible although its
+            own buffer pixel holds a nearer occluder depth (the band along an occluder's outline,
+            and a roof seen at a grazing angle), the ray from the camera to the point decides
+            against each other object's convex hull (its segment surface's, moved onto a noisy
+            surface, entered by a facet that lies on the surface:
+            :func:`drivetrack.visibility.zbuffer.hull_hidden`), at each point's capture time
+            under a rolling shutter. Only under ``time_model="trajectory"``. Default true (since
+            2026-11-29, twenty-sixth session; docs/visibility.md "Outlines from the occluders'
+            hulls").
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth

@@ -904,7 +904,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     frame_boxes: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
-    frame_ids: list[list[str]] = [[] for _ in range(t_count)]
+    frame_ids: list[list[tuple]] = [[] for _ in range(t_count)]
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
@@ -999,7 +999,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 continue
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
-            frame_ids[slot[t]].append(object_id)
+            world_from_other = poses.world_from_box[k].copy()
+            world_from_other[:3, 3] += poses.shift_world[k]
+            frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
+                                       float(poses.yaw_rate_world[k])))
     def joined(frames_parts):
         return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                  np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
@@ -1015,20 +1018,17 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
 
 
 def segment_hull(plan, object_id: str, poses):
-    """``(facets float64 [F, 4] or None, tree)``: the convex hull of ``object_id``'s segment surface
-    (:func:`drivetrack.visibility.zbuffer.occluder_hull` of :func:`segment_surface`) and a
-    ``cKDTree`` of that surface with its roof fill (:func:`segment_roof_fill`, with ``roof_fill``),
-    once per object and segment (``plan.occluder_cache``): :func:`drivetrack.visibility.zbuffer.hull_hidden`."""
-    from scipy.spatial import cKDTree
-
+    """The :class:`drivetrack.visibility.zbuffer.OccluderHull` of ``object_id``'s segment surface
+    (:func:`segment_surface`; its facets trusted against that surface and, with ``roof_fill``, its
+    roof fill, :func:`segment_roof_fill`), or None; once per object and segment
+    (``plan.occluder_cache``): :func:`drivetrack.visibility.zbuffer.hull_hidden`."""
     from drivetrack.visibility.zbuffer import occluder_hull
 
     key = f"{object_id}#hull"
     if key not in plan.occluder_cache:
-        surface = segment_surface(plan, object_id, poses)
-        if plan.config.roof_fill:
-            surface = np.concatenate([surface, segment_roof_fill(plan, object_id, poses)])
-        plan.occluder_cache[key] = (occluder_hull(segment_surface(plan, object_id, poses)), cKDTree(surface))
+        cloud = segment_surface(plan, object_id, poses)
+        surface = np.concatenate([cloud, segment_roof_fill(plan, object_id, poses)]) if plan.config.roof_fill else cloud
+        plan.occluder_cache[key] = occluder_hull(cloud, surface)
     return plan.occluder_cache[key]
 
 
@@ -1192,13 +1192,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
-        by_hull = hull_test is not None and tau is not None
-        rescued = np.zeros((1, stop - start), dtype=bool) if by_hull else None
+        rescued = None if hull_test is None else np.zeros(valid.shape, dtype=bool)
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
             int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued)
-        if by_hull and rescued.any():
-            hull_test(tau, start + np.flatnonzero(rescued[0]), points_camera[0, np.flatnonzero(rescued[0]), 0])
+        if rescued is not None:
+            for i, frame_tau in enumerate(range(t_count)[at]):
+                band = np.flatnonzero(rescued[i])
+                if band.size:
+                    hull_test(frame_tau, start + band, points_camera[i, band, 0], pixels[i, band])
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1247,22 +1249,55 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # the kernel path keeps about half the candidates (screen_points, below): the own surface,
         # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
         defer_own = use_kernel and not rolling
-        if hidden_other is not None and not rolling and config.occluder_hulls and poses.trajectory is not None:
+        if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
             from drivetrack.visibility.zbuffer import hull_hidden
 
-            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray) -> None:
+            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
                 """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
-                ``depth`` float [k]) decided by the other objects' hulls (hull_hidden)."""
-                ids = occluder_ids[tau]
-                if not ids:
+                ``depth`` float [k], pixels float [k, 2]) decided by the other objects' convex
+                hulls (hull_hidden): at the image pose under a global shutter; under a rolling
+                shutter at each point's capture time in its row, camera, object and occluders
+                moved there with their velocities and yaw rates, as the z-buffer's splats are."""
+                found = occluder_ids[tau]
+                if not found:
                     return
-                placed_self = camera_from_box[tau].copy()
-                placed_self[:3, 3] += shift_camera[tau]
-                self_from_camera = invert_rigid(placed_self)
-                other_from_box = np.stack([invert_rigid(o) @ placed_self for o in occluder_boxes[tau][0]])
-                hulls = [segment_hull(plan, object_id, poses) for object_id in ids]
-                hit, hull_margin = hull_hidden(p_box[rows], self_from_camera[:3, 3], depth, other_from_box, hulls,
-                                               float(config.occluder_tolerance_m), float(config.occluder_tolerance_rel))
+                hulls = [segment_hull(plan, object_id, poses) for object_id, *_ in found]
+                if not rolling:
+                    placed_self = camera_from_box[tau].copy()
+                    placed_self[:3, 3] += shift_camera[tau]
+                    centre = invert_rigid(placed_self)[:3, 3]
+                    rays = []
+                    for placed_other in occluder_boxes[tau][0]:
+                        other_from_box = invert_rigid(placed_other) @ placed_self
+                        rays.append((other_from_box[:3, :3] @ centre + other_from_box[:3, 3],
+                                     p_box[rows] @ other_from_box[:3, :3].T + other_from_box[:3, 3]))
+                else:
+                    from drivetrack.camera.rolling_shutter import pixel_times, shutter_state
+
+                    t = int(frames[tau])
+                    state = shutter_state(shutter_meta, t)
+                    dt = np.nan_to_num(pixel_times(shutter_meta, t, pixels) - state.pose_timestamp)
+                    centres = state.pose_at(dt)[1] if state.rolling else np.broadcast_to(
+                        state.world_from_camera[:3, 3], (rows.size, 3))
+                    world = p_box[rows] @ poses.world_from_box[tau, :3, :3].T + poses.world_from_box[tau, :3, 3] \
+                        + poses.shift_world[tau]
+                    world = world + dt[:, None] * rigid_velocity_world(
+                        world, poses.world_from_box[tau, :3, 3], poses.velocity_world[tau],
+                        poses.yaw_rate_world[tau])
+                    rays = []
+                    for _, world_from_other, velocity, yaw_rate in found:
+                        # the occluder at each point's capture time: p_box = R0^T Rz(-w dt) (p - c0 - v dt)
+                        c0 = world_from_other[:3, 3] + dt[:, None] * velocity
+                        angle = -yaw_rate * dt
+                        cos, sin = np.cos(angle), np.sin(angle)
+
+                        def to_other(q):
+                            d = q - c0
+                            turned = np.column_stack([cos * d[:, 0] - sin * d[:, 1], sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
+                            return turned @ world_from_other[:3, :3]
+                        rays.append((to_other(centres), to_other(world)))
+                hit, hull_margin = hull_hidden(rays, depth, hulls, float(config.occluder_tolerance_m),
+                                               float(config.occluder_tolerance_rel))
                 hidden_other[tau, rows[hit]] = True
                 zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
         if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection

@@ -18,10 +18,12 @@ Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
+__all__ = ["OccluderHull", "close_holes", "first_of_cells", "hidden_by_others", "hull_hidden", "occluder_hull", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
            "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
@@ -530,73 +532,118 @@ def _level_facet_grid(corners: np.ndarray, plane: np.ndarray, origin: np.ndarray
 HULL_TRUST_M = 0.05
 
 
-def occluder_hull(cloud: np.ndarray, outlier_m: float = ROOF_OUTLIER_M) -> np.ndarray | None:
-    """float64 [F, 4]: the outward facet equations ``n . p + d`` (<= 0 inside) of the convex hull of
-    an object's surface ``cloud`` float [m, 3] (box frame), its returns with no other within
-    ``outlier_m`` left out (:func:`roof_fill`'s hull); None for a cloud too small or too flat."""
+#: :func:`occluder_hull`: the returns within this (metres) of the hull measure how far its
+#: facets stand out of the surface
+HULL_SURFACE_M = 0.1
+
+
+@dataclass
+class OccluderHull:
+    """An occluder's convex hull for :func:`hull_hidden` (box frame, metres).
+
+    Attributes:
+        facets: float64 [F, 4], outward equations ``n . p + d`` (<= 0 inside), moved onto the surface.
+        trusted: bool [F], the facets lying on the object's surface (:func:`occluder_hull`).
+        tree: ``scipy.spatial.cKDTree`` of the surface the entries are checked against.
+    """
+    facets: np.ndarray
+    trusted: np.ndarray
+    tree: object
+
+
+def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_m: float = ROOF_OUTLIER_M,
+                  surface_m: float = HULL_SURFACE_M, trust_m: float | None = None) -> OccluderHull | None:
+    """The :class:`OccluderHull` of an object's surface ``cloud`` float [m, 3] (box frame): the
+    convex hull of its returns (those with no other within ``outlier_m`` left out, as
+    :func:`roof_fill`'s), each facet moved in by the median depth inside the hull of the returns
+    within ``surface_m`` of it; a facet is trusted when its centroid and its edges' midpoints all
+    lie within ``trust_m`` (default :data:`HULL_TRUST_M`) of ``surface`` float [s, 3] (default
+    ``cloud``; the returns and the roof fill). None for a cloud too small or too flat.
+
+    Why moved in: a hull is spanned by the outermost returns, and a noisy surface's outermost
+    returns stand out of it by two or three times the noise (range noise, a registration's
+    errors between sweeps): on the medium hard world with 5 cm labels and 2 cm range noise the
+    raw hulls hid 6,274 more visible point-frames than they uncovered. The median return near the
+    hull lies on the surface; an exact box's returns lie on its hull (moved by 0). Why trusted
+    facets: a facet spanning a concavity (from a cabin's roof to the bonnet's edge, between a
+    pedestrian's legs) is air over most of its area."""
     from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+    trust_m = HULL_TRUST_M if trust_m is None else float(trust_m)
     cloud = np.asarray(cloud, np.float64)
     if cloud.shape[0] < 4:
         return None
     second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)
-    cloud = cloud[np.isfinite(second[:, 1])]
-    if cloud.shape[0] < 4:
+    kept = cloud[np.isfinite(second[:, 1])]
+    if kept.shape[0] < 4:
         return None
     try:
-        return ConvexHull(cloud).equations
+        hull = ConvexHull(kept)
     except QhullError:
         return None
+    facets = hull.equations.copy()
+    inside = np.empty(kept.shape[0])
+    for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
+        part = kept[start:start + 4096]
+        inside[start:start + 4096] = -(part @ facets[:, :3].T + facets[:, 3]).max(axis=1)
+    near = inside[inside <= surface_m]
+    shift = float(np.median(near)) if near.size else 0.0
+    facets[:, 3] += shift
+    corners = kept[hull.simplices]                                                        # [F, 3, 3]
+    samples = np.concatenate([corners.mean(axis=1, keepdims=True), 0.5 * (corners + np.roll(corners, -1, axis=1))],
+                             axis=1) - shift * facets[:, None, :3]                       # [F, 4, 3]
+    tree = cKDTree(cloud if surface is None else np.asarray(surface, np.float64))
+    gap, _ = tree.query(samples.reshape(-1, 3), distance_upper_bound=trust_m)
+    return OccluderHull(facets, np.isfinite(gap).reshape(-1, 4).all(axis=1), tree)
 
 
-def hull_hidden(points_box: np.ndarray, centre_box: np.ndarray, depth: np.ndarray, other_from_box: np.ndarray,
-                hulls: list, abs_m: float, rel: float, trust_m: float = HULL_TRUST_M) -> tuple[np.ndarray, np.ndarray]:
-    """``(hidden bool [k], margin_m float32 [k])``: which of the points ``points_box`` float [k, 3]
-    (the tracked object's box frame, metres), seen from the camera centre ``centre_box`` float [3]
-    (same frame) at z-depths ``depth`` float [k], lie behind another object's convex hull: the ray
-    from the camera to the point enters the hull of object j (``hulls[j] = (facets float [F, 4]
-    outward in its box frame, surface tree)``, ``other_from_box[j]`` float [3, 4] this box frame
-    to its) at a depth nearer than ``z - (abs_m + rel z)``, within ``trust_m`` of its surface (the
-    tree's points); margin: the entry's depth minus that threshold (negative: hidden), +inf where
-    no hull is entered.
+def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float,
+                trust_m: float = HULL_TRUST_M) -> tuple[np.ndarray, np.ndarray]:
+    """``(hidden bool [k], margin_m float32 [k])``: which of k tracked points, at z-depths ``depth``
+    float [k] (metres), lie behind another object's convex hull: the ray from the camera centre to
+    the point enters the hull of object j at a depth nearer than ``z - (abs_m + rel z)``, within
+    ``trust_m`` of its surface. ``rays[j] = (centres float [3] or [k, 3], points float [k, 3])``:
+    the camera centre(s) and the points in object j's box frame (each point's at its capture
+    time); ``hulls[j]``: its :class:`OccluderHull` (or None), whose facet the ray enters by must be
+    trusted and whose surface the entry must lie within ``trust_m`` of. Margin: the entry's depth
+    minus that threshold (negative: hidden), +inf where no hull hides the point.
 
     Why: near an occluder's outline the z-buffer is quantised to its buffer pixels and the
     footprint rule leaves a point visible unless the occluders cover its whole footprint
-    (:func:`hidden_by_others`); a convex part of an occluder's surface has an exact outline.
-    The depth along the ray is linear in the ray parameter s (the camera is its origin), so the
-    entry's depth is ``s z``."""
-    points_box = np.asarray(points_box, np.float64).reshape(-1, 3)
+    (:func:`hidden_by_others`); a convex part of an occluder's surface has an exact outline. The
+    depth along the ray is linear in the ray parameter s (the camera centre is its origin), so the
+    entry's depth is ``s z``. A hull facet spanning a concavity is air: there the entry lies
+    farther than ``trust_m`` from every return and the hull does not decide."""
     depth = np.asarray(depth, np.float64).reshape(-1)
-    k = points_box.shape[0]
+    k = depth.size
     hidden = np.zeros(k, dtype=bool)
     margin = np.full(k, np.inf)
     if k == 0:
         return hidden, margin.astype(np.float32)
     threshold = depth - (abs_m + rel * depth)
     s_max = threshold / depth
-    for (facets, tree), transform in zip(hulls, other_from_box):
-        if facets is None:
+    for hull, (centres, points) in zip(hulls, rays):
+        if hull is None:
             continue
-        rotation, translation = transform[:3, :3], transform[:3, 3]
-        centre = rotation @ np.asarray(centre_box, np.float64) + translation                    # [3]
-        points = points_box @ rotation.T + translation                                          # [k, 3]
-        a = facets[:, :3] @ centre + facets[:, 3]                                               # [F]
-        if (a <= 0).all():                                                   # the camera inside the hull
-            continue
-        b = (points - centre) @ facets[:, :3].T                                                 # [k, F]
+        facets = hull.facets
+        centres = np.broadcast_to(np.asarray(centres, np.float64), (k, 3))
+        points = np.asarray(points, np.float64).reshape(k, 3)
+        a = centres @ facets[:, :3].T + facets[:, 3]                                          # [k, F]
+        b = (points - centres) @ facets[:, :3].T                                              # [k, F]
         with np.errstate(divide="ignore", invalid="ignore"):
-            s = -a[None] / b
-        enter = np.where(b < 0, s, -np.inf).max(axis=1)
+            s = -a / b
+        entering = np.where(b < 0, s, -np.inf)
+        by = entering.argmax(axis=1)                                                          # the facet entered by
+        enter = np.maximum(entering[np.arange(k), by], 0.0)
         leave = np.where(b > 0, s, np.inf).min(axis=1)
-        # a facet the ray runs parallel to and outside of: never inside
-        outside = ((b == 0) & (a[None] > 0)).any(axis=1)
-        enter = np.maximum(enter, 0.0)
-        hit = ~outside & (enter < leave) & (enter < s_max)
+        # a facet the ray runs parallel to and outside of: never inside; the camera inside: no test
+        never = ((b == 0) & (a > 0)).any(axis=1) | (a <= 0).all(axis=1)
+        hit = ~never & (enter < leave) & (enter < s_max) & hull.trusted[by]
         if not hit.any():
             continue
         rows = np.flatnonzero(hit)
-        entry = centre + enter[rows, None] * (points[rows] - centre)
-        gap, _ = tree.query(entry, distance_upper_bound=trust_m)
+        entry = centres[rows] + enter[rows, None] * (points[rows] - centres[rows])
+        gap, _ = hull.tree.query(entry, distance_upper_bound=trust_m)
         rows = rows[np.isfinite(gap)]
         hidden[rows] = True
         margin[rows] = np.minimum(margin[rows], enter[rows] * depth[rows] - threshold[rows])
