@@ -1702,3 +1702,50 @@ def test_occluder_hull_sits_on_a_noisy_surface_and_spans_no_concavity():
     hidden, _ = hull_hidden([(camera, targets)], depth, [hull], 0.15, 0.0)
     assert hidden.tolist() == [False, True]
     assert HULL_TRUST_M < 0.1 and not hull.trusted.all() and hull.trusted.any()
+
+
+def test_occluder_hulls_hide_a_far_object_behind_a_near_roof_seen_at_a_grazing_angle():
+    """The track stage end to end (``TrackConfig.occluder_hulls``): a car 8 m ahead and 1 m to the
+    side whose roof lies 20 cm below the camera, its rear face, one side and its roof sampled, and
+    a wide object 16 m ahead behind it. The roof is a thin band over the car's rear face: the
+    z-buffer's footprint rule leaves thousands of the far object's point-frames inside the near
+    car's outline visible; with the hulls almost none, and nothing outside the outline is hidden."""
+    import cv2
+
+    from drivetrack.geometry import box_from_center_heading, transform_points
+    from test_tracks import FRONT, SceneBuilder, annotate, world_center
+
+    b = SceneBuilder()
+    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
+    model = b.build().cameras[FRONT].model
+    roof = float(model.vehicle_from_camera[2, 3]) - 0.2
+    # its rear face, a side and its roof (the scene's lidar, below the roof, sees the rear alone)
+    xs, ys, zs = np.arange(-2.0, 2.001, 0.05), np.arange(-0.9, 0.901, 0.05), np.arange(-0.5, 0.501, 0.05)
+    extra = np.concatenate([np.stack(np.meshgrid(xs, [-0.9], zs, indexing="ij"), -1).reshape(-1, 3),
+                            np.stack(np.meshgrid(xs, ys, [0.5], indexing="ij"), -1).reshape(-1, 3)])
+    b = SceneBuilder()
+    b.add_object("near", world_center(b, 8.0, y=1.0, z=roof - 0.5), size=(4.0, 1.8, 1.0), spacing=0.05,
+                 extra_local=extra)
+    b.hollow.add("near")                           # the lidar sees the far object through it
+    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
+    scene = b.build()
+    far = {}
+    for hulls in (False, True):
+        # the depth map's test off: the z-buffer alone decides here
+        config = TrackConfig(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0},
+                             occlusion_ratio=1e-6, occluder_hulls=hulls)
+        far[hulls] = annotate(scene, config)[1]["far"]
+    row = np.flatnonzero(scene.boxes.object_id == "near")[0]
+    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.9, 0.9) for z in (-0.5, 0.5)], float)
+    pixels, _ = model.pixels_from_vehicle(transform_points(
+        box_from_center_heading(scene.boxes.center[row], scene.boxes.heading[row]), corners))
+    outline = cv2.convexHull(pixels.astype(np.float32))
+
+    def inside_px(points):                         # signed distance (px) inside the near car's outline
+        return np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in points])
+
+    # the scene is static: the first frame's pixels and flags stand for all
+    inside = {h: inside_px(far[h].tracks[:, 0]) for h in far}
+    seen_inside = {h: int(((inside[h] > 0) & far[h].visibles[:, 0]).sum()) for h in far}
+    assert seen_inside[False] > 2000 and seen_inside[True] < 0.05 * seen_inside[False]
+    assert far[True].visibles[inside[True] < -0.5, 0].all()
