@@ -1250,7 +1250,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
         defer_own = use_kernel and not rolling
         if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
-            from drivetrack.visibility.zbuffer import hull_hidden
+            from drivetrack.visibility.zbuffer import box_points_at, hull_hidden
 
             def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
                 """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
@@ -1269,8 +1269,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     rays = []
                     for placed_other in occluder_boxes[tau][0]:
                         other_from_box = invert_rigid(placed_other) @ placed_self
-                        rays.append((other_from_box[:3, :3] @ centre + other_from_box[:3, 3],
-                                     p_box[rows] @ other_from_box[:3, :3].T + other_from_box[:3, 3]))
+                        rays.append((np.einsum("ij,j->i", other_from_box[:3, :3], centre) + other_from_box[:3, 3],
+                                     np.einsum("ij,nj->ni", other_from_box[:3, :3], p_box[rows]) + other_from_box[:3, 3]))
                 else:
                     from drivetrack.camera.rolling_shutter import pixel_times, shutter_state
 
@@ -1279,23 +1279,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     dt = np.nan_to_num(pixel_times(shutter_meta, t, pixels) - state.pose_timestamp)
                     centres = state.pose_at(dt)[1] if state.rolling else np.broadcast_to(
                         state.world_from_camera[:3, 3], (rows.size, 3))
-                    world = p_box[rows] @ poses.world_from_box[tau, :3, :3].T + poses.world_from_box[tau, :3, 3] \
-                        + poses.shift_world[tau]
+                    world = (np.einsum("ij,nj->ni", poses.world_from_box[tau, :3, :3], p_box[rows])
+                             + poses.world_from_box[tau, :3, 3] + poses.shift_world[tau])
                     world = world + dt[:, None] * rigid_velocity_world(
                         world, poses.world_from_box[tau, :3, 3], poses.velocity_world[tau],
                         poses.yaw_rate_world[tau])
-                    rays = []
-                    for _, world_from_other, velocity, yaw_rate in found:
-                        # the occluder at each point's capture time: p_box = R0^T Rz(-w dt) (p - c0 - v dt)
-                        c0 = world_from_other[:3, 3] + dt[:, None] * velocity
-                        angle = -yaw_rate * dt
-                        cos, sin = np.cos(angle), np.sin(angle)
-
-                        def to_other(q):
-                            d = q - c0
-                            turned = np.column_stack([cos * d[:, 0] - sin * d[:, 1], sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
-                            return turned @ world_from_other[:3, :3]
-                        rays.append((to_other(centres), to_other(world)))
+                    # each occluder at each point's capture time, moved as its splats are
+                    rays = [(box_points_at(centres, world_from_other, velocity, yaw_rate, dt),
+                             box_points_at(world, world_from_other, velocity, yaw_rate, dt))
+                            for _, world_from_other, velocity, yaw_rate in found]
                 hit, hull_margin = hull_hidden(rays, depth, hulls, float(config.occluder_tolerance_m),
                                                float(config.occluder_tolerance_rel))
                 hidden_other[tau, rows[hit]] = True

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["OccluderHull", "close_holes", "first_of_cells", "hidden_by_others", "hull_hidden", "occluder_hull", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
+__all__ = ["OccluderHull", "box_points_at", "close_holes", "first_of_cells", "hidden_by_others", "hull_hidden", "occluder_hull", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
            "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
@@ -553,6 +553,26 @@ class OccluderHull:
     tree: object
 
 
+def _dot3(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """float64 [k, F]: ``p @ n.T`` for ``p`` float [k, 3] and ``n`` float [F, 3], by three
+    elementwise products (a matrix product starts BLAS threads, whose spinning costs more than
+    these small products on a two-core worker)."""
+    return p[:, 0, None] * n[None, :, 0] + p[:, 1, None] * n[None, :, 1] + p[:, 2, None] * n[None, :, 2]
+
+
+def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity_world: np.ndarray,
+                  yaw_rate: float, dt: np.ndarray) -> np.ndarray:
+    """float64 [k, 3]: world points ``points_world`` float [k, 3] (metres) in the box frame of an
+    object posed ``world_from_box`` float [4, 4] at a reference time and moving with centre
+    velocity ``velocity_world`` float [3] (m/s) and ``yaw_rate`` (rad/s, about the world z
+    through its centre), each at its own time ``dt`` float [k] (s) after the reference:
+    ``R0^T Rz(-w dt) (p - c0 - v dt)``."""
+    d = points_world - (world_from_box[:3, 3] + dt[:, None] * np.asarray(velocity_world, np.float64))
+    cos, sin = np.cos(-yaw_rate * dt), np.sin(-yaw_rate * dt)
+    turned = np.column_stack([cos * d[:, 0] - sin * d[:, 1], sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
+    return np.einsum("ji,nj->ni", world_from_box[:3, :3], turned)
+
+
 def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_m: float = ROOF_OUTLIER_M,
                   surface_m: float = HULL_SURFACE_M, trust_m: float | None = None) -> OccluderHull | None:
     """The :class:`OccluderHull` of an object's surface ``cloud`` float [m, 3] (box frame): the
@@ -589,7 +609,7 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     facets = hull.equations.copy()
     inside = np.empty(kept.shape[0])
     for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
-        inside[start:start + 4096] = -(kept[start:start + 4096] @ facets[:, :3].T + facets[:, 3]).max(axis=1)
+        inside[start:start + 4096] = -(_dot3(kept[start:start + 4096], facets[:, :3]) + facets[:, 3]).max(axis=1)
     # a noisy surface (its returns near the hull a median of more than HULL_NOISY_M inside it)
     # moved in by that median; a clean one left where its returns put it
     near = inside[inside <= surface_m]
@@ -635,8 +655,8 @@ def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
         facets = hull.facets
         centres = np.broadcast_to(np.asarray(centres, np.float64), (k, 3))
         points = np.asarray(points, np.float64).reshape(k, 3)
-        a = centres @ facets[:, :3].T + facets[:, 3]                                          # [k, F]
-        b = (points - centres) @ facets[:, :3].T                                              # [k, F]
+        a = _dot3(centres, facets[:, :3]) + facets[:, 3]                                      # [k, F]
+        b = _dot3(points - centres, facets[:, :3])                                            # [k, F]
         with np.errstate(divide="ignore", invalid="ignore"):
             s = -a / b
         entering = np.where(b < 0, s, -np.inf)
