@@ -547,10 +547,14 @@ class OccluderHull:
         facets: float64 [F, 4], outward equations ``n . p + d`` (<= 0 inside), moved onto the surface.
         trusted: bool [F], the facets lying on the object's surface (:func:`occluder_hull`).
         tree: ``scipy.spatial.cKDTree`` of the surface the entries are checked against.
+        centre, radius: float64 [3] and metres, a sphere holding the hull (a ray that misses it
+            misses the hull).
     """
     facets: np.ndarray
     trusted: np.ndarray
     tree: object
+    centre: np.ndarray = None
+    radius: float = np.inf
 
 
 def _dot3(p: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -621,7 +625,9 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
                              axis=1) - shift * facets[:, None, :3]                       # [F, 4, 3]
     tree = cKDTree(cloud if surface is None else np.asarray(surface, np.float64))
     gap, _ = tree.query(samples.reshape(-1, 3), distance_upper_bound=trust_m)
-    return OccluderHull(facets, np.isfinite(gap).reshape(-1, 4).all(axis=1), tree)
+    centre = 0.5 * (kept.min(axis=0) + kept.max(axis=0))
+    radius = float(np.sqrt(((kept - centre) ** 2).sum(axis=1).max()))
+    return OccluderHull(facets, np.isfinite(gap).reshape(-1, 4).all(axis=1), tree, centre, radius)
 
 
 def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float,
@@ -653,27 +659,43 @@ def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
         if hull is None:
             continue
         facets = hull.facets
-        centres = np.broadcast_to(np.asarray(centres, np.float64), (k, 3))
+        centres = np.asarray(centres, np.float64)
         points = np.asarray(points, np.float64).reshape(k, 3)
-        a = _dot3(centres, facets[:, :3]) + facets[:, 3]                                      # [k, F]
-        b = _dot3(points - centres, facets[:, :3])                                            # [k, F]
+        # only the rays that reach the sphere holding the hull before their point
+        ray = points - centres
+        to_centre = hull.centre - centres
+        along = np.clip(np.einsum("...i,...i->...", to_centre, ray) / np.einsum("ni,ni->n", ray, ray), 0.0, 1.0)
+        closest = centres + along[:, None] * ray - hull.centre
+        near = np.flatnonzero(np.einsum("ni,ni->n", closest, closest) <= (hull.radius * (1 + 1e-9) + 1e-9) ** 2)
+        if near.size == 0:
+            continue
+        m = near.size
+        if centres.ndim == 1:                      # one camera centre for all: its facet heights once
+            a = np.broadcast_to(_dot3(centres[None], facets[:, :3])[0] + facets[:, 3], (m, facets.shape[0]))
+            starts = np.broadcast_to(centres, (m, 3))
+        else:
+            starts = centres[near]
+            a = _dot3(starts, facets[:, :3]) + facets[:, 3]                                   # [m, F]
+        b = _dot3(ray[near], facets[:, :3])                                                   # [m, F]
         with np.errstate(divide="ignore", invalid="ignore"):
             s = -a / b
         entering = np.where(b < 0, s, -np.inf)
         by = entering.argmax(axis=1)                                                          # the facet entered by
-        enter = np.maximum(entering[np.arange(k), by], 0.0)
+        enter = np.maximum(entering[np.arange(m), by], 0.0)
         leave = np.where(b > 0, s, np.inf).min(axis=1)
         # a facet the ray runs parallel to and outside of: never inside; the camera inside: no test
         never = ((b == 0) & (a > 0)).any(axis=1) | (a <= 0).all(axis=1)
-        hit = ~never & (enter < leave) & (enter < s_max) & hull.trusted[by]
+        hit = ~never & (enter < leave) & (enter < s_max[near]) & hull.trusted[by]
         if not hit.any():
             continue
-        rows = np.flatnonzero(hit)
-        entry = centres[rows] + enter[rows, None] * (points[rows] - centres[rows])
+        rows = near[hit]
+        enter = enter[hit]
+        entry = starts[hit] + enter[:, None] * ray[rows]
         gap, _ = hull.tree.query(entry, distance_upper_bound=trust_m)
-        rows = rows[np.isfinite(gap)]
+        close = np.isfinite(gap)
+        rows, enter = rows[close], enter[close]
         hidden[rows] = True
-        margin[rows] = np.minimum(margin[rows], enter[rows] * depth[rows] - threshold[rows])
+        margin[rows] = np.minimum(margin[rows], enter * depth[rows] - threshold[rows])
     return hidden, margin.astype(np.float32)
 
 
