@@ -48,19 +48,19 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --pedestrian-shape body --variants "depth-ratio (paper),\
-+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~10 min
++ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~10 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~15 min
++ normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~15 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --variants "depth-ratio (paper),\
-+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~6 min
++ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~6 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --label-noise 0.05 --variants "depth-ratio (paper),\
-registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample (default)"   # ~8 min
+registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~8 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -266,7 +266,12 @@ VARIANTS["+ the object's own surface"] = {}
 _BEFORE_ROOF = {"roof_fill": False}
 VARIANTS = {name: {**_BEFORE_ROOF, **overrides} for name, overrides in VARIANTS.items()}
 # the part of each other object's roof its returns leave unsampled: the level top of their hull
-VARIANTS["+ roofs the lidar did not sample (default)"] = {}
+VARIANTS["+ roofs the lidar did not sample"] = {}
+# the variants above leave the band along an occluder's outline to the z-buffer's footprint rule
+_BEFORE_HULLS = {"occluder_hulls": False}
+VARIANTS = {name: {**_BEFORE_HULLS, **overrides} for name, overrides in VARIANTS.items()}
+# the rays of that band decided by the other objects' convex hulls
+VARIANTS["+ outlines from the occluders' hulls (default)"] = {}
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
     "own-box rule without a gap limit (before)": {"own_surface_max_gap_m": None},

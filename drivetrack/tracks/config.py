@@ -175,6 +175,15 @@ class TrackConfig:
             it as a band above the car's side, hiding what lies behind. Only under
             ``time_model="trajectory"`` (the segment's surface). Default true (since 2026-11-29,
             twenty-fifth session; docs/visibility.md "Roofs the lidar did not sample").
+        occluder_hulls: where the z-buffer's footprint rule leaves a point visible although its
+            own buffer pixel holds a nearer occluder depth (the band along an occluder's outline,
+            and a roof seen at a grazing angle), the ray from the camera to the point decides
+            against each other object's convex hull (its segment surface's, moved onto a noisy
+            surface, entered by a facet that lies on the surface:
+            :func:`drivetrack.visibility.zbuffer.hull_hidden`), at each point's capture time
+            under a rolling shutter. Only under ``time_model="trajectory"``. Default true (since
+            2026-11-29, twenty-sixth session; docs/visibility.md "Outlines from the occluders'
+            hulls").
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -244,6 +253,7 @@ class TrackConfig:
     occluder_subpixels: int = 2
     self_occlusion: bool = True
     roof_fill: bool = True
+    occluder_hulls: bool = True
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -342,6 +352,8 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.self_occlusion must be true or false, got {self.self_occlusion!r}")
         if not isinstance(self.roof_fill, bool):
             raise ValueError(f"TrackConfig.roof_fill must be true or false, got {self.roof_fill!r}")
+        if not isinstance(self.occluder_hulls, bool):
+            raise ValueError(f"TrackConfig.occluder_hulls must be true or false, got {self.occluder_hulls!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

@@ -904,6 +904,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     candidates = in_clip
     per_frame: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
     frame_boxes: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(t_count)]
+    frame_ids: list[list[tuple]] = [[] for _ in range(t_count)]
     if in_clip.size:
         in_clip = in_clip[_can_occlude(boxes, geometry.camera_from_vehicle, in_clip, slot[boxes.frame[in_clip]],
                                        target_camera, target_radius_m)]
@@ -947,7 +948,15 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             continue
         if radius_m is None:
             radius_m = np.full(points_box.shape[0], float(plan.config.surfel_radius_m))
-        solid = solid_extents(points_box, boxes.size[obj_rows])
+        if poses.trajectory is not None:
+            # the object's surface is the segment's: its extent, once per object (the solid parts
+            # depend on the returns only through it)
+            key = f"{object_id}#extent"
+            if key not in plan.occluder_cache:
+                plan.occluder_cache[key] = np.stack([points_box.min(axis=0), points_box.max(axis=0)])
+            solid = solid_extents(plan.occluder_cache[key], boxes.size[obj_rows])
+        else:
+            solid = solid_extents(points_box, boxes.size[obj_rows])
         if plan.config.roof_fill and not is_own and poses.trajectory is not None:
             # the roof its returns leave unsampled (splats only: the boxes' solid parts stay the returns')
             fill = segment_roof_fill(plan, object_id, poses)
@@ -990,6 +999,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 continue
             per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
+            world_from_other = poses.world_from_box[k].copy()
+            world_from_other[:3, 3] += poses.shift_world[k]
+            frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
+                                       float(poses.yaw_rate_world[k])))
     def joined(frames_parts):
         return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
                  np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
@@ -1001,7 +1014,22 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
               np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
               np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
-            seen, joined(own_frame) if own_seen else None)
+            seen, joined(own_frame) if own_seen else None, frame_ids)
+
+
+def segment_hull(plan, object_id: str, poses):
+    """The :class:`drivetrack.visibility.zbuffer.OccluderHull` of ``object_id``'s segment surface
+    (:func:`segment_surface`; its facets trusted against that surface and, with ``roof_fill``, its
+    roof fill, :func:`segment_roof_fill`), or None; once per object and segment
+    (``plan.occluder_cache``): :func:`drivetrack.visibility.zbuffer.hull_hidden`."""
+    from drivetrack.visibility.zbuffer import occluder_hull
+
+    key = f"{object_id}#hull"
+    if key not in plan.occluder_cache:
+        cloud = segment_surface(plan, object_id, poses)
+        surface = np.concatenate([cloud, segment_roof_fill(plan, object_id, poses)]) if plan.config.roof_fill else cloud
+        plan.occluder_cache[key] = occluder_hull(cloud, surface)
+    return plan.occluder_cache[key]
 
 
 def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
@@ -1164,9 +1192,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         clip frame ``tau`` alone from its projection [1, k, ...]."""
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
+        rescued = None if hull_test is None else np.zeros(valid.shape, dtype=bool)
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
-            int(config.occluder_subpixels), use_kernel=use_kernel)
+            int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued)
+        if rescued is not None:
+            for i, frame_tau in enumerate(range(t_count)[at]):
+                band = np.flatnonzero(rescued[i])
+                if band.size:
+                    hull_test(frame_tau, start + band, points_camera[i, band, 0], pixels[i, band])
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1189,6 +1223,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         hidden_other[at, pocket] |= own_margin < 0
         zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
 
+    hull_test = None
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others, own_plane_slack
 
@@ -1196,7 +1231,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         in_pocket = None
         if config.self_occlusion and surfels is not None:
             in_pocket = _pocket_points(plan, job.object_id, poses, p_box, np.median(boxes.size[rows], axis=0))
-        occluders, occluder_boxes, any_occluder, own_splats = _occluders(
+        occluders, occluder_boxes, any_occluder, own_splats, occluder_ids = _occluders(
             plan, job, frames, centre_camera, 0.5 * np.linalg.norm(boxes.size[rows], axis=-1),
             shutter_meta if rolling else None, use_kernel, with_own=in_pocket is not None and bool(in_pocket.any()))
         if any_occluder and own_box.shape[0] and config.depth_defers_to_zbuffer:
@@ -1214,6 +1249,49 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # the kernel path keeps about half the candidates (screen_points, below): the own surface,
         # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
         defer_own = use_kernel and not rolling
+        if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
+            from drivetrack.visibility.zbuffer import box_points_at, hull_hidden
+
+            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
+                """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
+                ``depth`` float [k], pixels float [k, 2]) decided by the other objects' convex
+                hulls (hull_hidden): at the image pose under a global shutter; under a rolling
+                shutter at each point's capture time in its row, camera, object and occluders
+                moved there with their velocities and yaw rates, as the z-buffer's splats are."""
+                found = occluder_ids[tau]
+                if not found:
+                    return
+                hulls = [segment_hull(plan, object_id, poses) for object_id, *_ in found]
+                if not rolling:
+                    placed_self = camera_from_box[tau].copy()
+                    placed_self[:3, 3] += shift_camera[tau]
+                    centre = invert_rigid(placed_self)[:3, 3]
+                    rays = []
+                    for placed_other in occluder_boxes[tau][0]:
+                        other_from_box = invert_rigid(placed_other) @ placed_self
+                        rays.append((np.einsum("ij,j->i", other_from_box[:3, :3], centre) + other_from_box[:3, 3],
+                                     np.einsum("ij,nj->ni", other_from_box[:3, :3], p_box[rows]) + other_from_box[:3, 3]))
+                else:
+                    from drivetrack.camera.rolling_shutter import pixel_times, shutter_state
+
+                    t = int(frames[tau])
+                    state = shutter_state(shutter_meta, t)
+                    dt = np.nan_to_num(pixel_times(shutter_meta, t, pixels) - state.pose_timestamp)
+                    centres = state.pose_at(dt)[1] if state.rolling else np.broadcast_to(
+                        state.world_from_camera[:3, 3], (rows.size, 3))
+                    world = (np.einsum("ij,nj->ni", poses.world_from_box[tau, :3, :3], p_box[rows])
+                             + poses.world_from_box[tau, :3, 3] + poses.shift_world[tau])
+                    world = world + dt[:, None] * rigid_velocity_world(
+                        world, poses.world_from_box[tau, :3, 3], poses.velocity_world[tau],
+                        poses.yaw_rate_world[tau])
+                    # each occluder at each point's capture time, moved as its splats are
+                    rays = [(box_points_at(centres, world_from_other, velocity, yaw_rate, dt),
+                             box_points_at(world, world_from_other, velocity, yaw_rate, dt))
+                            for _, world_from_other, velocity, yaw_rate in found]
+                hit, hull_margin = hull_hidden(rays, depth, hulls, float(config.occluder_tolerance_m),
+                                               float(config.occluder_tolerance_rel))
+                hidden_other[tau, rows[hit]] = True
+                zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
         if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)

@@ -18,10 +18,12 @@ Shapes: T frames, n tracked points, m occluder returns; metres, camera frame (x 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
-__all__ = ["close_holes", "first_of_cells", "hidden_by_others", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
+__all__ = ["OccluderHull", "box_points_at", "close_holes", "first_of_cells", "hidden_by_others", "hull_hidden", "occluder_hull", "nearest_depth", "occluder_buffer", "own_plane_slack", "pocket_points", "roof_fill",
            "surfel_cells", "surfel_first_and_means", "surfel_means", "surfel_subsample"]
 
 
@@ -246,7 +248,7 @@ def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np
 def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      occluders: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, focal: float,
                      radius_m: float, max_px: int, abs_m: float, rel: float, fill_px: int = 0,
-                     subpixels: int = 1, use_kernel: bool = False):
+                     subpixels: int = 1, use_kernel: bool = False, rescued: np.ndarray | None = None):
     """bool [T, n]: the tracked point lies behind another object's surface at that frame.
 
     Args:
@@ -271,6 +273,11 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         use_kernel: the passes over the points, the returns and the buffer's pixels in numba
             (:mod:`drivetrack.visibility.kernel`; the morphology stays OpenCV's): the same
             decisions and margins.
+        rescued: bool [T, n] or None: when given, set where the point's own buffer pixel holds an
+            occluder's depth nearer than its threshold while the footprint rule leaves it visible
+            (the occluders do not cover its whole footprint): the band along an occluder's outline
+            where the buffer cannot say on which side of it the point lies
+            (:func:`hull_hidden` decides there).
 
     Returns:
         ``(hidden bool [T, n], margin_m float32 [T, n])``: the margin is how far (metres) the
@@ -280,12 +287,13 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
     """
     if use_kernel:
         return _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m,
-                                        max_px, abs_m, rel, fill_px, subpixels)
+                                        max_px, abs_m, rel, fill_px, subpixels, rescued)
     if subpixels != 1:
         scale = int(subpixels)
         return hidden_by_others(points_camera, pixels * scale, valid,
                                 [(o[0] * scale,) + tuple(o[1:]) for o in occluders], width * scale, height * scale,
-                                focal * scale, radius_m, max_px * scale, abs_m, rel, fill_px * scale)
+                                focal * scale, radius_m, max_px * scale, abs_m, rel, fill_px * scale,
+                                rescued=rescued)
     t_count, n = valid.shape
     hidden = np.zeros((t_count, n), dtype=bool)
     margin = np.full((t_count, n), np.inf, dtype=np.float32)
@@ -346,6 +354,8 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         hidden[tau, on] = farthest < threshold
         covered = np.isfinite(farthest)
         margin[tau, on[covered]] = (farthest[covered] - threshold[covered]).astype(np.float32)
+        if rescued is not None:
+            rescued[tau, on] = (buffer[row_on, col_on] < threshold) & ~hidden[tau, on]
     return hidden, margin
 
 
@@ -436,8 +446,10 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     cloud = np.asarray(cloud, np.float64)
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
-    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)        # itself, then its nearest
-    cloud = cloud[np.isfinite(second[:, 1])]
+    tree = cKDTree(cloud)
+    second, _ = tree.query(cloud, k=2, distance_upper_bound=outlier_m)                 # itself, then its nearest
+    kept = np.isfinite(second[:, 1])
+    cloud = cloud[kept]
     if cloud.shape[0] < 4:
         return np.zeros((0, 3))
     try:
@@ -446,34 +458,9 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         return np.zeros((0, 3))
     facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
     level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
-    # The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
-    # shadow is on the roof there, at that facet's plane. Edge tests by broadcasting, not matrix
-    # products: no BLAS threads for these small arrays.
     corners = cloud[hull.simplices[level]][:, :, :2]                                  # [L, 3, 2]
-    plane = facets[level]
-    if corners.shape[0] == 0:
-        points = np.zeros((0, 3))
-    else:
-        origin = cloud[:, :2].min(axis=0)                      # the grid's anchor: the cloud's corner
-        lo = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
-        hi = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
-        xs = origin[0] + spacing_m * np.arange(lo[0], hi[0] + 1)
-        ys = origin[1] + spacing_m * np.arange(lo[1], hi[1] + 1)
-        xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)       # [g, 2]
-        start = corners                                                                  # [L, 3, 2]
-        edge = np.roll(corners, -1, axis=1) - start                                      # edge i: corner i -> i + 1
-        sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])   # orientation, [L]
-        which = np.full(xy.shape[0], -1, dtype=np.int64)
-        for at in range(0, xy.shape[0], 2048):                       # bounded memory: [2048, L, 3]
-            q = xy[at:at + 2048]
-            side = (edge[None, :, :, 0] * (q[:, None, None, 1] - start[None, :, :, 1])
-                    - edge[None, :, :, 1] * (q[:, None, None, 0] - start[None, :, :, 0]))
-            inside = (side * sign[None, :, None] >= -1e-9).all(axis=2)                    # [k, L]
-            which[at:at + 2048] = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
-        over = which >= 0
-        which, xy = which[over], xy[over]
-        top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
-        points = np.column_stack([xy, top])
+    origin = cloud[:, :2].min(axis=0)                          # the grid's anchor: the cloud's corner
+    points = _level_facet_grid(corners, facets[level], origin, spacing_m)
     # the roof's outline: the hull edges between a level facet and a tilted one (edge i of a
     # facet is the one opposite its vertex i, shared with its neighbour i)
     step = spacing_m / 3.0 if outline_step_m is None else float(outline_step_m)
@@ -489,8 +476,227 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
         points = np.concatenate([points, ends[of, 0] + fraction[:, None] * (ends[of, 1] - ends[of, 0])])
     if points.shape[0] == 0:
         return points
-    gap, _ = cKDTree(cloud).query(points, distance_upper_bound=min_gap_m)
-    return points[~np.isfinite(gap)]
+    # the gaps, against the kept returns, from the tree of all of them: two left-out returns are
+    # more than ``outlier_m`` apart, so of the two nearest returns within ``min_gap_m`` <=
+    # ``outlier_m / 2`` at most one is left out
+    near, index = tree.query(points, k=2, distance_upper_bound=min_gap_m)
+    found = index < tree.n                                                    # [p, 2]: within min_gap_m
+    found[found] = kept[index[found]]
+    return points[~found.any(axis=1)]
+
+
+def _level_facet_grid(corners: np.ndarray, plane: np.ndarray, origin: np.ndarray, spacing_m: float) -> np.ndarray:
+    """float64 [g, 3]: the points of the grid of ``spacing_m`` anchored at ``origin`` float [2]
+    (x, y) that lie in the (x, y) shadow of a level hull facet (``corners`` float [L, 3, 2], its
+    corners' x, y; ``plane`` float [L, 4], its outward equation), each at its facet's plane (the
+    first facet holding it, facets on a shared edge), in the grid's x-major order.
+
+    The upward facets' shadows tile the hull's in (x, y), so a grid point over a level facet's
+    shadow is on the roof there. Each facet's edge tests run over the grid points of its own
+    bounding box only: a roof's facets are a few grid cells across."""
+    if corners.shape[0] == 0:
+        return np.zeros((0, 3))
+    lo_all = np.floor((corners.reshape(-1, 2).min(axis=0) - origin) / spacing_m)
+    hi_all = np.ceil((corners.reshape(-1, 2).max(axis=0) - origin) / spacing_m)
+    ny = int(hi_all[1] - lo_all[1]) + 1
+    # each facet's grid bounding box (indices relative to lo_all), then its cells one by one
+    lo = np.floor((corners.min(axis=1) - origin) / spacing_m) - lo_all                    # [L, 2]
+    hi = np.ceil((corners.max(axis=1) - origin) / spacing_m) - lo_all
+    span = (hi - lo + 1).astype(np.int64)                                                 # [L, 2]
+    count = span[:, 0] * span[:, 1]
+    facet = np.repeat(np.arange(corners.shape[0]), count)
+    local = np.arange(facet.size) - np.repeat(np.cumsum(count) - count, count)
+    ix = lo[facet, 0].astype(np.int64) + local // span[facet, 1]
+    iy = lo[facet, 1].astype(np.int64) + local % span[facet, 1]
+    q = origin + spacing_m * np.column_stack([ix + lo_all[0], iy + lo_all[1]])          # [c, 2]
+    start = corners[facet]                                                               # [c, 3, 2]
+    edge = np.roll(corners, -1, axis=1)[facet] - start                                   # edge i: corner i -> i + 1
+    sign = np.sign(edge[:, 0, 0] * -edge[:, 2, 1] - edge[:, 0, 1] * -edge[:, 2, 0])       # orientation, [c]
+    side = edge[:, :, 0] * (q[:, None, 1] - start[:, :, 1]) - edge[:, :, 1] * (q[:, None, 0] - start[:, :, 0])
+    inside = (side * sign[:, None] >= -1e-9).all(axis=1)
+    cell = (ix * ny + iy)[inside]
+    facet = facet[inside]
+    order = np.lexsort((facet, cell))                      # by grid cell, then the first facet holding it
+    cell, facet = cell[order], facet[order]
+    first = np.ones(cell.size, dtype=bool)
+    first[1:] = cell[1:] != cell[:-1]
+    cell, which = cell[first], facet[first]
+    xy = origin + spacing_m * np.column_stack([cell // ny + lo_all[0], cell % ny + lo_all[1]])
+    top = -(plane[which, 0] * xy[:, 0] + plane[which, 1] * xy[:, 1] + plane[which, 3]) / plane[which, 2]
+    return np.column_stack([xy, top])
+
+
+#: :func:`hull_hidden`: an occluder's hull decides a ray only where the ray enters it within this
+#: (metres) of the occluder's surface (its returns and its roof fill): a hull facet spanning a
+#: concavity (between a pedestrian's legs, over a cabin car's bonnet) is air
+HULL_TRUST_M = 0.05
+
+
+#: :func:`occluder_hull`: the returns within this (metres) of the hull measure how far its
+#: facets stand out of the surface (the median of their depths inside it) ...
+HULL_SURFACE_M = 0.1
+#: ... and a surface spread more than this (metres) is noisy: its hull is moved in by the spread
+HULL_NOISY_M = 0.02
+
+
+@dataclass
+class OccluderHull:
+    """An occluder's convex hull for :func:`hull_hidden` (box frame, metres).
+
+    Attributes:
+        facets: float64 [F, 4], outward equations ``n . p + d`` (<= 0 inside), moved onto the surface.
+        trusted: bool [F], the facets lying on the object's surface (:func:`occluder_hull`).
+        tree: ``scipy.spatial.cKDTree`` of the surface the entries are checked against.
+        centre, radius: float64 [3] and metres, a sphere holding the hull (a ray that misses it
+            misses the hull).
+    """
+    facets: np.ndarray
+    trusted: np.ndarray
+    tree: object
+    centre: np.ndarray = None
+    radius: float = np.inf
+
+
+def _dot3(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """float64 [k, F]: ``p @ n.T`` for ``p`` float [k, 3] and ``n`` float [F, 3], by three
+    elementwise products (a matrix product starts BLAS threads, whose spinning costs more than
+    these small products on a two-core worker)."""
+    return p[:, 0, None] * n[None, :, 0] + p[:, 1, None] * n[None, :, 1] + p[:, 2, None] * n[None, :, 2]
+
+
+def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity_world: np.ndarray,
+                  yaw_rate: float, dt: np.ndarray) -> np.ndarray:
+    """float64 [k, 3]: world points ``points_world`` float [k, 3] (metres) in the box frame of an
+    object posed ``world_from_box`` float [4, 4] at a reference time and moving with centre
+    velocity ``velocity_world`` float [3] (m/s) and ``yaw_rate`` (rad/s, about the world z
+    through its centre), each at its own time ``dt`` float [k] (s) after the reference:
+    ``R0^T Rz(-w dt) (p - c0 - v dt)``."""
+    d = points_world - (world_from_box[:3, 3] + dt[:, None] * np.asarray(velocity_world, np.float64))
+    cos, sin = np.cos(-yaw_rate * dt), np.sin(-yaw_rate * dt)
+    turned = np.column_stack([cos * d[:, 0] - sin * d[:, 1], sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
+    return np.einsum("ji,nj->ni", world_from_box[:3, :3], turned)
+
+
+def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_m: float = ROOF_OUTLIER_M,
+                  surface_m: float = HULL_SURFACE_M, trust_m: float | None = None) -> OccluderHull | None:
+    """The :class:`OccluderHull` of an object's surface ``cloud`` float [m, 3] (box frame): the
+    convex hull of its returns (those with no other within ``outlier_m`` left out, as
+    :func:`roof_fill`'s), moved in by the spread of a noisy surface; a facet is trusted when its
+    centroid and its edges' midpoints all lie within ``trust_m`` (default :data:`HULL_TRUST_M`)
+    of ``surface`` float [s, 3] (default ``cloud``; the track stage passes the returns and the
+    roof fill). None for a cloud too small or too flat.
+
+    The spread: the median depth inside the hull of the returns within ``surface_m`` of it. A hull
+    is spanned by the outermost returns, and where a sweep's registration errors add to the range
+    noise they stand out of the surface by several centimetres: on the medium hard world with 5 cm
+    labels and 2 cm range noise (spread 2.5-5.8 cm per object) the hulls as spanned hid 6,274 more
+    visible point-frames than before; moved in by the spread, 67 fewer. A surface spread less than
+    :data:`HULL_NOISY_M` stays as spanned (2 cm range noise alone: 0.5-1.4 cm; moving those in by it
+    cost 1,900 of the 2,000 calls the hulls gained there; exact labels: 0). Trusted facets: a
+    facet spanning a concavity (from a cabin's roof to the bonnet's edge, between a pedestrian's
+    legs) is air over most of its area (cabin cars with 5 cm labels: 24,792 wrong calls with every
+    facet, 23,398 with the trusted ones; 24,631 without hulls)."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    trust_m = HULL_TRUST_M if trust_m is None else float(trust_m)
+    cloud = np.asarray(cloud, np.float64)
+    if cloud.shape[0] < 4:
+        return None
+    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)
+    kept = cloud[np.isfinite(second[:, 1])]
+    if kept.shape[0] < 4:
+        return None
+    try:
+        hull = ConvexHull(kept)
+    except QhullError:
+        return None
+    facets = hull.equations.copy()
+    inside = np.empty(kept.shape[0])
+    for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
+        inside[start:start + 4096] = -(_dot3(kept[start:start + 4096], facets[:, :3]) + facets[:, 3]).max(axis=1)
+    # a noisy surface (its returns near the hull a median of more than HULL_NOISY_M inside it)
+    # moved in by that median; a clean one left where its returns put it
+    near = inside[inside <= surface_m]
+    spread = float(np.median(near)) if near.size else 0.0
+    shift = spread if spread > HULL_NOISY_M else 0.0
+    facets[:, 3] += shift
+    corners = kept[hull.simplices]                                                        # [F, 3, 3]
+    samples = np.concatenate([corners.mean(axis=1, keepdims=True), 0.5 * (corners + np.roll(corners, -1, axis=1))],
+                             axis=1) - shift * facets[:, None, :3]                       # [F, 4, 3]
+    tree = cKDTree(cloud if surface is None else np.asarray(surface, np.float64))
+    gap, _ = tree.query(samples.reshape(-1, 3), distance_upper_bound=trust_m)
+    centre = 0.5 * (kept.min(axis=0) + kept.max(axis=0))
+    radius = float(np.sqrt(((kept - centre) ** 2).sum(axis=1).max()))
+    return OccluderHull(facets, np.isfinite(gap).reshape(-1, 4).all(axis=1), tree, centre, radius)
+
+
+def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float,
+                trust_m: float = HULL_TRUST_M) -> tuple[np.ndarray, np.ndarray]:
+    """``(hidden bool [k], margin_m float32 [k])``: which of k tracked points, at z-depths ``depth``
+    float [k] (metres), lie behind another object's convex hull: the ray from the camera centre to
+    the point enters the hull of object j at a depth nearer than ``z - (abs_m + rel z)``, within
+    ``trust_m`` of its surface. ``rays[j] = (centres float [3] or [k, 3], points float [k, 3])``:
+    the camera centre(s) and the points in object j's box frame (each point's at its capture
+    time); ``hulls[j]``: its :class:`OccluderHull` (or None), whose facet the ray enters by must be
+    trusted and whose surface the entry must lie within ``trust_m`` of. Margin: the entry's depth
+    minus that threshold (negative: hidden), +inf where no hull hides the point.
+
+    Why: near an occluder's outline the z-buffer is quantised to its buffer pixels and the
+    footprint rule leaves a point visible unless the occluders cover its whole footprint
+    (:func:`hidden_by_others`); a convex part of an occluder's surface has an exact outline. The
+    depth along the ray is linear in the ray parameter s (the camera centre is its origin), so the
+    entry's depth is ``s z``. A hull facet spanning a concavity is air: there the entry lies
+    farther than ``trust_m`` from every return and the hull does not decide."""
+    depth = np.asarray(depth, np.float64).reshape(-1)
+    k = depth.size
+    hidden = np.zeros(k, dtype=bool)
+    margin = np.full(k, np.inf)
+    if k == 0:
+        return hidden, margin.astype(np.float32)
+    threshold = depth - (abs_m + rel * depth)
+    s_max = threshold / depth
+    for hull, (centres, points) in zip(hulls, rays):
+        if hull is None:
+            continue
+        facets = hull.facets
+        centres = np.asarray(centres, np.float64)
+        points = np.asarray(points, np.float64).reshape(k, 3)
+        # only the rays that reach the sphere holding the hull before their point
+        ray = points - centres
+        to_centre = hull.centre - centres
+        along = np.clip(np.einsum("...i,...i->...", to_centre, ray) / np.einsum("ni,ni->n", ray, ray), 0.0, 1.0)
+        closest = centres + along[:, None] * ray - hull.centre
+        near = np.flatnonzero(np.einsum("ni,ni->n", closest, closest) <= (hull.radius * (1 + 1e-9) + 1e-9) ** 2)
+        if near.size == 0:
+            continue
+        m = near.size
+        if centres.ndim == 1:                      # one camera centre for all: its facet heights once
+            a = np.broadcast_to(_dot3(centres[None], facets[:, :3])[0] + facets[:, 3], (m, facets.shape[0]))
+            starts = np.broadcast_to(centres, (m, 3))
+        else:
+            starts = centres[near]
+            a = _dot3(starts, facets[:, :3]) + facets[:, 3]                                   # [m, F]
+        b = _dot3(ray[near], facets[:, :3])                                                   # [m, F]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -a / b
+        entering = np.where(b < 0, s, -np.inf)
+        by = entering.argmax(axis=1)                                                          # the facet entered by
+        enter = np.maximum(entering[np.arange(m), by], 0.0)
+        leave = np.where(b > 0, s, np.inf).min(axis=1)
+        # a facet the ray runs parallel to and outside of: never inside; the camera inside: no test
+        never = ((b == 0) & (a > 0)).any(axis=1) | (a <= 0).all(axis=1)
+        hit = ~never & (enter < leave) & (enter < s_max[near]) & hull.trusted[by]
+        if not hit.any():
+            continue
+        rows = near[hit]
+        enter = enter[hit]
+        entry = starts[hit] + enter[:, None] * ray[rows]
+        gap, _ = hull.tree.query(entry, distance_upper_bound=trust_m)
+        close = np.isfinite(gap)
+        rows, enter = rows[close], enter[close]
+        hidden[rows] = True
+        margin[rows] = np.minimum(margin[rows], enter * depth[rows] - threshold[rows])
+    return hidden, margin.astype(np.float32)
 
 
 def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.ndarray, centres_box: np.ndarray,
@@ -518,7 +724,7 @@ def own_plane_slack(points_box: np.ndarray, normal: np.ndarray, reliable: np.nda
 
 
 def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, height, focal, radius_m, max_px,
-                             abs_m, rel, fill_px, subpixels):
+                             abs_m, rel, fill_px, subpixels, rescued=None):
     """:func:`hidden_by_others` with ``use_kernel``: its steps in the same order, each pass over
     the points, the returns or the buffer's pixels by :mod:`drivetrack.visibility.kernel`, the
     erosions and dilations by OpenCV."""
@@ -567,4 +773,8 @@ def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, hei
                 covered, done = _square_max(covered, r - done), r
             kernel.zbuffer_decide(covered, on[:count], size[:count], r, col, row, c0, r0, z, float(abs_m), float(rel),
                                   hidden[tau], margin[tau])
+        if rescued is not None:
+            at = on[:count]
+            z_at = z[at]
+            rescued[tau, at] = (buffer[row[at] - r0, col[at] - c0] < z_at - (abs_m + rel * z_at)) & ~hidden[tau, at]
     return hidden, margin
