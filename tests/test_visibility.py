@@ -1576,6 +1576,42 @@ def test_a_roof_fill_hides_what_lies_behind_an_unsampled_roof():
     assert (filled & truly).sum() > (returns_only & truly).sum() + 50
 
 
+def _far_behind_near_car(near_z: float, extra_local: np.ndarray, option: str):
+    """A car (4 x 1.8 x 1 m) 8 m ahead and 1 m to the side, its centre ``near_z`` m up, with the
+    returns ``extra_local`` (its box frame) besides those the scene's lidar sees, hollow to the
+    lidar, and a wide object 16 m ahead behind it; annotated with the z-buffer alone deciding (the
+    depth map's test off), ``option`` (a boolean ``TrackConfig`` field) off and on. Returns
+    ``(far, inside_px)``: the far object's tracks by the option's value, and a function giving the
+    signed distance (px) of FRONT pixels float [n, 2] inside the near car's outline."""
+    import cv2
+
+    from drivetrack.geometry import box_from_center_heading, transform_points
+    from test_tracks import FRONT, SceneBuilder, annotate, world_center
+
+    b = SceneBuilder()
+    b.add_object("near", world_center(b, 8.0, y=1.0, z=near_z), size=(4.0, 1.8, 1.0), spacing=0.05,
+                 extra_local=extra_local)
+    b.hollow.add("near")                           # the lidar sees the far object through it
+    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
+    scene = b.build()
+    far = {}
+    for on in (False, True):
+        config = TrackConfig(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0},
+                             occlusion_ratio=1e-6, **{option: on})
+        far[on] = annotate(scene, config)[1]["far"]
+    model = scene.cameras[FRONT].model
+    row = np.flatnonzero(scene.boxes.object_id == "near")[0]
+    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.9, 0.9) for z in (-0.5, 0.5)], float)
+    pixels, _ = model.pixels_from_vehicle(transform_points(
+        box_from_center_heading(scene.boxes.center[row], scene.boxes.heading[row]), corners))
+    outline = cv2.convexHull(pixels.astype(np.float32))
+
+    def inside_px(points):
+        return np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in points])
+
+    return far, inside_px
+
+
 def test_the_roof_fill_hides_a_far_object_behind_a_near_cars_unsampled_roof():
     """The track stage end to end (``TrackConfig.roof_fill``): a car 8 m ahead whose returns hold its
     rear face and the side facing the lidar, not its roof nor its far end; the camera, 0.5 m
@@ -1584,33 +1620,9 @@ def test_the_roof_fill_hides_a_far_object_behind_a_near_cars_unsampled_roof():
     visible; with it, those behind the part of the roof the hull spans (between the rear face's
     and the side's top edges) are hidden and never tracked, and every point it drops lies inside
     the near car's outline."""
-    import cv2
-
-    from drivetrack.geometry import box_from_center_heading, transform_points
-    from test_tracks import FRONT, SceneBuilder, annotate, world_center
-
-    b = SceneBuilder()
     xs, zs = np.arange(-2.0, 2.001, 0.05), np.arange(-0.5, 0.501, 0.05)
     side = np.stack(np.meshgrid(xs, [-0.9], zs, indexing="ij"), -1).reshape(-1, 3)
-    b.add_object("near", world_center(b, 8.0, y=1.0, z=0.5), size=(4.0, 1.8, 1.0), spacing=0.05, extra_local=side)
-    b.hollow.add("near")                           # the lidar sees the far object through it
-    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
-    scene = b.build()
-    far = {}
-    for roof_fill in (False, True):
-        # the depth map's test off: the z-buffer alone decides here
-        config = TrackConfig(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0},
-                             occlusion_ratio=1e-6, roof_fill=roof_fill)
-        far[roof_fill] = annotate(scene, config)[1]["far"]
-    model = scene.cameras[FRONT].model
-    row = np.flatnonzero(scene.boxes.object_id == "near")[0]
-    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.9, 0.9) for z in (-0.5, 0.5)], float)
-    pixels, _ = model.pixels_from_vehicle(transform_points(
-        box_from_center_heading(scene.boxes.center[row], scene.boxes.heading[row]), corners))
-    outline = cv2.convexHull(pixels.astype(np.float32))
-
-    def inside_px(points):                         # signed distance (px) inside the near car's outline
-        return np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in points])
+    far, inside_px = _far_behind_near_car(0.5, side, "roof_fill")
 
     # the scene is static: a point's pixel at the first frame names it
     before, after = far[False].tracks[:, 0], far[True].tracks[:, 0]
@@ -1710,39 +1722,14 @@ def test_occluder_hulls_hide_a_far_object_behind_a_near_roof_seen_at_a_grazing_a
     a wide object 16 m ahead behind it. The roof is a thin band over the car's rear face: the
     z-buffer's footprint rule leaves thousands of the far object's point-frames inside the near
     car's outline visible; with the hulls almost none, and nothing outside the outline is hidden."""
-    import cv2
+    from test_tracks import FRONT, SceneBuilder
 
-    from drivetrack.geometry import box_from_center_heading, transform_points
-    from test_tracks import FRONT, SceneBuilder, annotate, world_center
-
-    b = SceneBuilder()
-    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
-    model = b.build().cameras[FRONT].model
-    roof = float(model.vehicle_from_camera[2, 3]) - 0.2
+    roof = float(SceneBuilder().build().cameras[FRONT].model.vehicle_from_camera[2, 3]) - 0.2
     # its rear face, a side and its roof (the scene's lidar, below the roof, sees the rear alone)
     xs, ys, zs = np.arange(-2.0, 2.001, 0.05), np.arange(-0.9, 0.901, 0.05), np.arange(-0.5, 0.501, 0.05)
     extra = np.concatenate([np.stack(np.meshgrid(xs, [-0.9], zs, indexing="ij"), -1).reshape(-1, 3),
                             np.stack(np.meshgrid(xs, ys, [0.5], indexing="ij"), -1).reshape(-1, 3)])
-    b = SceneBuilder()
-    b.add_object("near", world_center(b, 8.0, y=1.0, z=roof - 0.5), size=(4.0, 1.8, 1.0), spacing=0.05,
-                 extra_local=extra)
-    b.hollow.add("near")                           # the lidar sees the far object through it
-    b.add_object("far", world_center(b, 16.0, y=0.0, z=1.0), size=(0.5, 6.0, 3.0), spacing=0.04)
-    scene = b.build()
-    far = {}
-    for hulls in (False, True):
-        # the depth map's test off: the z-buffer alone decides here
-        config = TrackConfig(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0},
-                             occlusion_ratio=1e-6, occluder_hulls=hulls)
-        far[hulls] = annotate(scene, config)[1]["far"]
-    row = np.flatnonzero(scene.boxes.object_id == "near")[0]
-    corners = np.array([[x, y, z] for x in (-2, 2) for y in (-0.9, 0.9) for z in (-0.5, 0.5)], float)
-    pixels, _ = model.pixels_from_vehicle(transform_points(
-        box_from_center_heading(scene.boxes.center[row], scene.boxes.heading[row]), corners))
-    outline = cv2.convexHull(pixels.astype(np.float32))
-
-    def inside_px(points):                         # signed distance (px) inside the near car's outline
-        return np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), True) for x, y in points])
+    far, inside_px = _far_behind_near_car(roof - 0.5, extra, "occluder_hulls")
 
     # the scene is static: the first frame's pixels and flags stand for all
     inside = {h: inside_px(far[h].tracks[:, 0]) for h in far}
