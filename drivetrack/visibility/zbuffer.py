@@ -417,6 +417,27 @@ ROOF_OUTLIER_M = 0.1
 ROOF_MAX_TILT_DEG = 11.5
 
 
+def _returns_hull(cloud: np.ndarray, outlier_m: float):
+    """``(tree, kept bool [m], returns float64 [k, 3], hull)``: the convex hull
+    (``scipy.spatial.ConvexHull``) of an object's returns ``cloud`` float [m, 3] with no other
+    within ``outlier_m`` left out (``kept``), and a ``cKDTree`` of all of them; None for a cloud
+    too small or too flat (:func:`roof_fill`, :func:`occluder_hull`)."""
+    from scipy.spatial import ConvexHull, QhullError, cKDTree
+
+    cloud = np.asarray(cloud, np.float64)
+    if cloud.shape[0] < 4:
+        return None
+    tree = cKDTree(cloud)
+    second, _ = tree.query(cloud, k=2, distance_upper_bound=outlier_m)                 # itself, then its nearest
+    kept = np.isfinite(second[:, 1])
+    if kept.sum() < 4:
+        return None
+    try:
+        return tree, kept, cloud[kept], ConvexHull(cloud[kept])
+    except QhullError:
+        return None
+
+
 def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MAX_TILT_DEG,
               min_gap_m: float = ROOF_FILL_GAP_M, outline_step_m: float | None = None,
               outlier_m: float = ROOF_OUTLIER_M) -> np.ndarray:
@@ -441,21 +462,10 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within
     ``outlier_m`` are left out first (of the hull and of the gaps). A cloud too small or too flat
     for a hull: none."""
-    from scipy.spatial import ConvexHull, QhullError, cKDTree
-
-    cloud = np.asarray(cloud, np.float64)
-    if cloud.shape[0] < 4:
+    spanned = _returns_hull(cloud, outlier_m)
+    if spanned is None:
         return np.zeros((0, 3))
-    tree = cKDTree(cloud)
-    second, _ = tree.query(cloud, k=2, distance_upper_bound=outlier_m)                 # itself, then its nearest
-    kept = np.isfinite(second[:, 1])
-    cloud = cloud[kept]
-    if cloud.shape[0] < 4:
-        return np.zeros((0, 3))
-    try:
-        hull = ConvexHull(cloud)
-    except QhullError:
-        return np.zeros((0, 3))
+    tree, kept, cloud, hull = spanned
     facets = hull.equations                                                # [F, 4]: n . p + d <= 0 inside
     level = facets[:, 2] >= np.cos(np.radians(max_tilt_deg))
     corners = cloud[hull.simplices[level]][:, :, :2]                                  # [L, 3, 2]
@@ -596,20 +606,14 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     facet spanning a concavity (from a cabin's roof to the bonnet's edge, between a pedestrian's
     legs) is air over most of its area (cabin cars with 5 cm labels: 24,792 wrong calls with every
     facet, 23,398 with the trusted ones; 24,631 without hulls)."""
-    from scipy.spatial import ConvexHull, QhullError, cKDTree
+    from scipy.spatial import cKDTree
 
     trust_m = HULL_TRUST_M if trust_m is None else float(trust_m)
     cloud = np.asarray(cloud, np.float64)
-    if cloud.shape[0] < 4:
+    spanned = _returns_hull(cloud, outlier_m)
+    if spanned is None:
         return None
-    second, _ = cKDTree(cloud).query(cloud, k=2, distance_upper_bound=outlier_m)
-    kept = cloud[np.isfinite(second[:, 1])]
-    if kept.shape[0] < 4:
-        return None
-    try:
-        hull = ConvexHull(kept)
-    except QhullError:
-        return None
+    _, _, kept, hull = spanned
     facets = hull.equations.copy()
     inside = np.empty(kept.shape[0])
     for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
