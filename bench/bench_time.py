@@ -14,7 +14,8 @@ widened as in ``bench_visibility`` (all five cameras, every object type, ``min_f
   pixel's capture time, yaw-only labels' world tilt a straight line in time, no static objects
   (``RefineConfig(static_objects=False)``);
 - ``no-static``: the defaults but ``static_objects=False`` (one tilt per object);
-- ``trajectory``: the defaults (one tilt per object, static objects held at one world pose).
+- ``trajectory``: the defaults (one tilt per object, static objects held at one world pose);
+- ``synced``: the defaults and ``synced_boxes=True`` (``lidar_camera_synced_box`` samples).
 
 (:data:`MODELS`).
 
@@ -52,6 +53,7 @@ SCENARIOS = (("frame", 0.0), ("sweep", 0.0), ("frame", 0.05), ("sweep", 0.05))
 MODELS = {"velocity": ({"time_model": "velocity"}, {}),
           "trajectory/linear": ({"label_tilt": "linear"}, {"static_objects": False}),
           "no-static": ({}, {"static_objects": False}),
+          "synced": ({"synced_boxes": True}, {}),
           "trajectory": ({}, {}), "main": ({}, {})}
 
 

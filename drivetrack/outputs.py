@@ -118,7 +118,7 @@ SEGMENT_COLUMNS = (
     "split", "segment", "status", "error", "num_frames", "num_objects_labelled",
     "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
     *(f"rejected_{r}" for r in REJECTION_REASONS),
-    "label_time", "label_time_residual_frame_m", "label_time_residual_sweep_m",
+    "label_time", "label_time_residual_frame_m", "label_time_residual_sweep_m", "num_synced_samples",
 )
 #: ``stats/rejections.parquet``: one row per rejected clip.
 REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")

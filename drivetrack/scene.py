@@ -79,6 +79,13 @@ class Boxes:
             (the reader's labels, which are yaw-only): 0. Set by pose refinement
             (``drivetrack.refine``); every stage that carries points with a box uses
             :meth:`vehicle_from_box`, so they take effect wherever present.
+        synced_shift: optional float64 [K, 3], metres, vehicle frame of frame t:
+            ``lidar_camera_synced_box``'s centre minus the label's centre (NaN where the source has
+            no synced box; None: no ``lidar_camera_synced_box`` read). Waymo defines it as
+            ``speed x (t_capture - t_frame)``, t_capture when ``synced_camera`` captured the box
+            centre (``drivetrack.tracks.trajectory.synced_samples``). Kept relative to the label,
+            so a refined box carries it unchanged.
+        synced_camera: optional int8 [K], ``most_visible_camera_name`` (0 where none).
     """
     object_id: np.ndarray
     frame: np.ndarray
@@ -90,6 +97,8 @@ class Boxes:
     num_lidar_points_in_box: np.ndarray
     pitch: np.ndarray | None = None
     roll: np.ndarray | None = None
+    synced_shift: np.ndarray | None = None
+    synced_camera: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])

@@ -390,3 +390,58 @@ def test_kill_point_never_kills_the_calling_process(monkeypatch):
     monkeypatch.setenv("DRIVETRACK_TEST_KILL_SEGMENT", "x")
     faults.kill_point("x")   # still alive
     assert os.getpid() > 0 and signal.SIGKILL
+
+
+# --------------------------------------------------------------------------------------------
+# lidar_camera_synced_box (issue 16): read when present, joined on key, bad values named
+
+SB = "[LiDARCameraSyncedBoxComponent]."
+
+
+def _synced(root, rows=None) -> None:
+    """The tiny segment's lidar_box rows as synced boxes, each moved 0.1 m along x, plus ``rows``
+    (dicts of column -> value) appended."""
+    ts = TIMESTAMPS
+    cols = {"key.frame_timestamp_micros": [ts[0], ts[1], ts[1], ts[2]],
+            "key.laser_object_id": ["car_a", "car_a", "ped_b", "car_a"],
+            SB + "most_visible_camera_name": [1, 2, 1, 0],
+            SB + "camera_synced_box.center.x": [10.1, 11.1, 5.1, 12.1],
+            SB + "camera_synced_box.center.y": [1.0, 1.0, -2.0, 1.0],
+            SB + "camera_synced_box.center.z": [0.8] * 4, SB + "camera_synced_box.size.x": [4.0] * 4,
+            SB + "camera_synced_box.size.y": [2.0] * 4, SB + "camera_synced_box.size.z": [1.6] * 4,
+            SB + "camera_synced_box.heading": [0.0] * 4}
+    for row in rows or []:
+        for name in cols:
+            cols[name].append(row.get(name, cols[name][-1]))
+    write_component(root, SPLIT, "lidar_camera_synced_box", SEGMENT, cols)
+
+
+def test_synced_boxes_are_read_as_shifts_from_their_labels(tmp_path):
+    tiny_segment(tmp_path)
+    assert _load(tmp_path).boxes.synced_shift is None          # the component is optional
+    _synced(tmp_path, [{"key.laser_object_id": "gone", SB + "camera_synced_box.center.x": 3.0}])
+    scene = _load(tmp_path)
+    boxes = scene.boxes
+    np.testing.assert_allclose(boxes.synced_shift, np.tile([0.1, 0.0, 0.0], (4, 1)), atol=1e-12)
+    order = {(int(f), str(o)): i for i, (f, o) in enumerate(zip(boxes.frame, boxes.object_id))}
+    assert boxes.synced_camera[order[(1, "car_a")]] == 2 and boxes.synced_camera[order[(2, "car_a")]] == 0
+    assert scene.source_stats["synced_boxes"] == 4 and scene.source_stats["synced_boxes_unmatched"] == 1
+    # a refined box keeps its shift: boxes.select carries the columns
+    assert boxes.select(np.array([0, 1])).synced_shift.shape == (2, 3)
+
+
+@pytest.mark.parametrize("column, value, problem", [
+    ("camera_synced_box.center.y", math.nan, "synced box centre"),
+    ("camera_synced_box.center.x", math.inf, "infinite"),
+    ("most_visible_camera_name", 9, "unknown camera name")])
+def test_bad_synced_boxes_are_errors(tmp_path, column, value, problem):
+    tiny_segment(tmp_path)
+    _synced(tmp_path)
+
+    def edit(cols):
+        cols[SB + column][2] = value
+    _rewrite(tmp_path, "lidar_camera_synced_box", edit)
+    with pytest.raises(WaymoFormatError) as e:
+        _load(tmp_path)
+    expected_column = SB + ("camera_synced_box.center.x" if column.startswith("camera_synced_box") else column)
+    _expect(e, "lidar_camera_synced_box", expected_column, problem)

@@ -234,3 +234,102 @@ def test_yaw_only_labels_of_a_pitching_ego_carry_level_objects_exactly(motion):
     assert errors["linear"] > 10 * errors["constant"] and errors["linear"] > 5e-4, errors
     with pytest.raises(ValueError, match="label_tilt"):
         build_trajectory(scene, np.zeros(frames), "frame", "ground")
+
+
+def _side_left(frames: int, times: np.ndarray, offset_s: float, direction: int = 5):
+    """A SIDE_LEFT camera (looking along +y) of the static ego, triggered ``offset_s`` after each
+    frame time; global shutter (5) or a 20 ms left-to-right readout (2)."""
+    from drivetrack.camera.model import CameraModel
+    from drivetrack.scene import CameraFrames
+
+    vehicle_from_camera = np.eye(4)
+    vehicle_from_camera[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]   # x_cam -> +y
+    vehicle_from_camera[:3, 3] = [1.5, 0.0, 2.0]
+    model = CameraModel(f_u=1000.0, f_v=1000.0, c_u=960.0, c_v=443.0, k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0,
+                        width=1920, height=886, vehicle_from_camera=vehicle_from_camera,
+                        rolling_shutter_direction=direction)
+    pose = times + offset_s
+    return CameraFrames(model=model, jpeg=[None] * frames, world_from_vehicle=np.tile(np.eye(4), (frames, 1, 1)),
+                        pose_timestamp=pose, velocity=np.zeros((frames, 6)), shutter=np.full(frames, 0.002),
+                        trigger_time=pose - 0.011, readout_done_time=pose + 0.011)
+
+
+def _with_synced(scene, times, offset_s, camera=4, direction=5):
+    """Waymo's synced boxes for ``scene``: the label moved by its (exact) speed x offset_s."""
+    from drivetrack.waymo.schema import CameraName
+
+    eps = 1e-6
+    label_times = times
+    scene.boxes.speed = (_straight(label_times + eps)[0] - _straight(label_times - eps)[0]) / (2 * eps)
+    scene.boxes.synced_shift = scene.boxes.speed * offset_s
+    scene.boxes.synced_camera = np.full(len(scene.boxes), camera, np.int8)
+    scene.cameras = {int(CameraName.SIDE_LEFT): _side_left(len(times), times, offset_s, direction)}
+    return scene
+
+
+def test_synced_boxes_are_samples_at_their_capture_time():
+    """An object labelled in two frames only: through the labels alone its trajectory is a
+    straight line (the braking car's position off by up to 13 mm between and around them);
+    Waymo's synced boxes (label + speed x (t_capture - t_frame), seen by a side camera fired 25 ms
+    before the frame) add the labelled speed at a known time, and the fit follows the braking."""
+    from drivetrack.tracks.trajectory import synced_samples
+
+    scene, times, _ = _scene(_straight, "frame", frames=2, with_returns=False)
+    scene = _with_synced(scene, times, -0.025)
+    offset, shift = synced_samples(scene)
+    np.testing.assert_allclose(offset, [-0.025, -0.025], atol=1e-6)
+    np.testing.assert_allclose(shift, scene.boxes.synced_shift, atol=1e-12)
+    rows = np.repeat([0, 1], 5)
+    query = times[rows] + np.tile([-0.045, -0.02, 0.0, 0.03, 0.05], 2)
+    truth = _straight(query)[0]
+    errors = {}
+    for synced in (False, True):
+        trajectory = build_trajectory(scene, np.zeros(2), "frame", synced=synced)
+        errors[synced] = np.linalg.norm(trajectory.motion(rows, query)[0] - truth, axis=-1).max()
+        np.testing.assert_allclose(trajectory.centre, scene.boxes.center, atol=1e-12)   # labels kept
+    assert errors[False] > 5e-3 and errors[True] < errors[False] / 4
+
+
+def test_synced_samples_solve_the_rolling_shutter_and_skip_what_they_cannot_place():
+    """With a left-to-right readout the box centre's column decides its capture time; rows whose
+    camera is not loaded, whose centre is behind the camera, or which were captured at their
+    frame time give no sample."""
+    from drivetrack.tracks.trajectory import synced_samples
+    from drivetrack.camera.rolling_shutter import project_world
+
+    scene, times, _ = _scene(_straight, "frame", frames=4, with_returns=False)
+    scene = _with_synced(scene, times, -0.025, direction=2)
+    offset, _ = synced_samples(scene)
+    frames = scene.cameras[4]
+    for t in range(4):   # the capture time of the moving centre, solved by the camera model
+        velocity = scene.boxes.speed[t:t + 1]
+        at_pose = scene.boxes.center[t:t + 1] + velocity * (frames.pose_timestamp[t] - times[t])
+        want = project_world(frames, t, at_pose, velocity).capture_time[0] - times[t]
+        assert offset[t] == pytest.approx(want, abs=1e-9)
+    # the car drives from x = -6 m to -4.8 m, left of the camera's axis at x = 1.5 m (its centre
+    # off the image's left edge: the readout law extended): read before the pose time, later
+    # each frame as it moves right
+    assert (offset < -0.03).all() and (np.diff(offset) > 0.002).all()
+
+    scene, times, _ = _scene(_straight, "frame", frames=4, with_returns=False)
+    scene = _with_synced(scene, times, -0.025)
+    scene.boxes.synced_camera[0] = 2                          # FRONT_LEFT: not loaded
+    scene.boxes.center[1, 1] = -4.0                           # right of the ego: behind SIDE_LEFT
+    scene.boxes.synced_shift[2] = np.nan                      # no synced box for this row
+    offset, shift = synced_samples(scene)
+    assert np.isnan(offset[:3]).all() and np.isnan(shift[:3]).all() and np.isfinite(offset[3])
+    scene, times, _ = _scene(_straight, "frame", frames=2, with_returns=False)
+    assert np.isnan(synced_samples(_with_synced(scene, times, 0.0))[0]).all()   # at the frame time
+
+
+def test_objects_standing_still_take_no_synced_samples():
+    """All of an object's boxes at one world position (pose refinement's static objects): a
+    labelled speed, however it came, does not move it."""
+    from drivetrack.tracks.trajectory import synced_samples
+
+    scene, times, _ = _scene(_straight, "frame", frames=3, with_returns=False)
+    scene = _with_synced(scene, times, -0.025)
+    scene.boxes.center[:] = scene.boxes.center[0]
+    assert np.isnan(synced_samples(scene)[0]).all()
+    trajectory = build_trajectory(scene, np.zeros(3), "frame", synced=True)
+    assert np.abs(trajectory.velocity).max() < 1e-12

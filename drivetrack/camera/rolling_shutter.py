@@ -42,7 +42,7 @@ from drivetrack.scene import CameraFrames
 
 __all__ = [
     "TOP_TO_BOTTOM", "LEFT_TO_RIGHT", "BOTTOM_TO_TOP", "RIGHT_TO_LEFT", "GLOBAL_SHUTTER",
-    "ShutterState", "Projection", "shutter_state", "project_world", "pixels_from_world",
+    "ShutterState", "Projection", "shutter_state", "project_world", "pixels_from_world", "capture_offsets",
     "world_from_pixels", "pixel_times",
 ]
 
@@ -279,6 +279,25 @@ def project_world(frames: CameraFrames, t: int, points_world: np.ndarray,
     points_camera[~valid] = np.nan
     capture = np.where(valid, state.pose_timestamp + dt, np.nan)
     return Projection(pixels, valid, capture, points_camera)
+
+
+def capture_offsets(frames: CameraFrames, t: int, points_vehicle: np.ndarray, velocity_vehicle: np.ndarray,
+                    world_from_vehicle: np.ndarray, frame_time_s: float) -> np.ndarray:
+    """float64 [N], seconds: when image ``t`` captured each of N moving points, minus
+    ``frame_time_s`` (the clock of ``pose_timestamp``); NaN where the projection is not valid
+    (:class:`Projection`).
+
+    ``points_vehicle`` float [N, 3] (metres) are positions at ``frame_time_s`` in the vehicle frame
+    ``world_from_vehicle`` float [4, 4] of that time, moving at ``velocity_vehicle`` float [N, 3]
+    (m/s, world velocity expressed in that frame): how ``label.proto`` solves a
+    ``camera_synced_box``'s t_capture for its box centre and speed.
+    """
+    rotation, origin = world_from_vehicle[:3, :3], world_from_vehicle[:3, 3]
+    velocity = np.asarray(velocity_vehicle, np.float64) @ rotation.T
+    lead = frames.pose_timestamp[t] - frame_time_s            # the points at the pose time
+    points = np.asarray(points_vehicle, np.float64) @ rotation.T + origin + lead * velocity
+    projection = project_world(frames, t, points, velocity)
+    return np.where(projection.valid, projection.capture_time - frame_time_s, np.nan)
 
 
 def pixels_from_world(frames: CameraFrames, t: int, points_world: np.ndarray,

@@ -53,6 +53,57 @@ __all__ = ["SynthConfig", "generate_segment", "segment_name", "FRAME_PERIOD_S", 
 _REEXPORTED = (_box_matrix, _pixel_rays, _rect_indices, _screen_rect, _undistorted_extent)
 
 
+#: Frames on each side of a box in a labeller's speed estimate (:func:`_labeller_motion`).
+LABELLER_WINDOW_HALF = 5
+
+
+def _labeller_motion(g, label_center: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(speed float64 [K, T, 3] m/s, acceleration float64 [K, T, 3] m/s^2)``, vehicle frame of
+    each frame: a local quadratic in frame time through the written (noisy) box centres
+    ``label_center`` (float64 [K, T, 3], vehicle frame) in the world, over the object's labelled
+    frames up to :data:`LABELLER_WINDOW_HALF` before and after."""
+    from drivetrack.tracks.trajectory import local_quadratic
+
+    K, T = label_center.shape[:2]
+    world = (np.einsum("tij,ktj->kti", g.world_from_vehicle[:, :3, :3], label_center)
+             + g.world_from_vehicle[None, :, :3, 3])                                    # [K,T,3]
+    steps = np.array([s for s in range(-LABELLER_WINDOW_HALF, LABELLER_WINDOW_HALF + 1) if s])
+    other = np.arange(T)[:, None] + steps[None, :]                                       # [T,W]
+    inside = (other >= 0) & (other < T)
+    other = np.clip(other, 0, T - 1)
+    valid = inside[None] & g.labelled[:, other] & g.labelled[:, :, None]                 # [K,T,W]
+    delta = world[:, other] - world[:, :, None]                                          # [K,T,W,3]
+    tau = np.broadcast_to((g.times[other] - g.times[:, None])[None], valid.shape)
+    velocity, acceleration = local_quadratic(delta.reshape(K * T, -1, 3), tau.reshape(K * T, -1),
+                                             valid.reshape(K * T, -1))
+    rotate = lambda a: np.einsum("tji,ktj->kti", g.world_from_vehicle[:, :3, :3], a.reshape(K, T, 3))  # noqa: E731
+    return rotate(velocity), rotate(acceleration)
+
+
+def _synced_offsets(g, label_center: np.ndarray, speed_v: np.ndarray) -> np.ndarray:
+    """float64 [K, T], seconds: ``t_capture - t_frame`` of each box (``label_center``, ``speed_v``
+    float64 [K, T, 3], vehicle frame), t_capture the time its most visible camera captures its
+    centre moving at ``speed_v`` (:func:`drivetrack.camera.rolling_shutter.capture_offsets` on the
+    written ``camera_image`` values); the camera's pose time where the centre does not project
+    (behind the camera), 0 where no camera sees the object."""
+    from drivetrack.camera.rolling_shutter import capture_offsets
+
+    K, T = label_center.shape[:2]
+    out = np.zeros((K, T))
+    seen = g.visible_pixels.max(axis=0) > 0                                              # [T,K]
+    most = g.visible_pixels.argmax(axis=0)                                               # [T,K]
+    frame_s = g.timestamps / 1e6
+    for ci, cam in enumerate(g.cameras):
+        frames = g.camera_frames[cam]
+        for t in range(T):
+            ks = np.flatnonzero(seen[t] & (most[t] == ci))
+            if ks.size == 0:
+                continue
+            offset = capture_offsets(frames, t, label_center[ks, t], speed_v[ks, t], g.world_from_vehicle[t], frame_s[t])
+            out[ks, t] = np.where(np.isfinite(offset), offset, frames.pose_timestamp[t] - frame_s[t])
+    return out
+
+
 def generate_segment(root: str, config: SynthConfig, index: int = 0,
                      progress: Callable[[str, int, int], None] | None = None,
                      workers: int = 1) -> dict:
@@ -183,18 +234,18 @@ def generate_segment(root: str, config: SynthConfig, index: int = 0,
         label_heading += g.noise_rng.normal(0.0, config.heading_sigma, size=label_heading.shape)
         label_heading = np.angle(np.exp(1j * label_heading))
 
-    synced_center, synced_heading = label_center, label_heading
-    if any(offset != 0.0 for offset in g.camera_offsets.values()):
-        # lidar_camera_synced_box: the box at the pose time of its most visible camera (label time
-        # when no camera sees it), in the vehicle frame of the frame; label noise carried along
-        offsets = np.array([g.camera_offsets[c] for c in g.cameras])                   # [C]
-        seen = (g.visible_pixels.max(axis=0) > 0).T                                      # [K,T]
-        sync_times = np.where(seen, g.times[None, :] + offsets[g.visible_pixels.argmax(axis=0).T], label_times)
-        sync_centers = np.stack([o.center(sync_times[k]) for k, o in enumerate(world.objects)])
-        sync_headings = np.stack([o.heading(sync_times[k]) for k, o in enumerate(world.objects)])
-        synced_center = label_center + np.einsum("tij,ktj->kti", vehicle_from_world[:, :3, :3],
-                                                 sync_centers - label_centers)
-        synced_heading = np.angle(np.exp(1j * (label_heading + sync_headings - label_headings)))
+    if config.box_noise_m > 0:
+        # a labeller's speed: the slope of its own noisy boxes (Waymo's speed labels are derived
+        # from the box centres over time), not the truth's; objects that never move keep speed 0
+        # (Waymo's parked cars carry 0, up to rounding)
+        fitted = _labeller_motion(g, label_center)
+        moves = (vel_world != 0).any(axis=(1, 2))[:, None, None]                        # [K,1,1]
+        speed_v, accel_v = np.where(moves, fitted[0], speed_v), np.where(moves, fitted[1], accel_v)
+    # lidar_camera_synced_box, by label.proto: the label box living at the frame time with its
+    # speed v, moved to t_capture, when its most visible camera captures the box centre (rolling
+    # shutter and ego motion solved by the camera model): c + v (t_capture - t_frame), same heading
+    synced_center = label_center + speed_v * _synced_offsets(g, label_center, speed_v)[..., None]
+    synced_heading = label_heading
     tables = _build_tables(g, jpegs, lidar_rows, pose_rows, proj_rows, label_center, label_heading,
                            synced_center, synced_heading,
                            speed_v, accel_v, num_pts, num_top)

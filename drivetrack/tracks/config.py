@@ -209,6 +209,14 @@ class TrackConfig:
             ``linear``: a straight line in time per object through the ego's tilts (before).
             Only changes of tilt over time move the tracks (docs/time.md). Used by
             ``time_model="trajectory"``; refined 6-DOF boxes keep their own tilt.
+        synced_boxes: the segment's ``lidar_camera_synced_box`` boxes are position samples of the
+            trajectory too, each at its label's time plus ``t_capture - t_frame`` (its most visible
+            camera's capture time of the box centre, solved with that camera's rolling shutter;
+            docs/time.md, "Synced boxes"). Default false: by Waymo's definition a synced box is
+            its label moved along the labelled speed, which Waymo derives from the same boxes,
+            and it measured no better than the trajectory's own fit (bench_time); a producer that
+            copies the label box into it would pin movers still. No effect on a segment without
+            them. Used by ``time_model="trajectory"``.
         rolling_shutter: project with ``drivetrack.camera.rolling_shutter`` when it is available;
             global-shutter projection at the image pose otherwise.
         max_speed_deviation_mps: if set, drop tracks whose mean world speed deviates from the
@@ -273,6 +281,7 @@ class TrackConfig:
     time_model: str = "trajectory"
     label_time: str = "auto"
     label_tilt: str = "constant"
+    synced_boxes: bool = False
     max_speed_deviation_mps: float | None = None
     max_tracks_per_object: int | None = None
     seed: int = 0

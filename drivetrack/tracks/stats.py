@@ -92,18 +92,21 @@ def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
 def _label_time_row(plan: SegmentPlan | None) -> dict:
     """The segment's label-time decision (:func:`drivetrack.tracks.trajectory.segment_trajectory`):
     ``label_time`` ("" when the segment has no plan or uses ``time_model="velocity"``, which
-    takes labels at the frame time) and the two conventions' residuals (NaN unless ``auto``)."""
+    takes labels at the frame time), the two conventions' residuals (NaN unless ``auto``) and
+    ``num_synced_samples``, the box rows whose ``lidar_camera_synced_box`` is a trajectory sample
+    (:func:`drivetrack.tracks.trajectory.synced_samples`; 0 with ``synced_boxes`` off)."""
     row = {"label_time": "", "label_time_residual_frame_m": float("nan"),
-           "label_time_residual_sweep_m": float("nan")}
+           "label_time_residual_sweep_m": float("nan"), "num_synced_samples": 0}
     if plan is None:
         return row
     if plan.config.time_model != "trajectory":
         return {**row, "label_time": "frame"}
-    from drivetrack.tracks.trajectory import segment_trajectory
+    from drivetrack.tracks.trajectory import segment_trajectory, synced_samples
 
     decision = segment_trajectory(plan, plan.config.label_time)[1]
+    synced = int(np.isfinite(synced_samples(plan.scene)[0]).sum()) if plan.config.synced_boxes else 0
     return {"label_time": decision["label_time"], "label_time_residual_frame_m": decision["residual_frame_m"],
-            "label_time_residual_sweep_m": decision["residual_sweep_m"]}
+            "label_time_residual_sweep_m": decision["residual_sweep_m"], "num_synced_samples": synced}
 
 
 def write_table(url: str, table: pd.DataFrame) -> str:

@@ -44,7 +44,7 @@ from drivetrack.waymo.schema import LaserName
 
 __all__ = ["LABEL_TILTS", "LABEL_TIMES", "TIME_MODELS", "BoxTrajectory", "build_trajectory", "sweep_label_offsets",
            "label_time_residual", "segment_trajectory", "points_box_at", "points_box_at_numpy",
-           "fit_sweep_law"]
+           "fit_sweep_law", "local_quadratic", "synced_samples"]
 
 #: ``TrackConfig.label_time`` values.
 LABEL_TIMES = ("frame", "sweep", "auto")
@@ -64,6 +64,11 @@ MAX_VOTERS = 48
 WINDOW_HALF = 2
 #: Only boxes whose two conventions differ by at least this (metres) vote in ``auto``.
 MIN_VOTE_SHIFT_M = 0.02
+#: A synced box captured less than this (seconds) from its label's frame time is no sample.
+MIN_SYNCED_OFFSET_S = 1e-4
+#: An object whose box centres all lie within this (metres) of each other in the world stands
+#: still: its synced boxes are no samples.
+STILL_M = 1e-6
 
 
 def _wrap(a):
@@ -148,7 +153,7 @@ def _window(keys: np.ndarray, time_s: np.ndarray, half: int) -> np.ndarray:
     return out
 
 
-def _local_quadratic(delta: np.ndarray, tau: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def local_quadratic(delta: np.ndarray, tau: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First and second time derivatives (float64 [K, D] each) at each row: least squares
     ``v tau + a tau^2 / 2 = delta`` over its window (``delta`` float64 [K, W, D], the neighbours'
     values minus the row's; ``tau`` float64 [K, W], their times minus the row's; ``valid`` bool
@@ -172,8 +177,65 @@ def _local_quadratic(delta: np.ndarray, tau: np.ndarray, valid: np.ndarray) -> t
     return velocity, acceleration
 
 
+def synced_samples(scene) -> tuple[np.ndarray, np.ndarray]:
+    """``(offset_s float64 [K], shift_world float64 [K, 3])``: each box row's
+    ``lidar_camera_synced_box`` as a time sample, NaN where it gives none.
+
+    ``offset_s`` is ``t_capture - t_frame``, t_capture the time its most visible camera
+    (``Boxes.synced_camera``) captured the box centre: the label centre moving at its labelled
+    ``speed`` (0 where NaN), projected with that camera's rolling shutter and the ego motion
+    (:func:`drivetrack.camera.rolling_shutter.project_world`), as Waymo's ``label.proto`` solves
+    it. ``shift_world`` is ``Boxes.synced_shift`` in the world frame (metres). None where the scene
+    has no synced box for the row, its camera is not loaded, the centre does not project (behind
+    the camera), ``|offset_s|`` is below :data:`MIN_SYNCED_OFFSET_S` (the same time as the
+    label: nothing to add), or all of the object's boxes sit at one world position (within
+    :data:`STILL_M`: pose refinement's static objects stand still, whatever their labelled
+    speed). Cached on the scene.
+    """
+    cache = scene.__dict__.get("_synced_samples")
+    if cache is not None:
+        return cache
+    from drivetrack.camera.rolling_shutter import capture_offsets
+
+    boxes = scene.boxes
+    k = len(boxes)
+    offset = np.full(k, np.nan)
+    shift_world = np.full((k, 3), np.nan)
+    shift = getattr(boxes, "synced_shift", None)
+    if shift is not None and k:
+        frame_s = np.asarray(scene.timestamps_micros, np.int64) * 1e-6
+        world_from_vehicle = np.asarray(scene.world_from_vehicle, np.float64)
+        camera = np.asarray(boxes.synced_camera, np.int64)
+        usable = np.isfinite(shift).all(axis=1) & np.isin(camera, list(scene.cameras))
+        for cam in np.unique(camera[usable]):
+            frames = scene.cameras[int(cam)]
+            rows_cam = np.flatnonzero(usable & (camera == cam))
+            for t in np.unique(boxes.frame[rows_cam]):
+                rows = rows_cam[boxes.frame[rows_cam] == t]
+                if not np.isfinite(frames.pose_timestamp[t]):
+                    continue
+                speed = np.asarray(boxes.speed, np.float64)[rows]
+                offset[rows] = capture_offsets(frames, int(t), np.asarray(boxes.center, np.float64)[rows],
+                                               np.where(np.isfinite(speed), speed, 0.0), world_from_vehicle[t],
+                                               frame_s[t])
+                shift_world[rows] = shift[rows] @ world_from_vehicle[t, :3, :3].T
+        # an object all of whose boxes sit at one world position (pose refinement's static
+        # objects) stands still: a labelled speed does not move it
+        keys = np.unique(boxes.object_id.astype(str), return_inverse=True)[1]
+        centre = (np.einsum("kij,kj->ki", world_from_vehicle[boxes.frame, :3, :3], np.asarray(boxes.center, np.float64))
+                  + world_from_vehicle[boxes.frame, :3, 3])
+        order = np.argsort(keys, kind="stable")
+        starts = np.r_[0, np.flatnonzero(np.diff(keys[order])) + 1]
+        spread = (np.maximum.reduceat(centre[order], starts) - np.minimum.reduceat(centre[order], starts)).max(axis=1)
+        small = ~(np.abs(offset) >= MIN_SYNCED_OFFSET_S) | (spread[keys] < STILL_M)
+        offset[small] = np.nan
+        shift_world[small] = np.nan
+    scene.__dict__["_synced_samples"] = (offset, shift_world)
+    return offset, shift_world
+
+
 def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame",
-                     label_tilt: str = "constant") -> BoxTrajectory:
+                     label_tilt: str = "constant", synced: bool = False) -> BoxTrajectory:
     """The :class:`BoxTrajectory` of every box row of ``scene``, sampled at frame time + ``label_offset_s``.
 
     Args:
@@ -182,6 +244,8 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
         label_time: the name of the convention (recorded only).
         label_tilt: the world tilt of objects whose boxes are all yaw-only, one of
             :data:`LABEL_TILTS` (module docstring).
+        synced: also fit positions through the ``lidar_camera_synced_box`` samples
+            (:func:`synced_samples`; module docstring).
     """
     if label_tilt not in LABEL_TILTS:
         raise ValueError(f"segment {scene.segment!r}: label_tilt must be one of {LABEL_TILTS}, got {label_tilt!r}")
@@ -213,10 +277,24 @@ def build_trajectory(scene, label_offset_s: np.ndarray, label_time: str = "frame
     valid = window >= 0
     w = np.where(valid, window, np.arange(k)[:, None])
     tau = time_s[w] - time_s[:, None]
-    velocity, acceleration = _local_quadratic(centre[w] - centre[:, None], tau, valid)
+    delta = centre[w] - centre[:, None]
+    position_valid, position_tau = valid, tau
+    if synced and k:
+        # the synced boxes of the row and of its window: the label moved by speed x (t_capture -
+        # t_frame), a position sample that long after the label's own time
+        offset, shift = synced_samples(scene)
+        own = np.concatenate([np.arange(k)[:, None], w], axis=1)                           # [K, W + 1]
+        has = np.concatenate([np.ones((k, 1), bool), valid], axis=1) & np.isfinite(offset)[own]
+        safe = np.where(has, own, 0)
+        synced_tau = np.where(has, time_s[safe] + np.nan_to_num(offset[safe]) - time_s[:, None], 0.0)
+        synced_delta = np.where(has[..., None], centre[safe] + np.nan_to_num(shift[safe]) - centre[:, None], 0.0)
+        position_valid = np.concatenate([valid, has], axis=1)
+        position_tau = np.concatenate([tau, synced_tau], axis=1)
+        delta = np.concatenate([delta, synced_delta], axis=1)
+    velocity, acceleration = local_quadratic(delta, position_tau, position_valid)
     turn = _wrap(yaw[w] - yaw[:, None])[..., None]                    # neighbours' yaw, unwrapped
-    yaw_rate, yaw_acceleration = (a[:, 0] for a in _local_quadratic(turn, tau, valid))
-    alone = (window < 0).all(axis=1)
+    yaw_rate, yaw_acceleration = (a[:, 0] for a in local_quadratic(turn, tau, valid))
+    alone = ~position_valid.any(axis=1)
     if alone.any():
         speed = np.asarray(boxes.speed, np.float64)[alone]
         ok = np.isfinite(speed).all(axis=1)
@@ -395,7 +473,7 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
         raise ValueError(f"segment {scene.segment!r}: TrackConfig.label_time must be one of {LABEL_TIMES}, "
                          f"got {label_time!r}")
     cache = scene.__dict__.setdefault("_label_times", {})
-    key = (label_time, config.label_tilt)
+    key = (label_time, config.label_tilt, config.synced_boxes)
     if key in cache:
         return cache[key]
     k = len(scene.boxes)
@@ -413,8 +491,8 @@ def scene_label_times(scene, config) -> tuple[np.ndarray, dict]:
         if label_time == "auto" and chosen is not None:
             decision.update(cache["decision"])
         elif label_time == "auto":
-            by_sweep = build_trajectory(scene, sweep, "sweep", config.label_tilt)
-            by_frame = build_trajectory(scene, np.zeros(k), "frame", config.label_tilt)
+            by_sweep = build_trajectory(scene, sweep, "sweep", config.label_tilt, config.synced_boxes)
+            by_frame = build_trajectory(scene, np.zeros(k), "frame", config.label_tilt, config.synced_boxes)
             shift = np.linalg.norm(by_frame.velocity, axis=-1) * np.abs(sweep)
             voters = np.flatnonzero(shift >= MIN_VOTE_SHIFT_M)
             if voters.size > MAX_VOTERS:       # evenly strided: the decision is per segment
@@ -458,6 +536,6 @@ def segment_trajectory(plan, label_time: str | None = None) -> tuple[BoxTrajecto
     cache = plan.__dict__.setdefault("_trajectories", {})
     if config.label_time not in cache:
         offsets, decision = scene_label_times(plan.scene, config)
-        cache[config.label_time] = (build_trajectory(plan.scene, offsets, decision["label_time"], config.label_tilt),
-                                    decision)
+        cache[config.label_time] = (build_trajectory(plan.scene, offsets, decision["label_time"], config.label_tilt,
+                                                     config.synced_boxes), decision)
     return cache[config.label_time]

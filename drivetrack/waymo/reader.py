@@ -37,7 +37,7 @@ from drivetrack.waymo.columns import (list_parts, range_images_from_columns, sca
 from drivetrack.waymo.components import (LIDAR_BATCH_ROWS, ComponentFile, WaymoFormatError,  # noqa: F401
                                          check_names, filesystem, list_segments, read_component)
 from drivetrack.waymo.kernel import posed_returns, returns_from_range_image
-from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, LaserName,
+from drivetrack.waymo.schema import (KEY_CAMERA, KEY_LASER, KEY_LASER_OBJECT, KEY_TIMESTAMP, CameraName, LaserName,
                                      merge_rows)
 
 __all__ = ["WaymoFormatError", "list_segments", "read_component", "load_scene"]
@@ -208,6 +208,43 @@ def _read_boxes(f: ComponentFile, timestamps: np.ndarray) -> Boxes:
         speed=np.stack([num("speed.x"), num("speed.y"), num("speed.z")], -1),
         num_lidar_points_in_box=scalar_numpy(table[names["num_lidar_points_in_box"]], np.int64, -1))
     return boxes.select(order)
+
+
+def _read_synced_boxes(f: ComponentFile, timestamps: np.ndarray, boxes: Boxes) -> dict:
+    """Attach ``lidar_camera_synced_box`` to ``boxes`` (``Boxes.synced_shift`` / ``synced_camera``,
+    joined on frame timestamp and object id); returns counts for ``Scene.source_stats``.
+
+    Non-finite synced geometry and camera names that are no ``CameraName`` raise; synced rows
+    without a ``lidar_box`` row of the same key are not used (counted: ``synced_boxes_unmatched``).
+    """
+    c = f.comp
+    names = {p: c.col(p) for p in ("camera_synced_box.center.x", "camera_synced_box.center.y",
+                                   "camera_synced_box.center.z", "most_visible_camera_name")}
+    table = f.read(f.columns(list(names.values())))
+    center = np.stack([scalar_numpy(table[names[f"camera_synced_box.center.{a}"]], np.float64, np.nan)
+                       for a in "xyz"], -1)
+    bad = ~np.isfinite(center).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise f.error("null, NaN or infinite synced box centre", column=names["camera_synced_box.center.x"],
+                      expected="finite numbers", found=f"{center[i].tolist()} at {f.row_keys(table, i)}")
+    camera = scalar_numpy(table[names["most_visible_camera_name"]], np.int64, 0)
+    unknown = ~np.isin(camera, [int(v) for v in CameraName])
+    if unknown.any():
+        i = int(np.flatnonzero(unknown)[0])
+        raise f.error("unknown camera name", column=names["most_visible_camera_name"],
+                      expected=f"one of {[int(v) for v in CameraName]} (CameraName)",
+                      found=f"{int(camera[i])} at {f.row_keys(table, i)}")
+    frame = _frame_index(timestamps, scalar_numpy(table[KEY_TIMESTAMP], np.int64, 0), f)
+    ids = np.array(table[KEY_LASER_OBJECT].to_pylist(), dtype=object).astype(str)
+    codes = np.unique(np.concatenate([boxes.object_id.astype(str), ids]), return_inverse=True)[1]
+    row, found = merge_rows({KEY_TIMESTAMP: boxes.frame, KEY_LASER_OBJECT: codes[:len(boxes)]},
+                            {KEY_TIMESTAMP: frame, KEY_LASER_OBJECT: codes[len(boxes):]})
+    boxes.synced_shift = np.full((len(boxes), 3), np.nan)
+    boxes.synced_camera = np.zeros(len(boxes), np.int8)
+    boxes.synced_shift[row[found]] = center[found] - boxes.center[row[found]]
+    boxes.synced_camera[row[found]] = camera[found]
+    return {"synced_boxes": int(found.sum()), "synced_boxes_unmatched": int((~found).sum())}
 
 
 def _range_images(f: ComponentFile, timestamps: np.ndarray, returns: Sequence[int]
@@ -488,6 +525,8 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
             ``lidar_camera_projection``.
     ``LidarReturns.capture_offset_s`` is filled from the TOP per-pixel poses
     (:mod:`drivetrack.waymo.capture_time`: one ``a + b * col`` model per segment, 0 for other lasers).
+    ``lidar_camera_synced_box``, when the segment has it, fills ``Boxes.synced_shift`` and
+    ``synced_camera`` (its boxes are time samples of the trajectory model, issue 16).
     Frames are ``vehicle_pose``'s timestamps in increasing order; rows of other components whose
     timestamp is not among them raise :class:`WaymoFormatError`.
 
@@ -568,6 +607,8 @@ def load_scene(root: str, split: str, segment: str, cameras: Sequence[int] = (1,
                     open_component("lidar_camera_projection"), lidar_returns, timestamps, returns)
 
         boxes = _read_boxes(open_component("lidar_box"), timestamps)
+        if fs.exists(f"{base}/{split}/lidar_camera_synced_box/{segment}.parquet"):
+            source_stats.update(_read_synced_boxes(open_component("lidar_camera_synced_box"), timestamps, boxes))
         return Scene(segment=segment, split=split, timestamps_micros=timestamps,
                      world_from_vehicle=world_from_vehicle, cameras=camera_frames,
                      lidar=lidar_returns, boxes=boxes,
