@@ -150,18 +150,21 @@ def to_markdown(results: list[dict], setup: dict, machine: str) -> str:
              f"`trajectory/linear` = the trajectory with yaw-only labels' tilt a line in time (`label_tilt=\"linear\"`, "
              f"`static_objects=False`), `no-static` = the defaults but `RefineConfig(static_objects=False)`, "
              f"`trajectory` = the defaults (`label_time=\"auto\"`, `label_tilt=\"constant\"`, static objects held at "
-             f"one world pose). Per clip of >= 8 frames: "
+             f"one world pose), `synced` = the defaults and `synced_boxes=True` (`lidar_camera_synced_box` "
+             f"as trajectory samples). Per clip of >= 8 frames: "
              f"median px error over truth-visible point-frames and AJ (query mode `first`). Target (exact "
-             f"labels): every clip median <= 0.05 px and AJ >= 0.99; with noise pooled AJ >= 0.90. "
+             f"labels): every clip median <= 0.05 px and AJ >= 0.99; with noise pooled AJ (weighted by tracks) >= 0.90. "
              f"Machine: {machine}.", "",
              "| lidar_box time | label noise | model | clips | clips meeting target | worst clip median px | "
-             "median of clip medians px | min AJ | mean AJ | annotate s |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "median of clip medians px | min AJ | mean AJ | AJ weighted by tracks | annotate s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         for model, m in r["models"].items():
             s = m["summary"]
             lines.append(f"| {r['label_time']} | {r['noise_m'] * 100:.0f} cm | {model} | {s['clips']} | "
                          f"{s['clips_meeting']} | {_f(s['worst_median_px'], 3)} | {_f(s['median_of_medians_px'], 3)} | "
-                         f"{_f(s['min_aj'])} | {_f(s['mean_aj'])} | {m['annotate_s']:.0f} |")
+                         f"{_f(s['min_aj'])} | {_f(s['mean_aj'])} | {_f(s['track_weighted_aj'], 4)} | "
+                         f"{m['annotate_s']:.0f} |")
     for r in results:
         if r["noise_m"] > 0 and r["label_time"] != "frame":
             continue
