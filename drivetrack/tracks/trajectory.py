@@ -185,7 +185,7 @@ def synced_samples(scene) -> tuple[np.ndarray, np.ndarray]:
     (``Boxes.synced_camera``) captured the box centre: the label centre moving at its labelled
     ``speed`` (0 where NaN), projected with that camera's rolling shutter and the ego motion
     (:func:`drivetrack.camera.rolling_shutter.project_world`), as Waymo's ``label.proto`` solves
-    it. ``shift_world`` is ``Boxes.synced_shift`` in the world frame (metres). None where the scene
+    it. ``shift_world`` is ``Boxes.synced_shift`` in the world frame (metres). NaN where the scene
     has no synced box for the row, its camera is not loaded, the centre does not project (behind
     the camera), ``|offset_s|`` is below :data:`MIN_SYNCED_OFFSET_S` (the same time as the
     label: nothing to add), or all of the object's boxes sit at one world position (within
