@@ -102,3 +102,18 @@ def test_windowed_motion_is_exact_for_constant_acceleration_inside_the_track():
     assert ok.all()
     np.testing.assert_allclose(v1[1, 0], (x[2] - x[0]) / 0.2)         # central differences
     assert abs(v2[0, 0] - 3.0) > 0.05       # (a one-sided window at the ends: biased by the acceleration)
+
+
+def test_motion_prior_runs_at_the_label_times_unless_they_do_not_advance():
+    """The refinement's motion prior samples each box at its label time (frame time + label
+    offset); an object on the sweep's seam behind the vehicle (labelled at the end of one sweep,
+    the start of the next) keeps its frame times rather than two boxes a few ms apart."""
+    from drivetrack.refine.scene import _box_times
+
+    frame = np.arange(5) * 0.1
+    np.testing.assert_array_equal(_box_times(frame, None), frame)
+    beside = np.array([-0.030, -0.028, -0.025, -0.021, -0.016])
+    np.testing.assert_allclose(_box_times(frame, beside), frame + beside)
+    seam = np.array([0.040, 0.048, -0.045, -0.040, -0.035])
+    np.testing.assert_array_equal(_box_times(frame, seam), frame)
+    np.testing.assert_array_equal(_box_times(frame[:1], seam[:1]), frame[:1])
