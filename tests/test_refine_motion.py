@@ -117,3 +117,28 @@ def test_motion_prior_runs_at_the_label_times_unless_they_do_not_advance():
     seam = np.array([0.040, 0.048, -0.045, -0.040, -0.035])
     np.testing.assert_array_equal(_box_times(frame, seam), frame)
     np.testing.assert_array_equal(_box_times(frame[:1], seam[:1]), frame[:1])
+
+
+@pytest.fixture(scope="module")
+def sweep_noisy(tmp_path_factory):
+    """A car passing close beside the ego seen by SIDE_LEFT, boxes labelled when the sweep passed
+    them, 5 cm / 1 deg label noise (the scene of tests/test_time_scene.py with noisy labels)."""
+    src = str(tmp_path_factory.mktemp("sweep_noisy") / "src")
+    seg = generate_segment(src, SynthConfig(seed=7, frames=10, preset="small", cameras=("SIDE_LEFT",), world="hard",
+                                            label_time="sweep", box_noise_m=0.05), 0)["segment"]
+    return src, seg, load_ground_truth(src, "training", seg).objects
+
+
+def test_the_extent_term_pins_a_box_car_seen_side_on_along_the_road(sweep_noisy):
+    """The close pass shows the lidar its side (a plane: nothing along the road) in most frames;
+    where the side's returns end pins it there (``extent_sigma_m``, docs/refinement.md, "Extent")."""
+    src, seg, truth = sweep_noisy
+    role = dict(zip(truth["object_id"].astype(str), truth["role"].astype(str)))
+    close = next(o for o, r in role.items() if r == "close_pass")
+    track = TrackConfig(cameras=("SIDE_LEFT",), min_frames=8, label_time="sweep")
+    scene = load_scene_for(src, "training", seg, AnnotateConfig(track=track), refine=False)
+    off, on = (refine_scene(scene, AnnotateConfig(track=track, refine_options={"extent_sigma_m": sigma}))
+               for sigma in (None, 0.01))
+    assert on.box_refinement[close]["refine_applied"]
+    along_off, along_on = (np.abs(_errors(s, truth, close)[:, 0]) for s in (off, on))
+    assert along_on.max() < 0.6 * along_off.max(), (along_off, along_on)
