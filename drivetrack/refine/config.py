@@ -85,7 +85,10 @@ class RefineConfig:
             in each frame that sees a side, the first and last returns along the body's x axis
             are the object's ends; each frame's ends against the median ends over the frames
             measure its position along its heading with this sigma (m). A box-like side face
-            alone does not pin that (docs/refinement.md, "Extent"). None: off.
+            alone does not pin that (docs/refinement.md, "Extent": 0.01 measured mixed, large
+            gains and losses by world, so off by default). Not applied to an object
+            whose returns were found to carry range noise (``sweep_surface_max_m``: they were
+            moved onto their sweep's surface), whose ends scatter along the side. None: off.
         slip_sigma_mps: the no-side-slip prior of wheeled objects (``refine_object_poses(...,
             wheeled=True)``; ``refine_scene_boxes``: VEHICLE and CYCLIST): between consecutive
             frames, the lateral velocity (m/s) of the point on the box's long axis that drives
@@ -183,7 +186,7 @@ class RefineConfig:
     yaw_accel_sigma_radps2: float = 1.0
     jerk_sigma_mps3: float | None = 5.0
     slip_sigma_mps: float | None = 0.02
-    extent_sigma_m: float | None = 0.01
+    extent_sigma_m: float | None = None
     pitch_roll_sigma_deg: float | None = 1.0
     pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60

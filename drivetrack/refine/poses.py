@@ -193,7 +193,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         wheeled: the object drives on wheels (a vehicle or a cyclist): with
             ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
             a pedestrian steps sideways, so not to it); with ``config.extent_sigma_m`` the
-            extent term too (:mod:`drivetrack.refine.extent`).
+            extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
+            given (returns with range noise).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
     Raises:
@@ -306,7 +307,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         sigma_slip, max_slip_offset = float(config.slip_sigma_mps), float(half[:, 0].max())
         slip_offset = slip_offset_guess(label_center, label_heading, world_from_vehicle, timestamps_s, sigma_slip,
                                         max_slip_offset)
-    extent = wheeled and config.extent_sigma_m is not None and t_count >= EXTENT_MIN_FRAMES
+    # not where the returns carry range noise (moved onto their sweep's surface: points_measured):
+    # noise along a ray near an end runs partly along the side and scatters the ends
+    extent = (wheeled and config.extent_sigma_m is not None and t_count >= EXTENT_MIN_FRAMES
+              and points_measured is None)
     if extent:       # the returns that may be a side's ends, chosen once at the labels
         ends = end_candidates(points, frame, label_center, label_heading, label_tilt if six else None, half,
                               config.inlier_margin_m + config.max_correspondence_m)
