@@ -195,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed-changes", type=float, default=0.0, metavar="MPS2",
                     help="SynthConfig.speed_changes_mps2: movers brake and speed up by up to this (default 0)")
     ap.add_argument("--car-shape", choices=list(CAR_SHAPES), default="box",
-                    help="SynthConfig.car_shape: 'cabin' makes every vehicle a body and a cabin (default box)")
+                    help="SynthConfig.car_shape: 'cabin' makes every vehicle a body and a cabin, "
+                         "'rounded' rounds the body's corners too (default box)")
     ap.add_argument("--refine-options", type=json.loads, default={}, metavar="JSON",
                     help="RefineConfig overrides applied to every model, e.g. '{\"accel_sigma_mps2\": 1.0}'")
     args = ap.parse_args(argv if argv is not None else [])

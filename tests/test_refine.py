@@ -979,11 +979,13 @@ def test_the_no_slip_point_is_found_behind_the_centre_of_a_turning_car():
 
 def test_the_no_slip_prior_is_for_wheeled_objects_only():
     """A pedestrian steps sideways: the prior applies only when the caller says the object is on
-    wheels (``refine_scene_boxes``: VEHICLE and CYCLIST), and only with ``slip_sigma_mps`` set."""
+    wheels (``refine_scene_boxes``: VEHICLE and CYCLIST), and only with ``slip_sigma_mps`` set; so
+    does the extent term (a walker's legs move its ends)."""
     exact, labels, wfv, pts, frame, ts = make_object(t_count=12, seed=5)
-    plain = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=None), wheeled=True)
+    plain = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=None, extent_sigma_m=None),
+                                wheeled=True)
     walker = refine_object_poses(labels, SIZE, wfv, pts, frame, ts, RefineConfig(slip_sigma_mps=0.02), wheeled=False)
-    np.testing.assert_array_equal(plain.vehicle_from_box, walker.vehicle_from_box)
+    np.testing.assert_array_equal(plain.vehicle_from_box, walker.vehicle_from_box)     # (the extent term too)
     assert np.isnan(walker.slip_offset_m)
     with pytest.raises(ValueError, match="slip_sigma_mps"):
         RefineConfig(slip_sigma_mps=-1.0)

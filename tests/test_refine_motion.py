@@ -102,3 +102,43 @@ def test_windowed_motion_is_exact_for_constant_acceleration_inside_the_track():
     assert ok.all()
     np.testing.assert_allclose(v1[1, 0], (x[2] - x[0]) / 0.2)         # central differences
     assert abs(v2[0, 0] - 3.0) > 0.05       # (a one-sided window at the ends: biased by the acceleration)
+
+
+def test_motion_prior_runs_at_the_label_times_unless_they_do_not_advance():
+    """The refinement's motion prior samples each box at its label time (frame time + label
+    offset); an object on the sweep's seam behind the vehicle (labelled at the end of one sweep,
+    the start of the next) keeps its frame times rather than two boxes a few ms apart."""
+    from drivetrack.refine.scene import _box_times
+
+    frame = np.arange(5) * 0.1
+    np.testing.assert_array_equal(_box_times(frame, None), frame)
+    beside = np.array([-0.030, -0.028, -0.025, -0.021, -0.016])
+    np.testing.assert_allclose(_box_times(frame, beside), frame + beside)
+    seam = np.array([0.040, 0.048, -0.045, -0.040, -0.035])
+    np.testing.assert_array_equal(_box_times(frame, seam), frame)
+    np.testing.assert_array_equal(_box_times(frame[:1], seam[:1]), frame[:1])
+
+
+@pytest.fixture(scope="module")
+def sweep_noisy(tmp_path_factory):
+    """A car passing close beside the ego seen by SIDE_LEFT, boxes labelled when the sweep passed
+    them, 5 cm / 1 deg label noise (the scene of tests/test_time_scene.py with noisy labels)."""
+    src = str(tmp_path_factory.mktemp("sweep_noisy") / "src")
+    seg = generate_segment(src, SynthConfig(seed=7, frames=10, preset="small", cameras=("SIDE_LEFT",), world="hard",
+                                            label_time="sweep", box_noise_m=0.05), 0)["segment"]
+    return src, seg, load_ground_truth(src, "training", seg).objects
+
+
+def test_the_extent_term_pins_a_box_car_seen_side_on_along_the_road(sweep_noisy):
+    """The close pass shows the lidar its side (a plane: nothing along the road) in most frames;
+    where the side's returns end pins it there (``extent_sigma_m``, docs/refinement.md, "Extent")."""
+    src, seg, truth = sweep_noisy
+    role = dict(zip(truth["object_id"].astype(str), truth["role"].astype(str)))
+    close = next(o for o, r in role.items() if r == "close_pass")
+    track = TrackConfig(cameras=("SIDE_LEFT",), min_frames=8, label_time="sweep")
+    scene = load_scene_for(src, "training", seg, AnnotateConfig(track=track), refine=False)
+    off, on = (refine_scene(scene, AnnotateConfig(track=track, refine_options={"extent_sigma_m": sigma}))
+               for sigma in (None, 0.01))
+    assert on.box_refinement[close]["refine_applied"]
+    along_off, along_on = (np.abs(_errors(s, truth, close)[:, 0]) for s in (off, on))
+    assert along_on.max() < 0.6 * along_off.max(), (along_off, along_on)

@@ -363,3 +363,34 @@ def test_body_pedestrians_are_legs_torso_arms_and_head_inside_their_label_box(tm
     assert not (hits["visible"] & ~hits["facing"]).any()
     with pytest.raises(ValueError, match="pedestrian_shape"):
         SynthConfig(pedestrian_shape="stick")
+
+
+def test_rounded_cars_have_their_body_corners_rounded_inside_the_label_box():
+    """``car_shape="rounded"``: the cabin car with each body corner cut by steps whose outer
+    corners lie on a circle of radius 0.2 W, so a side's returns end where the corner turns away
+    (which depends on where it is seen from); the label box is still their tight bounding box."""
+    from drivetrack.synth.raycast import intersect_solids
+    from drivetrack.synth.world import cabin_parts, rounded_parts, with_car_shape
+
+    size = (4.6, 1.9, 1.6)
+    parts = rounded_parts(size)
+    assert parts[-1] == cabin_parts(size)[1]                      # the cabin, unchanged
+    lo = np.min([np.subtract(o, h) for o, h in parts], axis=0)
+    hi = np.max([np.add(o, h) for o, h in parts], axis=0)
+    np.testing.assert_allclose(lo, -np.array(size) / 2, atol=1e-12)
+    np.testing.assert_allclose(hi, np.array(size) / 2, atol=1e-12)
+    radius = 0.2 * size[1]
+    centre = np.array([size[0] / 2 - radius, size[1] / 2 - radius])
+    corners = np.array([h[:2] for _, h in parts[:-1]])
+    np.testing.assert_allclose(np.linalg.norm(corners - centre, axis=1), radius, atol=1e-12)
+    # across the corner at 45 degrees: a box's corner would be hit at (2.3, 0.95); the rounded
+    # body is hit inside the circle's bounding square, outside the circle
+    solids = tuple((np.asarray(o), np.asarray(h)) for o, h in parts)
+    direction = -np.array([[1.0, 1.0, 0.0]]) / np.sqrt(2.0)
+    origin = np.array([[2.3 + 3.0, 0.95 + 3.0, -0.5]])
+    t_in = intersect_solids(origin, direction, np.zeros(3), 0.0, solids)[0]
+    hit = origin[0, :2] + t_in[0] * direction[0, :2]
+    assert np.all(hit < [2.3, 0.95]) and np.linalg.norm(hit - centre) >= radius - 1e-9
+    assert np.linalg.norm(hit - centre) < radius + 0.06
+    with pytest.raises(ValueError, match="car shape"):
+        with_car_shape(None, "round")

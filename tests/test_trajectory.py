@@ -174,6 +174,48 @@ def test_auto_picks_the_convention_of_the_labels(label_time, motion):
     assert decision[right] < 0.5 * decision[wrong]
 
 
+def test_refined_boxes_keep_the_label_times_they_were_registered_at():
+    """``carry_label_times`` hands the labels' sweep times to the refined boxes row for row: the
+    refinement registered each box's returns at its label's time, and times recomputed from the
+    refined centres (moved by the label error) would differ by the error's azimuth."""
+    from drivetrack.tracks.trajectory import carry_label_times, scene_label_times
+
+    scene, _, _ = _scene(_straight, "sweep")
+    config = TrackConfig(label_time="auto")
+    offsets, decision = scene_label_times(scene, config)
+    assert decision["label_time"] == "sweep"
+
+    def refined():              # the same rows, centres 30 cm further out (another azimuth)
+        boxes = Boxes(**{k: v for k, v in scene.boxes.__dict__.items()})
+        boxes.center = scene.boxes.center + [0.0, 0.3, 0.0]
+        return SimpleNamespace(segment="unit", boxes=boxes, lidar=scene.lidar, timestamps_micros=scene.timestamps_micros,
+                               world_from_vehicle=scene.world_from_vehicle)
+
+    recomputed = scene_label_times(refined(), TrackConfig(label_time="sweep"))[0]
+    assert np.abs(recomputed - offsets).max() > 2e-4          # what the refined boxes would get alone
+    carried = refined()
+    carry_label_times(scene, carried, config)
+    for label_time in ("auto", "sweep"):
+        got, got_decision = scene_label_times(carried, TrackConfig(label_time=label_time))
+        np.testing.assert_array_equal(got, offsets)
+        assert got_decision["label_time"] == "sweep"
+    assert not scene_label_times(carried, TrackConfig(label_time="frame"))[0].any()
+
+
+def test_labels_motion_is_timed_at_their_label_times():
+    """``scene_box_motion(..., label_offset_s=)``: a car keeping its speed beside the ego, each box
+    labelled when the sweep passed it (up to ~4 ms later each frame as it comes alongside),
+    moves at its speed; its finite differences over the frame times are off by that change."""
+    from drivetrack.tracks.sweep_motion import scene_box_motion
+
+    scene, times, label_times = _scene(lambda t: _straight(t, accel=0.0), "sweep")
+    velocity, yaw_rate = scene_box_motion(scene, label_offset_s=label_times - times)
+    np.testing.assert_allclose(velocity, np.tile([12.0, 0.0, 0.0], (times.size, 1)), atol=1e-9)
+    np.testing.assert_allclose(yaw_rate, 0.0, atol=1e-12)
+    at_frame_times = scene_box_motion(scene)[0]
+    assert np.abs(at_frame_times[:, 0] - 12.0).max() > 0.2
+
+
 def test_track_config_checks_time_settings():
     with pytest.raises(ValueError, match="time_model"):
         TrackConfig(time_model="spline")

@@ -46,11 +46,12 @@ def add_parser(sub) -> None:
     p.add_argument("--label-time", choices=["frame", "sweep"], default="frame",
                    help="lidar_box at the frame time (default) or where the object was when the "
                         "TOP sweep passed it")
-    p.add_argument("--car-shape", choices=["box", "cabin"], default="box",
+    p.add_argument("--car-shape", choices=["box", "cabin", "rounded"], default="box",
                    help="box: every vehicle is its label box (default); cabin: a lower body and a "
                         "narrower, shorter cabin on it, the label box their bounding box (bonnet "
                         "and boot below the glasshouse: faces the box does not have, and empty "
-                        "corners inside the label box)")
+                        "corners inside the label box); rounded: the cabin car with the body's "
+                        "corners rounded in plan view")
     p.add_argument("--pedestrian-shape", choices=["box", "body"], default="box",
                    help="box: every pedestrian is its label box (default); body: legs mid-stride, a "
                         "torso, swinging arms and a head, the label box their bounding box (a near "

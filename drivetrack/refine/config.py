@@ -81,6 +81,14 @@ class RefineConfig:
             body and a cabin, on 4 s ones; on 1 s box-car segments it lost on one world and
             gained on another (docs/refinement.md, "Jerk"). None: off. Exact labels are kept
             either way.
+        extent_sigma_m: the extent term of wheeled objects (:mod:`drivetrack.refine.extent`):
+            in each frame that sees a side, the first and last returns along the body's x axis
+            are the object's ends; each frame's ends against the median ends over the frames
+            measure its position along its heading with this sigma (m). A box-like side face
+            alone does not pin that (docs/refinement.md, "Extent": 0.01 measured mixed, large
+            gains and losses by world, so off by default). Not applied to an object
+            whose returns were found to carry range noise (``sweep_surface_max_m``: they were
+            moved onto their sweep's surface), whose ends scatter along the side. None: off.
         slip_sigma_mps: the no-side-slip prior of wheeled objects (``refine_object_poses(...,
             wheeled=True)``; ``refine_scene_boxes``: VEHICLE and CYCLIST): between consecutive
             frames, the lateral velocity (m/s) of the point on the box's long axis that drives
@@ -178,6 +186,7 @@ class RefineConfig:
     yaw_accel_sigma_radps2: float = 1.0
     jerk_sigma_mps3: float | None = 5.0
     slip_sigma_mps: float | None = 0.02
+    extent_sigma_m: float | None = None
     pitch_roll_sigma_deg: float | None = 1.0
     pitch_roll_accel_sigma_radps2: float = 0.1
     min_points_total: int = 60
@@ -226,6 +235,10 @@ class RefineConfig:
         if self.sample_voxel_m is not None and not (isinstance(self.sample_voxel_m, (int, float))
                                                     and np.isfinite(self.sample_voxel_m) and self.sample_voxel_m > 0):
             raise ValueError(f"RefineConfig.sample_voxel_m must be None or a positive number, got {self.sample_voxel_m!r}")
+        if self.extent_sigma_m is not None and not (isinstance(self.extent_sigma_m, (int, float))
+                                                    and not isinstance(self.extent_sigma_m, bool)
+                                                    and np.isfinite(self.extent_sigma_m) and self.extent_sigma_m > 0):
+            raise ValueError(f"RefineConfig.extent_sigma_m must be None or a positive number, got {self.extent_sigma_m!r}")
         if self.slip_sigma_mps is not None and not (isinstance(self.slip_sigma_mps, (int, float))
                                                     and np.isfinite(self.slip_sigma_mps) and self.slip_sigma_mps > 0):
             raise ValueError(f"RefineConfig.slip_sigma_mps must be None or a positive number, got {self.slip_sigma_mps!r}")

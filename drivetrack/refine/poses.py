@@ -9,6 +9,7 @@ import numpy as np
 from drivetrack.geometry import (box_from_center_heading, center_heading_from_poses, tilt_from_poses, vectors_from_box,
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
+from drivetrack.refine.extent import EXTENT_MIN_FRAMES, end_candidates, extent_shifts
 from drivetrack.refine.motion import SLIP_OFFSET_SIGMA_M, _motion_operator, _slip_terms, slip_offset_guess
 from drivetrack.refine.select import _body_points, _inside, _Selection, normal_priority, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
@@ -191,7 +192,9 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             would be replaced).
         wheeled: the object drives on wheels (a vehicle or a cyclist): with
             ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
-            a pedestrian steps sideways, so not to it).
+            a pedestrian steps sideways, so not to it); with ``config.extent_sigma_m`` the
+            extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
+            given (returns with range noise).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
     Raises:
@@ -304,6 +307,15 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         sigma_slip, max_slip_offset = float(config.slip_sigma_mps), float(half[:, 0].max())
         slip_offset = slip_offset_guess(label_center, label_heading, world_from_vehicle, timestamps_s, sigma_slip,
                                         max_slip_offset)
+    # not where the returns carry range noise (moved onto their sweep's surface: points_measured):
+    # noise along a ray near an end runs partly along the side and scatters the ends
+    extent = (wheeled and config.extent_sigma_m is not None and t_count >= EXTENT_MIN_FRAMES
+              and points_measured is None)
+    if extent:       # the returns that may be a side's ends, chosen once at the labels
+        ends = end_candidates(points, frame, label_center, label_heading, label_tilt if six else None, half,
+                              config.inlier_margin_m + config.max_correspondence_m)
+        end_points, end_frame = points[ends], frame[ends]
+        block = (np.arange(t_count) * dof)[:, None] + np.arange(3)                  # [T, 3] state indices
     for it in range(config.iterations):
         if it > 0:
             data = _data_terms(selection, center, heading, gates[it], config, t_count, tilt=tilt)
@@ -332,6 +344,15 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             g_b += slip_offset / SLIP_OFFSET_SIGMA_M ** 2
             hessian = hessian + H_slip - np.outer(h_xb, h_xb) / h_bb
             g = g + g_slip - h_xb * (g_b / h_bb)
+        if extent:
+            # each frame's ends against the median ends: a measurement along its heading
+            shift, used = extent_shifts(end_points, end_frame, center, heading, tilt, half, t_count,
+                                        config.inlier_margin_m, config.ground_clearance_m)
+            if used.any():
+                along = np.stack([np.cos(heading), np.sin(heading), np.zeros(t_count)], axis=-1)   # [T, 3]
+                weight = used / config.extent_sigma_m ** 2
+                g[block] -= (weight * shift)[:, None] * along
+                hessian[block[:, :, None], block[:, None, :]] += weight[:, None, None] * along[:, :, None] * along[:, None, :]
         dx = _solve_spd(hessian, -g, use_kernel)
         if slip and np.all(np.isfinite(dx)):
             slip_offset = float(np.clip(slip_offset - (g_b + h_xb @ dx) / h_bb, -max_slip_offset, max_slip_offset))

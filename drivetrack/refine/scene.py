@@ -49,7 +49,9 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     ``compensate_sweep_motion`` holds, candidates are first moved to the frame time with the
     labels' motion, as the track stage does; to each box's label time when ``label_offset_s``
     (float [K], label time minus frame time, s; :func:`drivetrack.tracks.trajectory.scene_label_times`)
-    is given, else to the frame time. With ``config.motion_passes`` > 1 the objects whose
+    is given, else to the frame time; the labels' finite-difference motion and the motion prior
+    are then timed at those label times too (an object beside the vehicle is labelled 1-1.5 ms
+    later each frame as the sweep meets it later). With ``config.motion_passes`` > 1 the objects whose
     registration was applied are registered again, their candidates moved with the registered
     boxes' motion (``config.motion_window``); the objects run on the segment's thread pool
     (:func:`drivetrack.parallel.pool_map`) when one is installed, with the same results.
@@ -103,7 +105,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
     if offsets is not None:
         from drivetrack.tracks.sweep_motion import scene_box_motion
 
-        label_motion = scene_box_motion(scene)
+        label_motion = scene_box_motion(scene, label_offset_s=label_offset_s)
     # Candidates of every box of every object at once: the returns of the box's frame within its
     # bounding cube (radius: half the diagonal plus the margin), in (box, row) order.
     all_rows = np.concatenate(object_rows) if object_rows else np.zeros(0, np.int64)
@@ -125,6 +127,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         oid, rows = ids[k], object_rows[k]
         update = {}
         frames = boxes.frame[rows].astype(np.int64)
+        times = _box_times(timestamps_s[frames], None if label_offset_s is None else label_offset_s[rows])
         vehicle_from_box = boxes.vehicle_from_box(rows)
         row_tilt = None if pitch_all is None and roll_all is None else np.stack(boxes.tilt(rows), axis=-1)  # [R, 2]
         index = index_all[bounds[k]:bounds[k + 1]]
@@ -161,7 +164,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         if oid in static:              # one pose: nothing frame to frame to register (refine/static.py)
             result = dataclasses.replace(
                 refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
-                                    p[inside], owner[inside], timestamps_s[frames],
+                                    p[inside], owner[inside], times,
                                     dataclasses.replace(config, enabled=False), name=f"{scene.segment}/{oid}"),
                 reason=RefineReason.STATIC,
                 detail="static: " + ("one world pose, the labels' mean" if oid in replaced
@@ -169,7 +172,7 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
                 num_points=np.bincount(owner[inside], minlength=rows.size).astype(np.int64))
         else:
             result = refine_object_poses(vehicle_from_box, boxes.size[rows], scene.world_from_vehicle[frames],
-                                         p[inside], owner[inside], timestamps_s[frames], config,
+                                         p[inside], owner[inside], times, config,
                                          name=f"{scene.segment}/{oid}", points_measured=measured,
                                          wheeled=int(boxes.type[rows[0]]) in WHEELED_TYPES)
         if result.refined:
@@ -220,10 +223,22 @@ def refine_scene_boxes(scene, config: RefineConfig | None = None, object_ids=Non
         if not again:
             break
         motion = scene_box_motion(dataclasses.replace(scene, boxes=with_updates(done)),
-                                  half=config.motion_window)
+                                  half=config.motion_window, label_offset_s=label_offset_s)
         done.update(run(again, motion))
     results = {oid: done[k][0] for k, oid in enumerate(ids)}
     return with_updates(done), results
+
+
+def _box_times(frame_s: np.ndarray, label_offset_s: np.ndarray | None) -> np.ndarray:
+    """float64 [R] seconds: the times an object's boxes describe (frame times ``frame_s`` [R] plus
+    ``label_offset_s`` [R], or the frame times when None), the motion prior's sample times. An
+    object whose label times do not advance by at least half a frame period from box to box (a
+    box on the sweep's seam behind the vehicle, labelled at the start of one sweep and the end of
+    the next) keeps its frame times."""
+    if label_offset_s is None or frame_s.size < 2:
+        return frame_s
+    times = frame_s + label_offset_s
+    return times if np.all(np.diff(times) > 0.5 * np.diff(frame_s)) else frame_s
 
 
 def _own_candidates(lidar, boxes, world_from_vehicle: np.ndarray, all_rows: np.ndarray, index: np.ndarray,

@@ -43,8 +43,9 @@ class SynthConfig:
     in the hard world, "frame" otherwise. ``label_time``: "frame" (``lidar_box`` = the box at the
     frame time) or "sweep" (the box where the object was when the TOP sweep passed its centre,
     still expressed in the vehicle frame of the frame time). ``car_shape``: "box" (every vehicle is
-    its label box) or "cabin" (a body and a cabin inside the label box, see
-    :func:`drivetrack.synth.world.cabin_parts`). ``pedestrian_shape``: "box" (every pedestrian is its
+    its label box), "cabin" (a body and a cabin inside the label box, see
+    :func:`drivetrack.synth.world.cabin_parts`) or "rounded" (the cabin car with the body's corners
+    rounded in plan view, :func:`drivetrack.synth.world.rounded_parts`). ``pedestrian_shape``: "box" (every pedestrian is its
     label box) or "body" (legs, torso, arms and head inside it, see
     :func:`drivetrack.synth.world.body_parts`). ``speed_changes_mps2``: 0 (every mover keeps its
     speed, the worlds before) or the largest along-track acceleration (m/s^2) with which moving

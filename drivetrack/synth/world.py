@@ -38,9 +38,14 @@ __all__ = ["Motion", "SynthObject", "World", "make_world", "with_car_shape", "wi
 #: ``SynthConfig.world`` values: the default scene, and the one adding the cases of issues 15/16.
 WORLDS = ("default", "hard")
 
-#: ``SynthConfig.car_shape`` values: "box" (every object is its label box) or "cabin" (a vehicle is
-#: a lower body and a narrower, shorter cabin on it; the label box is their tight bounding box).
-CAR_SHAPES = ("box", "cabin")
+#: ``SynthConfig.car_shape`` values: "box" (every object is its label box), "cabin" (a vehicle is
+#: a lower body and a narrower, shorter cabin on it; the label box is their tight bounding box) or
+#: "rounded" (the cabin car with the body's four corners rounded in plan view, :func:`rounded_parts`:
+#: its side's returns end where the corner turns away, which depends on where it is seen from).
+CAR_SHAPES = ("box", "cabin", "rounded")
+
+#: "rounded" corners: plan-view radius as a fraction of the width, and the boxes (steps) per corner
+_CORNER_RADIUS, _CORNER_STEPS = 0.2, 5
 
 #: The cabin shape as fractions of the label box (length L, width W, height H): the body is the
 #: whole length and width and the lower ``_BODY_HEIGHT`` of H; the cabin, the rest of the height,
@@ -311,6 +316,20 @@ def cabin_parts(size) -> tuple:
              (_CABIN_LENGTH * length / 2, _CABIN_WIDTH * width / 2, cabin / 2)))
 
 
+def rounded_parts(size) -> tuple:
+    """``parts`` of a vehicle of label ``size`` shaped as :func:`cabin_parts` with the body's four
+    corners rounded in plan view (radius ``_CORNER_RADIUS`` x W, 0.38 m on a 1.9 m wide car, a
+    bumper's), as ``_CORNER_STEPS`` full-height boxes whose corners lie on the rounding circle;
+    the label box is still their tight bounding box."""
+    length, width, height = (float(s) for s in size)
+    (body_centre, body_half), cabin = cabin_parts(size)
+    radius = _CORNER_RADIUS * width
+    angle = np.linspace(0.0, np.pi / 2, _CORNER_STEPS)
+    steps = tuple((body_centre, (length / 2 - radius + radius * float(np.sin(a)),
+                                 width / 2 - radius + radius * float(np.cos(a)), body_half[2])) for a in angle)
+    return steps + (cabin,)
+
+
 def body_parts(size) -> tuple:
     """``parts`` (:class:`SynthObject`) of a pedestrian of label ``size`` (L along its heading, W
     across, H) shaped as a walking body (:data:`PEDESTRIAN_SHAPES`), as (centre, half size) boxes
@@ -341,7 +360,8 @@ def with_car_shape(world: World, car_shape: str) -> World:
     """``world`` with every vehicle given ``car_shape`` (:data:`CAR_SHAPES`); nothing else changes
     (the same objects, motions, colours and labels), so a segment differs from the box world's only
     where a vehicle's shape does."""
-    return _with_shape(world, car_shape, CAR_SHAPES, BoxType.VEHICLE, cabin_parts, "car")
+    return _with_shape(world, car_shape, CAR_SHAPES, BoxType.VEHICLE,
+                       rounded_parts if car_shape == "rounded" else cabin_parts, "car")
 
 
 def _with_shape(world: World, shape: str, shapes: tuple, box_type, parts, what: str) -> World:

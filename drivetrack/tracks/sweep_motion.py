@@ -100,12 +100,14 @@ def box_motion_world(world_from_box: np.ndarray, time_s: np.ndarray,
     return velocity, yaw_rate, has_neighbour
 
 
-def scene_box_motion(scene, half: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def scene_box_motion(scene, half: int = 1,
+                     label_offset_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(velocity_vehicle float64 [K, 3] m/s, yaw_rate float64 [K] rad/s)`` of every box row.
 
     Velocity of each box in the vehicle frame of its own frame (the world velocity rotated by
-    ``vehicle_from_world``), from :func:`box_motion_world` over each object's track; a single-box
-    object uses its finite ``speed`` (else 0).
+    ``vehicle_from_world``), from :func:`box_motion_world` over each object's track, each box
+    taken at its frame time plus ``label_offset_s`` (float [K], s; None: 0), the time its pose
+    describes; a single-box object uses its finite ``speed`` (else 0).
     """
     boxes = scene.boxes
     if len(boxes) == 0:
@@ -113,6 +115,8 @@ def scene_box_motion(scene, half: int = 1) -> tuple[np.ndarray, np.ndarray]:
     world_from_vehicle = np.asarray(scene.world_from_vehicle, dtype=np.float64)[boxes.frame]
     world_from_box = world_from_vehicle @ boxes.vehicle_from_box()
     time_s = np.asarray(scene.timestamps_micros, dtype=np.float64)[boxes.frame] * 1e-6
+    if label_offset_s is not None:
+        time_s = time_s + np.asarray(label_offset_s, dtype=np.float64).reshape(len(boxes))
     velocity_world, yaw_rate, has_neighbour = box_motion_world(world_from_box, time_s,
                                                                boxes.object_id.astype(str), half=half)
     velocity = np.einsum("kji,kj->ki", world_from_vehicle[:, :3, :3], velocity_world)   # R^T v
