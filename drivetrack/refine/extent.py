@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivetrack.refine.select import _body_points
+from drivetrack.refine.select import _body_points, _inside
 
 #: side-face band: returns within this of the visible side's plane (body y = +-half width)
 EXTENT_BAND_M = 0.1
@@ -69,9 +69,7 @@ def extent_shifts(points: np.ndarray, frame: np.ndarray, center: np.ndarray, hea
         return shift, used
     body = _body_points(center, heading, points, frame, tilt)
     h = half[frame]
-    inside = (np.all(np.abs(body[:, :2]) <= h[:, :2] + inlier_margin_m, axis=-1)
-              & (body[:, 2] >= -h[:, 2] + clearance_m) & (body[:, 2] <= h[:, 2] + inlier_margin_m))
-    band = inside & (np.abs(np.abs(body[:, 1]) - h[:, 1]) <= EXTENT_BAND_M)
+    band = _inside(body, h, inlier_margin_m, clearance_m) & (np.abs(np.abs(body[:, 1]) - h[:, 1]) <= EXTENT_BAND_M)
     # the visible side: the one with more returns in its band, frame by frame
     left = np.bincount(frame[band & (body[:, 1] > 0)], minlength=t_count)
     right = np.bincount(frame[band & (body[:, 1] < 0)], minlength=t_count)
