@@ -1736,3 +1736,60 @@ def test_occluder_hulls_hide_a_far_object_behind_a_near_roof_seen_at_a_grazing_a
     seen_inside = {h: int(((inside[h] > 0) & far[h].visibles[:, 0]).sum()) for h in far}
     assert seen_inside[False] > 2000 and seen_inside[True] < 0.05 * seen_inside[False]
     assert far[True].visibles[inside[True] < -0.5, 0].all()
+
+
+def test_normals_under_range_noise_from_cubes_sized_to_the_noise():
+    """A car's faces seen over 20 sweeps from a lidar passing 3 m beside it, each return with 2 cm
+    of range noise along its ray and each sweep's returns off by its registration (1 cm): the
+    2.5 cm cubes' means stack in a slab and their normals scatter (p90 over 7 degrees); cubes
+    sized to the cloud's spread about its planes (``normal_noise_cubes``, the default) hold them
+    to a few degrees. Exact returns: no spread, the fine cubes' normals bit for bit."""
+    from drivetrack.visibility.facing import noise_aware_normals, surface_spread_m
+    from drivetrack.visibility.zbuffer import surfel_means
+
+    rng = np.random.default_rng(5)
+    sweeps, normals, noisy = [], [], []
+    for k in range(20):
+        points, true_normal = _box_cloud(rng, per_face=3000)
+        sensor = np.array([-6.0 + 0.6 * k, 3.0, 1.5])
+        seen = np.einsum("ni,ni->n", true_normal, sensor - points) > 0
+        points, true_normal = points[seen], true_normal[seen]
+        ray = points - sensor
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        sweeps.append(points)
+        normals.append(true_normal)
+        noisy.append(points + rng.normal(0.0, 0.02, size=(len(points), 1)) * ray + rng.normal(0.0, 0.01, 3))
+    points, true_normal, noisy = (np.concatenate(x) for x in (sweeps, normals, noisy))
+    inner = np.sum(np.abs(points) > np.array([2.0, 0.9, 0.75]) - 0.15, axis=1) <= 1       # off the edges
+    clip = rng.choice(np.flatnonzero(inner), 3000, replace=False)
+    config = TrackConfig()
+    cube_m = 0.5 * config.surfel_radius_m
+
+    def errors_deg(fitted):
+        at = fitted.on_plane(noisy[clip])
+        cosine = np.abs(np.einsum("ni,ni->n", fitted.normal[at], true_normal[clip]))
+        return np.degrees(np.arccos(np.clip(cosine, -1, 1)))
+
+    fine = noise_aware_normals(surfel_means(noisy, cube_m), cube_m, config.normal_neighbours,
+                               config.normal_neighbourhood, None)
+    aware = noise_aware_normals(surfel_means(noisy, cube_m), cube_m, config.normal_neighbours,
+                                config.normal_neighbourhood, config.normal_noise_cubes, returns_of=lambda: noisy)
+    assert 0.005 < surface_spread_m(fine) < 0.03
+    assert aware.cloud.shape[0] < 0.2 * fine.cloud.shape[0]                # coarser cubes
+    before, after = np.percentile(errors_deg(fine), 90), np.percentile(errors_deg(aware), 90)
+    assert before > 7.0 and after < 3.0
+
+    # exact returns: no spread, nothing coarsened (returns_of never called)
+    exact_fine = surfel_means(points, cube_m)
+
+    def never():
+        raise AssertionError("exact returns must not be re-cubed")
+
+    exact = noise_aware_normals(exact_fine, cube_m, config.normal_neighbours, config.normal_neighbourhood,
+                                config.normal_noise_cubes, returns_of=never)
+    assert surface_spread_m(exact) < 1e-6
+    plain = noise_aware_normals(exact_fine, cube_m, config.normal_neighbours, config.normal_neighbourhood, None)
+    np.testing.assert_array_equal(exact.normal, plain.normal)
+    with pytest.raises(ValueError, match="normal_noise_cubes"):
+        TrackConfig(normal_noise_cubes=0)
+    assert TrackConfig(normal_noise_cubes=None).normal_noise_cubes is None

@@ -103,6 +103,12 @@ class TrackConfig:
             cloud point's (before; a 2.5 cm
             cube's mean across the edge gave the other face's normal: docs/visibility.md
             "Normals near an edge").
+        normal_noise_cubes: where an object's returns carry range noise, its back-face normals
+            are fitted on the means of cubes of this many times the cloud's spread about its
+            planes (at most 12 cm) instead of the 2.5 cm cubes, which stack in a slab under the
+            noise (:func:`drivetrack.visibility.facing.noise_aware_normals`; docs/visibility.md
+            "Normals under range noise"). Default 12 (since 2026-11-29, twenty-ninth session;
+            measured); None: the fine cubes always. Exact ranges are left bit for bit.
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -247,6 +253,7 @@ class TrackConfig:
     normal_neighbours: int = 30
     normal_neighbourhood: str = "shifted"
     normal_transfer: str = "plane"
+    normal_noise_cubes: float | None = 12.0
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
@@ -335,6 +342,11 @@ class TrackConfig:
                              f"got {self.normal_neighbourhood!r}")
         if self.normal_transfer not in NORMAL_TRANSFERS:
             raise ValueError(f"TrackConfig.normal_transfer must be 'plane' or 'nearest', got {self.normal_transfer!r}")
+        if self.normal_noise_cubes is not None and not (
+                isinstance(self.normal_noise_cubes, (int, float)) and not isinstance(self.normal_noise_cubes, bool)
+                and 0 < self.normal_noise_cubes <= 100):
+            raise ValueError(f"TrackConfig.normal_noise_cubes must be None or a factor in (0, 100], "
+                             f"got {self.normal_noise_cubes!r}")
         if not (isinstance(self.normal_neighbours, int) and self.normal_neighbours >= 3):
             raise ValueError(f"TrackConfig.normal_neighbours must be an integer >= 3, got {self.normal_neighbours!r}")
         if self.occlusion not in OCCLUSION_METHODS:

@@ -559,6 +559,15 @@ def _object_rows(boxes, object_id: str) -> np.ndarray:
     return rows[np.argsort(boxes.frame[rows], kind="stable")]
 
 
+def _segment_points(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame (on the
+    trajectory of ``poses``)."""
+    boxes = plan.scene.boxes
+    all_rows = _object_rows(boxes, object_id)
+    lidar_rows, source = plan.box_points(all_rows)
+    return _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+
+
 def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
     """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
     both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
@@ -566,10 +575,7 @@ def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray
 
     clouds = plan.occluder_cache.get(object_id)
     if clouds is None:
-        boxes = plan.scene.boxes
-        all_rows = _object_rows(boxes, object_id)
-        lidar_rows, source = plan.box_points(all_rows)
-        points_box = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+        points_box = _segment_points(plan, object_id, poses)
         cube_m = _surfel_cube_m(plan.config)
         first, means = surfel_first_and_means(points_box, cube_m)
         clouds = (points_box[first], means)
@@ -610,14 +616,19 @@ def segment_normals_cloud(plan, object_id: str, poses) -> np.ndarray:
 
 def segment_cloud_normals(plan, object_id: str, poses):
     """The :func:`drivetrack.visibility.cloud_normals` of :func:`segment_normals_cloud` (None when
-    it has fewer points than ``normal_neighbours``), computed once per object and segment
-    (``plan.occluder_cache``): every camera's clip of the object takes its points' normals from them."""
-    from drivetrack.visibility import cloud_normals
+    it has fewer points than ``normal_neighbours``), or of coarser cubes' means where the returns
+    carry range noise (``normal_noise_cubes``; :func:`drivetrack.visibility.facing.noise_aware_normals`),
+    computed once per object and segment (``plan.occluder_cache``): every camera's clip of the
+    object takes its points' normals from them."""
+    from drivetrack.visibility.facing import noise_aware_normals
 
     key = f"{object_id}#normals"
     if key not in plan.occluder_cache:
-        plan.occluder_cache[key] = cloud_normals(segment_normals_cloud(plan, object_id, poses),
-                                                 plan.config.normal_neighbours, plan.config.normal_neighbourhood)
+        config = plan.config
+        plan.occluder_cache[key] = noise_aware_normals(
+            segment_normals_cloud(plan, object_id, poses), _surfel_cube_m(config), config.normal_neighbours,
+            config.normal_neighbourhood, config.normal_noise_cubes,
+            returns_of=lambda: _segment_points(plan, object_id, poses))
     return plan.occluder_cache[key]
 
 
