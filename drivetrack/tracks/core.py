@@ -636,7 +636,8 @@ def _pocket_points(plan, object_id: str, poses, p_box: np.ndarray, size: np.ndar
     """bool [n]: the points ``p_box`` float [n, 3] (box frame) of ``object_id`` that lie in a pocket
     of its convex hull (:func:`drivetrack.visibility.zbuffer.pocket_points`; ``size`` float [3],
     its label box's). On the trajectory with the segment's normals the pockets are found once per
-    object among the cubes of :func:`segment_normals_cloud` (``plan.occluder_cache``) and each
+    object among the cubes the normals are fitted on (:func:`segment_cloud_normals`: those of
+    :func:`segment_normals_cloud`, coarser under range noise; ``plan.occluder_cache``) and each
     point takes its nearest cube's; otherwise among the points themselves, against the hull of
     their own thinned cloud."""
     from drivetrack.visibility.zbuffer import pocket_points, surfel_subsample
