@@ -120,14 +120,14 @@ def _is_float_column(field) -> bool:
     return pa.types.is_floating(t)
 
 
-def _rounded(value):
+def _cell(value):
     """A table cell for the golden document (NaN and inf as text; ``_same`` compares floats)."""
     if isinstance(value, float):
         return value if value == value and abs(value) != float("inf") else str(value)
     if isinstance(value, list):
-        return [_rounded(v) for v in value]
+        return [_cell(v) for v in value]
     if isinstance(value, dict):
-        return {k: _rounded(v) for k, v in value.items()}
+        return {k: _cell(v) for k, v in value.items()}
     return value if isinstance(value, (int, str, bool, type(None))) else str(value)
 
 
@@ -153,7 +153,7 @@ def _digest_file(path: Path, rel: str, bases: dict[str, str]):
         # (statistics such as residuals and percentiles differ in their last bits between
         # numpy/BLAS builds, which is not a change of behaviour: ``_same``)
         return {"schema": [f"{f.name}:{f.type}" for f in table.schema],
-                "columns": {name: [_rounded(v) for v in values] for name, values in table.to_pydict().items()}}
+                "columns": {name: [_cell(v) for v in values] for name, values in table.to_pydict().items()}}
     if rel.endswith(".json"):
         return _mask_json(json.loads(data), bases)
     try:
