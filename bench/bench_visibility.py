@@ -48,19 +48,26 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py                   # medium preset, 20 frames, seed 7 (~10 min, ~5 GB)
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
-        --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
+        --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --pedestrian-shape body --variants "depth-ratio (paper),\
-+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~10 min
++ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~10 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~12 min
++ normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
-+ normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~15 min
++ normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~15 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --variants "depth-ratio (paper),\
-+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~6 min
++ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~6 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --label-noise 0.05 --variants "depth-ratio (paper),\
-registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls (default)"   # ~8 min
+registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
++ normals on cubes sized to the range noise (default)"   # ~8 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -271,7 +278,12 @@ VARIANTS["+ roofs the lidar did not sample"] = {}
 _BEFORE_HULLS = {"occluder_hulls": False}
 VARIANTS = {name: {**_BEFORE_HULLS, **overrides} for name, overrides in VARIANTS.items()}
 # the rays of that band decided by the other objects' convex hulls
-VARIANTS["+ outlines from the occluders' hulls (default)"] = {}
+VARIANTS["+ outlines from the occluders' hulls"] = {}
+# the variants above fit the back-face normals on the fine cubes whatever the range noise
+_BEFORE_NOISE_CUBES = {"normal_noise_cubes": None}
+VARIANTS = {name: {**_BEFORE_NOISE_CUBES, **overrides} for name, overrides in VARIANTS.items()}
+# under range noise, on cubes sized to the noise (exact ranges: the variant above, bit for bit)
+VARIANTS["+ normals on cubes sized to the range noise (default)"] = {}
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
     "own-box rule without a gap limit (before)": {"own_surface_max_gap_m": None},
