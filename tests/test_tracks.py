@@ -419,6 +419,36 @@ def test_occlusion_by_a_box_moving_in_front():
     assert n_inside > 1000 and n_outside > 1000
 
 
+def test_objects_of_types_not_annotated_still_hide_annotated_ones():
+    """A pedestrian steps in front of a parked car at frame 15, 0.45 m before its rear face: too
+    close in depth for the depth map's 5% rule (12.05 m against 12.5 m), so only the z-buffer
+    can hide the car's points behind it. Vehicles alone are annotated (the default); the
+    pedestrian occludes through ``occluder_types`` (default every labelled type), and with
+    ``occluder_types=("VEHICLE",)`` (the behaviour before it) those points stay visible."""
+    b = SceneBuilder()
+    b.add_object("car", world_center(b, 16.0))                      # rear face at x = 14 m
+    b.add_object("walker", world_center(b, 13.75, z=0.9), size=(0.4, 0.6, 1.8), type_=2, frames=range(15, b.t),
+                 spacing=0.05)
+    scene = b.build()
+    base = dict(rolling_shutter=False, depth_completer_options={"max_reach_px": 3.0})
+    plan = plan_segment(scene, TrackConfig(**base))
+    walker_rows = np.flatnonzero(scene.boxes.object_id == "walker")
+    assert plan.box_points(walker_rows)[0].size > 100                  # its returns are selected ...
+    assert {job.object_id for job in plan.jobs} == {"car"}           # ... but it is not annotated
+    # seen from the camera (x = 1.5 m), a car point at |y| < 0.31 m lies behind the walker
+    _, default = annotate(scene, TrackConfig(**base))
+    _, vehicles = annotate(scene, TrackConfig(**base, occluder_types=("VEHICLE",)))
+    for result in (default, vehicles):
+        car = result["car"]
+        y = car.points_box[:, 1]
+        behind, clear = np.abs(y) < 0.25, np.abs(y) > 0.4
+        assert behind.sum() > 100 and clear.sum() > 100
+        assert car.visibles[:, :15].all()                              # no walker yet: all seen
+        assert car.visibles[clear, 15:].all()
+    assert not default["car"].visibles[np.abs(default["car"].points_box[:, 1]) < 0.25, 15:].any()
+    assert vehicles["car"].visibles[np.abs(vehicles["car"].points_box[:, 1]) < 0.25, 15:].all()
+
+
 def test_object_seen_by_lidar_but_hidden_from_camera_is_rejected():
     b = SceneBuilder()
     b.lidar_origin = np.array([0.0, 0.0, 3.0])          # roof LiDAR sees over the wall

@@ -942,13 +942,14 @@ def test_hole_fill_and_labelled_outlines_left_to_the_zbuffer(hard_scene, tmp_pat
 
 
 def test_occluding_objects_lie_between_the_camera_and_a_clip():
-    """The objects the pose refinement refines besides the annotated ones: of the annotated types,
-    at a clip frame, nearer than the clip's object's far side and within its angular reach."""
+    """The objects the pose refinement refines besides the annotated ones: of the annotated or
+    occluding types (``occluder_types``: every labelled type by default), at a clip frame, nearer
+    than the clip's object's far side and within its angular reach."""
     from types import SimpleNamespace
 
     from drivetrack.tracks.core import occluding_objects
 
-    config = TrackConfig()                                   # annotates VEHICLE (type 1) only
+    config = TrackConfig(occluder_types=("VEHICLE",))        # annotates and splats VEHICLE (type 1) only
     #            target        between       behind        aside          a sign between  later frame
     ids = np.array(["target", "between", "behind", "aside", "sign", "later"])
     boxes = SimpleNamespace(
@@ -964,6 +965,9 @@ def test_occluding_objects_lie_between_the_camera_and_a_clip():
     # the angular reach: a box aside at 10 m is 56 degrees off the target's direction
     boxes.center[3] = [10.0, 2.5, 0]
     assert occluding_objects(plan) == {"between", "aside"}
+    # the default: the sign between hides the target too, though signs are not annotated
+    plan.config = TrackConfig()
+    assert occluding_objects(plan) == {"between", "aside", "sign"}
 
 
 def test_occluders_of_annotated_clips_are_refined_too(tmp_path):
@@ -992,7 +996,10 @@ def test_occluders_of_annotated_clips_are_refined_too(tmp_path):
     plain = refine_scene(scene, AnnotateConfig(track=config.track, refine_options={"occluders": False}))
     occluders = set(refined.box_refinement) - set(plain.box_refinement)
     moving = {o for o in occluders if np.linalg.norm(truth["velocity_world"][list(ids).index(o)], axis=-1).min() > 1.0}
-    assert moving == {slow}, (occluders, moving)
+    # the moving vehicle, and (``occluder_types``, default every labelled type) the walking
+    # pedestrians that may hide the annotated cars
+    assert {o for o in moving if truth["type"][list(ids).index(o)] == 1} == {slow}, (occluders, moving)
+    assert all(truth["type"][list(ids).index(o)] == 2 for o in moving - {slow}), (occluders, moving)
     assert refined.box_refinement[slow]["refine_applied"]
     # the annotated objects are refined exactly as before
     for oid, summary in plain.box_refinement.items():

@@ -38,6 +38,12 @@ class TrackConfig:
 
     Attributes:
         object_types: ``BoxType`` names annotated (default vehicles only).
+        occluder_types: ``BoxType`` names whose labelled objects hide the annotated ones in the
+            occlusion z-buffer whether or not they are annotated (default every labelled type:
+            a pedestrian, cyclist or sign in front of a car hides it as a car would; with
+            vehicles alone in the z-buffer their occlusion fell to the depth map's 5% rule).
+            Their returns are selected and their poses refined like the annotated objects';
+            ``object_types`` always occlude too. Used under ``occlusion="surface"``.
         cameras: ``CameraName`` names annotated (default the three front cameras; all five may be
             named, SIDE_LEFT / SIDE_RIGHT are 1920x886; docs/time.md).
         lasers: ``LaserName`` names whose returns form the object point clouds (default all).
@@ -156,7 +162,8 @@ class TrackConfig:
             on the object's surface, within [``surfel_radius_m``, ``surfel_max_radius_m``]
             (:func:`drivetrack.tracks.core.segment_surface_radius`; the clip's returns under
             ``time_model="velocity"`` keep ``surfel_radius_m``).
-            Only objects of ``object_types`` have returns, so only they occlude this way.
+            Only objects of ``object_types`` and ``occluder_types`` have returns, so only they
+            occlude this way.
         occluder_fill_px: the z-buffer is closed by this many pixels (a grey-level closing,
             nearest depth spread then the farthest taken back: holes up to twice as wide between an
             occluder's splats are filled at its depth, its outlines and depth steps stay where
@@ -235,6 +242,7 @@ class TrackConfig:
             always use it).
     """
     object_types: tuple[str, ...] = ("VEHICLE",)
+    occluder_types: tuple[str, ...] = ("VEHICLE", "PEDESTRIAN", "SIGN", "CYCLIST")
     cameras: tuple[str, ...] = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT")
     lasers: tuple[str, ...] = ("TOP", "FRONT", "SIDE_LEFT", "SIDE_RIGHT", "REAR")
     returns: tuple[int, ...] = (1, 2)
@@ -296,7 +304,7 @@ class TrackConfig:
     kernel: str = "numba"
 
     def __post_init__(self):
-        for name, enum_type in (("object_types", BoxType), ("cameras", CameraName),
+        for name, enum_type in (("object_types", BoxType), ("occluder_types", BoxType), ("cameras", CameraName),
                                 ("lasers", LaserName)):
             values = getattr(self, name)
             if isinstance(values, str):
@@ -406,6 +414,13 @@ class TrackConfig:
     @property
     def object_type_values(self) -> tuple[int, ...]:
         return tuple(int(BoxType[name]) for name in self.object_types)
+
+    @property
+    def returns_type_values(self) -> tuple[int, ...]:
+        """The ``BoxType`` values whose objects' returns are selected: annotated (``object_types``)
+        or occluding (``occluder_types``, under ``occlusion="surface"``)."""
+        occluding = self.occluder_types if self.occlusion == "surface" else ()
+        return tuple(sorted({int(BoxType[name]) for name in (*self.object_types, *occluding)}))
 
     @property
     def camera_values(self) -> tuple[int, ...]:

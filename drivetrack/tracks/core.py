@@ -759,8 +759,9 @@ def _can_occlude(boxes, camera_from_vehicle: np.ndarray, rows: np.ndarray, at: n
 
 
 def occluding_objects(plan) -> set[str]:
-    """Object ids of the labelled objects of the annotated types (``TrackConfig.object_types``:
-    only they have returns) that may hide part of some job's object in some clip image
+    """Object ids of the labelled objects of the annotated or occluding types
+    (``TrackConfig.object_types``, ``occluder_types``: only they have returns) that may hide part
+    of some job's object in some clip image
     (:func:`_can_occlude`, from the labels at frame time: no returns needed), the jobs' own
     objects excluded unless they occlude another. These are the other objects the
     occlusion z-buffer (:func:`_occluders`) carries; the pose refinement refines them too
@@ -769,7 +770,7 @@ def occluding_objects(plan) -> set[str]:
     scene = plan.scene
     boxes = scene.boxes
     found: set[str] = set()
-    typed = np.isin(boxes.type, plan.config.object_type_values)     # only these have returns
+    typed = np.isin(boxes.type, plan.config.returns_type_values)    # only these have returns
     slot = np.full(scene.num_frames, -1, dtype=np.int64)
     for job in plan.jobs:
         frames, rows = job.frames, job.box_rows

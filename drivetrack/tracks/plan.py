@@ -250,7 +250,9 @@ def plan_segment(scene: Scene, config: TrackConfig, select_points: bool = True) 
     ids = sorted(set(object_ids.tolist()))
     type_ok_rows = np.flatnonzero(np.isin(boxes.type, config.object_type_values))
     if select_points:
-        offsets, index = select_object_points(scene, config, type_ok_rows)
+        # the occluders' returns too (TrackConfig.occluder_types): the z-buffer splats them
+        offsets, index = select_object_points(scene, config,
+                                              np.flatnonzero(np.isin(boxes.type, config.returns_type_values)))
     else:
         offsets, index = np.zeros(len(boxes) + 1, dtype=np.int64), np.zeros(0, dtype=np.int64)
     cameras = {int(c): camera_geometry(scene, int(c)) for c in sorted(scene.cameras)}
