@@ -602,7 +602,20 @@ def segment_roof_fill(plan, object_id: str, poses) -> np.ndarray:
     key = f"{object_id}#roof"
     if key not in plan.occluder_cache:
         plan.occluder_cache[key] = roof_fill(segment_surface(plan, object_id, poses),
-                                             1.5 * float(plan.config.surfel_radius_m))
+                                             1.5 * float(plan.config.surfel_radius_m),
+                                             spanned=_segment_spanned(plan, object_id, poses))
+    return plan.occluder_cache[key]
+
+
+def _segment_spanned(plan, object_id: str, poses):
+    """:func:`drivetrack.visibility.zbuffer.returns_hull` of :func:`segment_surface`: the convex
+    hull both the roof fill and the occluder hull start from, once per object and segment
+    (``plan.occluder_cache``)."""
+    from drivetrack.visibility.zbuffer import returns_hull
+
+    key = f"{object_id}#spanned"
+    if key not in plan.occluder_cache:
+        plan.occluder_cache[key] = returns_hull(segment_surface(plan, object_id, poses))
     return plan.occluder_cache[key]
 
 
@@ -1041,7 +1054,7 @@ def segment_hull(plan, object_id: str, poses):
     if key not in plan.occluder_cache:
         cloud = segment_surface(plan, object_id, poses)
         surface = np.concatenate([cloud, segment_roof_fill(plan, object_id, poses)]) if plan.config.roof_fill else cloud
-        plan.occluder_cache[key] = occluder_hull(cloud, surface)
+        plan.occluder_cache[key] = occluder_hull(cloud, surface, spanned=_segment_spanned(plan, object_id, poses))
     return plan.occluder_cache[key]
 
 

@@ -417,11 +417,16 @@ ROOF_OUTLIER_M = 0.1
 ROOF_MAX_TILT_DEG = 11.5
 
 
-def _returns_hull(cloud: np.ndarray, outlier_m: float):
+#: :func:`roof_fill` / :func:`occluder_hull`'s ``spanned`` when the caller has none: computed there
+SPAN_HERE = object()
+
+
+def returns_hull(cloud: np.ndarray, outlier_m: float = ROOF_OUTLIER_M):
     """``(tree, kept bool [m], returns float64 [k, 3], hull)``: the convex hull
     (``scipy.spatial.ConvexHull``) of an object's returns ``cloud`` float [m, 3] with no other
     within ``outlier_m`` left out (``kept``), and a ``cKDTree`` of all of them; None for a cloud
-    too small or too flat (:func:`roof_fill`, :func:`occluder_hull`)."""
+    too small or too flat (:func:`roof_fill`, :func:`occluder_hull`: both of the same cloud and
+    ``outlier_m``, which the track stage computes once per object and hands to both). Read only."""
     from scipy.spatial import ConvexHull, QhullError, cKDTree
 
     cloud = np.asarray(cloud, np.float64)
@@ -440,7 +445,7 @@ def _returns_hull(cloud: np.ndarray, outlier_m: float):
 
 def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MAX_TILT_DEG,
               min_gap_m: float = ROOF_FILL_GAP_M, outline_step_m: float | None = None,
-              outlier_m: float = ROOF_OUTLIER_M) -> np.ndarray:
+              outlier_m: float = ROOF_OUTLIER_M, spanned=SPAN_HERE) -> np.ndarray:
     """float64 [h, 3]: the unsampled part of an object's roof (box frame, metres): points of the
     top of the convex hull of its surface ``cloud`` float [m, 3] (box frame, z up), on a grid of
     ``spacing_m`` in x and y, where the hull's top is level to ``max_tilt_deg`` and no point of
@@ -461,8 +466,10 @@ def roof_fill(cloud: np.ndarray, spacing_m: float, max_tilt_deg: float = ROOF_MA
     The upward facets' shadows tile the hull's in ``(x, y)``: a grid point in a level facet's
     shadow is on the roof, at that facet's plane. Points of ``cloud`` with no other within
     ``outlier_m`` are left out first (of the hull and of the gaps). A cloud too small or too flat
-    for a hull: none."""
-    spanned = _returns_hull(cloud, outlier_m)
+    for a hull: none. ``spanned``: :func:`returns_hull` of ``cloud`` and ``outlier_m`` when the
+    caller has it (computed here otherwise)."""
+    if spanned is SPAN_HERE:
+        spanned = returns_hull(cloud, outlier_m)
     if spanned is None:
         return np.zeros((0, 3))
     tree, kept, cloud, hull = spanned
@@ -588,7 +595,8 @@ def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity
 
 
 def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_m: float = ROOF_OUTLIER_M,
-                  surface_m: float = HULL_SURFACE_M, trust_m: float | None = None) -> OccluderHull | None:
+                  surface_m: float = HULL_SURFACE_M, trust_m: float | None = None,
+                  spanned=SPAN_HERE) -> OccluderHull | None:
     """The :class:`OccluderHull` of an object's surface ``cloud`` float [m, 3] (box frame): the
     convex hull of its returns (those with no other within ``outlier_m`` left out, as
     :func:`roof_fill`'s), moved in by the spread of a noisy surface; a facet is trusted when its
@@ -605,12 +613,14 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     cost 1,900 of the 2,000 calls the hulls gained there; exact labels: 0). Trusted facets: a
     facet spanning a concavity (from a cabin's roof to the bonnet's edge, between a pedestrian's
     legs) is air over most of its area (cabin cars with 5 cm labels: 24,792 wrong calls with every
-    facet, 23,398 with the trusted ones; 24,631 without hulls)."""
+    facet, 23,398 with the trusted ones; 24,631 without hulls). ``spanned``: :func:`returns_hull`
+    of ``cloud`` and ``outlier_m`` when the caller has it (computed here otherwise)."""
     from scipy.spatial import cKDTree
 
     trust_m = HULL_TRUST_M if trust_m is None else float(trust_m)
     cloud = np.asarray(cloud, np.float64)
-    spanned = _returns_hull(cloud, outlier_m)
+    if spanned is SPAN_HERE:
+        spanned = returns_hull(cloud, outlier_m)
     if spanned is None:
         return None
     _, _, kept, hull = spanned
