@@ -694,8 +694,11 @@ def test_back_face_point_frames_the_depth_ratio_calls_visible_are_hidden(hard_sc
     assert old_others.size > 3000 and old_others.mean() > 0.15
     # (measured 0.150; 0.141 before the twenty-second session's solid part of the other objects'
     # boxes: this 10-frame scene's sparse returns leave some faces' last centimetres unsampled,
-    # docs/visibility.md "Label boxes wider than their objects")
-    assert new_others.mean() < 0.16
+    # docs/visibility.md "Label boxes wider than their objects"; 0.163 since the thirty-first
+    # session's edge band, docs/visibility.md "Both sides of the outline band": on this 10-frame
+    # small scene an occluder's hull lies centimetres inside its box and a buffer pixel is ~4 cm
+    # at 20 m, so of the band's rays that miss the hulls more are truly hidden than visible)
+    assert new_others.mean() < 0.17
     # the cost: occluders' outlines are known to about a pixel, so a few truly visible point-frames
     # along them are hidden (the footprint rule on both sides keeps the outlines from growing)
     assert new_visible.mean() > old_visible.mean() - 0.002
