@@ -1336,14 +1336,15 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 """The points ``rows`` int [k] at clip frame ``tau`` (as :func:`hull_test`'s) that the
                 footprint rule hides within a buffer pixel of an occluder's outline: visible again
                 where the ray to them misses every other object's hull as spanned
-                (hull_missed; ``TrackConfig.occluder_hull_edges``)."""
+                (hull_missed; ``TrackConfig.occluder_hull_edges``), with a z-buffer margin of 0
+                (on the visible side, and ambiguous: a buffer pixel from an outline)."""
                 placed = hull_rays(tau, rows, pixels)
                 if placed is None:
                     return
                 missed = hull_missed(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                      float(config.occluder_tolerance_rel))
                 hidden_other[tau, rows[missed]] = False
-                zbuffer_margin[tau, rows[missed]] = np.inf
+                zbuffer_margin[tau, rows[missed]] = 0.0
 
             if not config.occluder_hull_edges:
                 edge_test = None
