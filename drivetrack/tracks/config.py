@@ -197,6 +197,14 @@ class TrackConfig:
             under a rolling shutter. Only under ``time_model="trajectory"``. Default true (since
             2026-11-29, twenty-sixth session; docs/visibility.md "Outlines from the occluders'
             hulls").
+        occluder_hull_edges: (with ``occluder_hulls``) the other side of that band: where the
+            footprint rule hides a point within a buffer pixel of an occluder's outline (the
+            window one buffer pixel wider reaches a pixel no occluder covers), the point is
+            visible after all when the ray to it misses every other object's convex hull as its
+            returns span it (:func:`drivetrack.visibility.zbuffer.hull_missed`). The buffer puts
+            an outline to half a pixel; a point a tenth of a pixel above a far car's roof line
+            shares the buffer pixel of its topmost returns. Default true (since 2026-12-01,
+            thirty-first session; docs/visibility.md "Both sides of the outline band").
         depth_completer, depth_completer_options, depth_batch, depth_lasers, depth_returns,
             see_through_window_deg, see_through_min_quadrants, blind_zone_laser,
             depth_object_motion: the depth
@@ -277,6 +285,7 @@ class TrackConfig:
     self_occlusion: bool = True
     roof_fill: bool = True
     occluder_hulls: bool = True
+    occluder_hull_edges: bool = True
     surfel_radius_from: str = "fixed"
     surfel_spacing_scale: float = 0.6
     surfel_max_radius_m: float = 0.3
@@ -383,6 +392,8 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.roof_fill must be true or false, got {self.roof_fill!r}")
         if not isinstance(self.occluder_hulls, bool):
             raise ValueError(f"TrackConfig.occluder_hulls must be true or false, got {self.occluder_hulls!r}")
+        if not isinstance(self.occluder_hull_edges, bool):
+            raise ValueError(f"TrackConfig.occluder_hull_edges must be true or false, got {self.occluder_hull_edges!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

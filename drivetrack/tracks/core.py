@@ -602,7 +602,20 @@ def segment_roof_fill(plan, object_id: str, poses) -> np.ndarray:
     key = f"{object_id}#roof"
     if key not in plan.occluder_cache:
         plan.occluder_cache[key] = roof_fill(segment_surface(plan, object_id, poses),
-                                             1.5 * float(plan.config.surfel_radius_m))
+                                             1.5 * float(plan.config.surfel_radius_m),
+                                             spanned=_segment_spanned(plan, object_id, poses))
+    return plan.occluder_cache[key]
+
+
+def _segment_spanned(plan, object_id: str, poses):
+    """:func:`drivetrack.visibility.zbuffer.returns_hull` of :func:`segment_surface`: the convex
+    hull both the roof fill and the occluder hull start from, once per object and segment
+    (``plan.occluder_cache``)."""
+    from drivetrack.visibility.zbuffer import returns_hull
+
+    key = f"{object_id}#spanned"
+    if key not in plan.occluder_cache:
+        plan.occluder_cache[key] = returns_hull(segment_surface(plan, object_id, poses))
     return plan.occluder_cache[key]
 
 
@@ -1041,7 +1054,7 @@ def segment_hull(plan, object_id: str, poses):
     if key not in plan.occluder_cache:
         cloud = segment_surface(plan, object_id, poses)
         surface = np.concatenate([cloud, segment_roof_fill(plan, object_id, poses)]) if plan.config.roof_fill else cloud
-        plan.occluder_cache[key] = occluder_hull(cloud, surface)
+        plan.occluder_cache[key] = occluder_hull(cloud, surface, spanned=_segment_spanned(plan, object_id, poses))
     return plan.occluder_cache[key]
 
 
@@ -1206,14 +1219,17 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         stop = start + pixels.shape[1]
         at = slice(None) if tau is None else slice(tau, tau + 1)
         rescued = None if hull_test is None else np.zeros(valid.shape, dtype=bool)
+        edge = None if edge_test is None else np.zeros(valid.shape, dtype=bool)
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
-            int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued)
-        if rescued is not None:
+            int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued, edge=edge)
+        for band_of, test in ((rescued, hull_test), (edge, edge_test)):
+            if band_of is None:
+                continue
             for i, frame_tau in enumerate(range(t_count)[at]):
-                band = np.flatnonzero(rescued[i])
+                band = np.flatnonzero(band_of[i])
                 if band.size:
-                    hull_test(frame_tau, start + band, points_camera[i, band, 0], pixels[i, band])
+                    test(frame_tau, start + band, points_camera[i, band, 0], pixels[i, band])
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1236,7 +1252,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         hidden_other[at, pocket] |= own_margin < 0
         zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
 
-    hull_test = None
+    hull_test = edge_test = None
     if by_surface:
         from drivetrack.visibility.zbuffer import hidden_by_others, own_plane_slack
 
@@ -1263,17 +1279,18 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
         defer_own = use_kernel and not rolling
         if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
-            from drivetrack.visibility.zbuffer import box_points_at, hull_hidden
+            from drivetrack.visibility.zbuffer import box_points_at, hull_hidden, hull_missed
 
-            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
-                """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
-                ``depth`` float [k], pixels float [k, 2]) decided by the other objects' convex
-                hulls (hull_hidden): at the image pose under a global shutter; under a rolling
-                shutter at each point's capture time in its row, camera, object and occluders
-                moved there with their velocities and yaw rates, as the z-buffer's splats are."""
+            def hull_rays(tau: int, rows: np.ndarray, pixels: np.ndarray):
+                """``(hulls, rays)`` of :func:`hull_hidden` / :func:`hull_missed` for the points
+                ``rows`` int [k] at clip frame ``tau`` (pixels float [k, 2]): the other objects'
+                convex hulls and the rays to the points in each one's box frame, at the image pose
+                under a global shutter; under a rolling shutter at each point's capture time in its
+                row, camera, object and occluders moved there with their velocities and yaw
+                rates, as the z-buffer's splats are. None when no other object is near."""
                 found = occluder_ids[tau]
                 if not found:
-                    return
+                    return None
                 hulls = [segment_hull(plan, object_id, poses) for object_id, *_ in found]
                 if not rolling:
                     placed_self = camera_from_box[tau].copy()
@@ -1301,10 +1318,36 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     rays = [(box_points_at(centres, world_from_other, velocity, yaw_rate, dt),
                              box_points_at(world, world_from_other, velocity, yaw_rate, dt))
                             for _, world_from_other, velocity, yaw_rate in found]
-                hit, hull_margin = hull_hidden(rays, depth, hulls, float(config.occluder_tolerance_m),
+                return hulls, rays
+
+            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
+                """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
+                ``depth`` float [k], pixels float [k, 2]) that the footprint rule left visible,
+                hidden where they lie behind another object's convex hull (hull_hidden)."""
+                placed = hull_rays(tau, rows, pixels)
+                if placed is None:
+                    return
+                hit, hull_margin = hull_hidden(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                                float(config.occluder_tolerance_rel))
                 hidden_other[tau, rows[hit]] = True
                 zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
+
+            def edge_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
+                """The points ``rows`` int [k] at clip frame ``tau`` (as :func:`hull_test`'s) that the
+                footprint rule hides within a buffer pixel of an occluder's outline: visible again
+                where the ray to them misses every other object's hull as spanned
+                (hull_missed; ``TrackConfig.occluder_hull_edges``), with a z-buffer margin of 0
+                (on the visible side, and ambiguous: a buffer pixel from an outline)."""
+                placed = hull_rays(tau, rows, pixels)
+                if placed is None:
+                    return
+                missed = hull_missed(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
+                                     float(config.occluder_tolerance_rel))
+                hidden_other[tau, rows[missed]] = False
+                zbuffer_margin[tau, rows[missed]] = 0.0
+
+            if not config.occluder_hull_edges:
+                edge_test = None
         if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
