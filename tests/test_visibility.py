@@ -1666,6 +1666,27 @@ def _truly_behind_box(points, lo, hi):
     return (enter <= leave) & (enter < 1.0)
 
 
+def _car_ahead():
+    """``(rng, car, (focal, width, height), project)``: the returns float [m, 3] of a car from 6 to
+    10 m ahead (camera frame, x = depth, z up), 2 m wide, its roof 10 cm below the camera, on
+    every face and thinned to 2.5 cm cubes as the track stage thins them; the generator that drew
+    them (seed 8, for more draws); a 400 x 300 pinhole image of focal 500 px and its
+    ``project(points float [n, 3]) -> pixels float [n, 2]``."""
+    from drivetrack.visibility.zbuffer import surfel_subsample
+
+    focal, width, height = 500.0, 400, 300
+    rng = np.random.default_rng(8)
+    car, _ = _box_cloud(rng, half=(2.0, 1.0, 0.5), per_face=20000)
+    car += [8.0, 0.0, -0.6]
+    car = car[surfel_subsample(car, 0.025)]
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                -focal * points[:, 2] / points[:, 0] + height / 2])
+
+    return rng, car, (focal, width, height), project
+
+
 def test_occluder_hulls_decide_the_outline_band_the_zbuffer_leaves_visible():
     """A car from 6 to 10 m ahead whose roof lies 10 cm below the camera (camera frame, x = depth,
     z up), its returns on every face thinned as the track stage thins them, and a wall 20 m
@@ -1674,19 +1695,11 @@ def test_occluder_hulls_decide_the_outline_band_the_zbuffer_leaves_visible():
     visible and marks those points ``rescued``; the car's convex hull decides each rescued point
     as the exact ray does."""
     from drivetrack.visibility import hidden_by_others
-    from drivetrack.visibility.zbuffer import hull_hidden, occluder_hull, surfel_subsample
+    from drivetrack.visibility.zbuffer import hull_hidden, occluder_hull
 
-    focal, width, height = 500.0, 400, 300
-    rng = np.random.default_rng(8)
-    car, _ = _box_cloud(rng, half=(2.0, 1.0, 0.5), per_face=20000)
-    car += [8.0, 0.0, -0.6]
-    car = car[surfel_subsample(car, 0.025)]
+    rng, car, (focal, width, height), project = _car_ahead()
     wall = np.stack(np.meshgrid([20.0], np.linspace(-1.5, 1.5, 31), np.linspace(-0.63, 0.1, 121), indexing="ij"),
                     axis=-1).reshape(-1, 3)
-
-    def project(points):
-        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
-                                -focal * points[:, 2] / points[:, 0] + height / 2])
 
     truly = _truly_behind_box(wall, [6.0, -1.0, -1.1], [10.0, 1.0, -0.1])
     rescued = np.zeros((1, len(wall)), dtype=bool)
@@ -1712,20 +1725,12 @@ def test_occluder_hull_edges_free_the_points_just_outside_an_outline():
     by ``hull_hidden`` too, the wall's wrong calls fall from thousands to those few. A hull moved
     in onto a noisy surface frees no ray that the hull as spanned still meets; no hull, no point."""
     from drivetrack.visibility import hidden_by_others
-    from drivetrack.visibility.zbuffer import hull_hidden, hull_missed, occluder_hull, surfel_subsample
+    from drivetrack.visibility.zbuffer import hull_hidden, hull_missed, occluder_hull
 
-    focal, width, height = 500.0, 400, 300
-    rng = np.random.default_rng(8)
-    car, _ = _box_cloud(rng, half=(2.0, 1.0, 0.5), per_face=20000)
-    car += [8.0, 0.0, -0.6]
-    car = car[surfel_subsample(car, 0.025)]
+    rng, car, (focal, width, height), project = _car_ahead()
     grid = np.stack(np.meshgrid([20.0], np.arange(-1.0, 4.0, 0.004), np.arange(-0.4, 0.0, 0.004), indexing="ij"),
                     axis=-1).reshape(-1, 3)
     wall = grid[(grid[:, 1] > 3.0) | (grid[:, 2] > -0.3)]            # round the top and the side outlines
-
-    def project(points):
-        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
-                                -focal * points[:, 2] / points[:, 0] + height / 2])
 
     truly = _truly_behind_box(wall, [6.0, -1.0, -1.1], [10.0, 1.0, -0.1])
     edge, rescued = np.zeros((1, len(wall)), dtype=bool), np.zeros((1, len(wall)), dtype=bool)
