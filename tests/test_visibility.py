@@ -1132,23 +1132,29 @@ def test_occluder_buffer_windows_equal_whole_image_closing():
             np.testing.assert_array_equal(footprint, want_r, err_msg=str(trial))
 
 
-def test_zbuffer_kernel_equals_numpy():
+def test_zbuffer_kernel_equals_numpy(monkeypatch):
     """The z-buffer with its passes over points, returns and pixels in numba (``use_kernel``)
-    decides exactly as the numpy form: ``nearest_depth``'s buffer and footprints, and
+    decides exactly as the numpy form: ``nearest_depth``'s buffer and footprints (each footprint's
+    returns eroded, written square by square, or as ``SPLAT_DIRECT`` chooses), and
     ``hidden_by_others``' decisions and margins (bit for bit) and its two outline bands (``rescued``:
     left visible over a nearer pixel; ``edge``: hidden within a buffer pixel of an uncovered one)
     on random images of several occluding objects, with one radius or one per return, with and without each object closed on
     its own, at one and two buffer pixels per image pixel, with points invalid, off the image or
     with non-finite pixels."""
+    from drivetrack.visibility import zbuffer
     from drivetrack.visibility.zbuffer import hidden_by_others, nearest_depth
 
     rng = np.random.default_rng(11)
     for trial in range(30):
         width, height, pixels, depth, radius_m, focal, max_px = _random_returns(rng, trial, 60, 1, 200)
         want = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True)
-        got = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True, use_kernel=True)
-        np.testing.assert_array_equal(got[0], want[0], err_msg=str(trial))
-        np.testing.assert_array_equal(got[1], want[1], err_msg=str(trial))
+        for direct in (0.0, zbuffer.SPLAT_DIRECT, np.inf):        # always eroded, the default, always direct
+            monkeypatch.setattr(zbuffer, "SPLAT_DIRECT", direct)
+            got = nearest_depth(pixels, depth, width, height, focal, radius_m, max_px, with_radius=True,
+                                use_kernel=True)
+            np.testing.assert_array_equal(got[0], want[0], err_msg=f"{trial} {direct}")
+            np.testing.assert_array_equal(got[1], want[1], err_msg=f"{trial} {direct}")
+        monkeypatch.undo()
     decided, in_band = 0, {"rescued": 0, "edge": 0}
     for trial in range(24):
         width, height = (int(v) for v in rng.integers(20, 90, 2))
@@ -1186,6 +1192,51 @@ def test_zbuffer_kernel_equals_numpy():
         decided += int(want[0].sum()) + int(np.isfinite(want[1]).sum())
     assert decided > 100                       # the scenes hide points and cover others
     assert min(in_band.values()) > 10          # and put some on either side of an outline
+
+
+def test_hull_kernels_equal_numpy():
+    """The convex-hull tests with their clipping in numba (``use_kernel``: ``hull_hidden``,
+    ``hull_missed``, and ``occluder_hull``'s depths of the returns inside it) give the numpy
+    form's figures bit for bit: on random clouds (a noisy box surface, moved in by its spread; a
+    clean one), rays from one camera centre and from one centre per point, rays running parallel
+    to a box's faces, and a camera inside the hull."""
+    from drivetrack.visibility.zbuffer import hull_hidden, hull_missed, occluder_hull
+
+    rng = np.random.default_rng(5)
+    decided = {"hidden": 0, "missed": 0, "parallel": 0}
+    for trial in range(12):
+        size = rng.uniform(0.5, 4.0, 3)
+        face = rng.integers(0, 3, 1500)
+        cloud = rng.uniform(-0.5, 0.5, (1500, 3)) * size
+        cloud[np.arange(1500), face] = np.sign(rng.uniform(-1, 1, 1500)) * 0.5 * size[face]
+        cloud += rng.normal(0.0, 0.03 if trial % 2 else 0.0, cloud.shape)
+        hulls = {path: occluder_hull(cloud, trust_m=0.5, use_kernel=path) for path in (False, True)}
+        np.testing.assert_array_equal(hulls[True].facets, hulls[False].facets, err_msg=str(trial))
+        np.testing.assert_array_equal(hulls[True].trusted, hulls[False].trusted, err_msg=str(trial))
+        assert hulls[True].shift == hulls[False].shift
+        k = 400
+        points = rng.uniform(-3.0, 3.0, (k, 3)) * size + rng.uniform(-1, 1, 3)
+        if trial % 3 == 0:
+            centres = np.array([12.0, 0.3, 0.2])              # one camera centre for all
+        elif trial % 3 == 1:
+            centres = rng.uniform(-15.0, 15.0, (k, 3))         # one per point (a rolling shutter)
+        else:
+            centres = points + np.array([10.0, 0.0, 0.0])     # rays along x: parallel to four box faces
+            cloud_box = np.array(np.meshgrid(*[[-0.5 * s, 0.5 * s] for s in size])).reshape(3, -1).T
+            hulls = {path: occluder_hull(np.concatenate([cloud_box, cloud]), trust_m=0.5, use_kernel=path)
+                     for path in (False, True)}
+            decided["parallel"] += 1
+        if trial == 4:
+            centres = np.zeros(3)                             # the camera inside the hull
+        depth = np.linalg.norm(points - centres, axis=-1)
+        for name, test in (("hidden", hull_hidden), ("missed", hull_missed)):
+            trust = {"trust_m": 0.5} if name == "hidden" else {}   # the sparse clouds: trusted, entries near
+            want = test([(centres, points)], depth, [hulls[False]], 0.15, 0.01, **trust)
+            got = test([(centres, points)], depth, [hulls[True]], 0.15, 0.01, use_kernel=True, **trust)
+            for w, g in zip(*((want, got) if name == "hidden" else ((want,), (got,)))):
+                np.testing.assert_array_equal(g, w, err_msg=f"{name} {trial}")
+            decided[name] += int((want[0] if name == "hidden" else ~want).sum())
+    assert min(decided.values()) > 3                   # rays hidden, rays not missing, parallel rays tried
 
 
 def test_nearest_in_grid_equals_the_kd_tree():

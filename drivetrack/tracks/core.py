@@ -1054,7 +1054,8 @@ def segment_hull(plan, object_id: str, poses):
     if key not in plan.occluder_cache:
         cloud = segment_surface(plan, object_id, poses)
         surface = np.concatenate([cloud, segment_roof_fill(plan, object_id, poses)]) if plan.config.roof_fill else cloud
-        plan.occluder_cache[key] = occluder_hull(cloud, surface, spanned=_segment_spanned(plan, object_id, poses))
+        plan.occluder_cache[key] = occluder_hull(cloud, surface, spanned=_segment_spanned(plan, object_id, poses),
+                                                 use_kernel=_use_kernel(plan.config))
     return plan.occluder_cache[key]
 
 
@@ -1223,13 +1224,22 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
             int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued, edge=edge)
-        for band_of, test in ((rescued, hull_test), (edge, edge_test)):
-            if band_of is None:
+        tests = [(band_of, test) for band_of, test in ((rescued, hull_test), (edge, edge_test)) if band_of is not None]
+        for i, frame_tau in enumerate(range(t_count)[at] if tests else ()):
+            # both bands' rays placed at once (the other objects' hulls and poses are the frame's)
+            bands = [(np.flatnonzero(band_of[i]), test) for band_of, test in tests]
+            joined = np.concatenate([band for band, _ in bands])
+            placed = hull_rays(frame_tau, start + joined, pixels[i, joined]) if joined.size else None
+            if placed is None:
                 continue
-            for i, frame_tau in enumerate(range(t_count)[at]):
-                band = np.flatnonzero(band_of[i])
+            first = 0
+            for band, test in bands:
+                part = slice(first, first + band.size)
+                first += band.size
                 if band.size:
-                    test(frame_tau, start + band, points_camera[i, band, 0], pixels[i, band])
+                    rays = [(centres if centres.ndim == 1 else centres[part], points[part])
+                            for centres, points in placed[1]]
+                    test(frame_tau, start + band, points_camera[i, band, 0], (placed[0], rays))
         if own_splats is not None and not defer_own:
             sub = np.flatnonzero(in_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
@@ -1320,29 +1330,24 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                             for _, world_from_other, velocity, yaw_rate in found]
                 return hulls, rays
 
-            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
+            def hull_test(tau: int, rows: np.ndarray, depth: np.ndarray, placed) -> None:
                 """The outline band's points ``rows`` int [k] at clip frame ``tau`` (z-depths
-                ``depth`` float [k], pixels float [k, 2]) that the footprint rule left visible,
-                hidden where they lie behind another object's convex hull (hull_hidden)."""
-                placed = hull_rays(tau, rows, pixels)
-                if placed is None:
-                    return
+                ``depth`` float [k]; ``placed``: their :func:`hull_rays`) that the footprint rule
+                left visible, hidden where they lie behind another object's convex hull
+                (hull_hidden)."""
                 hit, hull_margin = hull_hidden(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
-                                               float(config.occluder_tolerance_rel))
+                                               float(config.occluder_tolerance_rel), use_kernel=use_kernel)
                 hidden_other[tau, rows[hit]] = True
                 zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
 
-            def edge_test(tau: int, rows: np.ndarray, depth: np.ndarray, pixels: np.ndarray) -> None:
+            def edge_test(tau: int, rows: np.ndarray, depth: np.ndarray, placed) -> None:
                 """The points ``rows`` int [k] at clip frame ``tau`` (as :func:`hull_test`'s) that the
                 footprint rule hides within a buffer pixel of an occluder's outline: visible again
                 where the ray to them misses every other object's hull as spanned
                 (hull_missed; ``TrackConfig.occluder_hull_edges``), with a z-buffer margin of 0
                 (on the visible side, and ambiguous: a buffer pixel from an outline)."""
-                placed = hull_rays(tau, rows, pixels)
-                if placed is None:
-                    return
                 missed = hull_missed(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
-                                     float(config.occluder_tolerance_rel))
+                                     float(config.occluder_tolerance_rel), use_kernel=use_kernel)
                 hidden_other[tau, rows[missed]] = False
                 zbuffer_margin[tau, rows[missed]] = 0.0
 

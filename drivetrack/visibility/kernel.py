@@ -23,7 +23,7 @@ from drivetrack.refine.kernel import _gap2      # squared distance to a cell's i
 __all__ = ["NUMBA_AVAILABLE", "CloudGrid", "cloud_grid", "grid_cell", "nearest_in_grid", "shifted_neighbourhoods",
            "surface_offsets",
            "project_in_window", "project_points", "facing_test", "facing_test_rows", "zbuffer_points", "zbuffer_near",
-           "splat_groups", "scatter_min", "merge_spread", "merge_nearer", "zbuffer_on", "zbuffer_decide"]
+           "splat_groups", "scatter_min", "merge_spread", "merge_nearer", "zbuffer_on", "zbuffer_decide", "clip_convex", "hull_depths", "splat_merge"]
 
 
 @njit(cache=True, nogil=True)
@@ -563,3 +563,84 @@ def surface_offsets(grid: CloudGrid, cloud_normal: np.ndarray, queries: np.ndarr
                     grid.dims, grid.start, grid.order, grid.points, np.ascontiguousarray(cloud_normal, dtype=np.float64),
                     float(radius_m), float(slab_m), float(min_cos), int(min_count), offset)
     return offset
+
+
+@njit(cache=True, nogil=True)
+def clip_convex(starts, rays, facets, one_start, enter, leave, by, never, inside):
+    """Clips k rays against a convex hull (Cyrus-Beck): ray i is ``starts[i] + s rays[i]``
+    (``starts`` float64 [k, 3], or [1, 3] for all when ``one_start``; ``rays`` float64 [k, 3]) and
+    the hull ``n . p + d <= 0`` for each row (n, d) of ``facets`` float64 [F, 4]. Per ray, with
+    ``a = n . start + d`` and ``b = n . ray`` per facet and ``s = -a / b``:
+
+    - ``enter`` float64 [k]: the largest ``s`` over the facets with ``b < 0`` (-inf when none),
+      ``by`` int64 [k] the first facet reaching it (0 when none);
+    - ``leave`` float64 [k]: the smallest ``s`` over the facets with ``b > 0`` (+inf when none);
+    - ``never`` bool [k]: some facet has ``b == 0`` and ``a > 0`` (the ray runs parallel to it, outside);
+    - ``inside`` bool [k]: every ``a <= 0`` (the start lies inside the hull).
+
+    The products and sums in the order of ``drivetrack.visibility.zbuffer._dot3``, so each figure
+    equals the numpy path's bit for bit."""
+    k = rays.shape[0]
+    f_count = facets.shape[0]
+    for i in range(k):
+        j0 = 0 if one_start else i
+        sx, sy, sz = starts[j0, 0], starts[j0, 1], starts[j0, 2]
+        rx, ry, rz = rays[i, 0], rays[i, 1], rays[i, 2]
+        best, best_at, low = -np.inf, 0, np.inf
+        parallel_out, all_in = False, True
+        for f in range(f_count):
+            nx, ny, nz = facets[f, 0], facets[f, 1], facets[f, 2]
+            a = sx * nx + sy * ny + sz * nz + facets[f, 3]
+            b = rx * nx + ry * ny + rz * nz
+            if a > 0:
+                all_in = False
+            if b < 0:
+                s = -a / b
+                if s > best:
+                    best, best_at = s, f
+            elif b > 0:
+                s = -a / b
+                if s < low:
+                    low = s
+            elif a > 0:
+                parallel_out = True
+        enter[i], by[i], leave[i], never[i], inside[i] = best, best_at, low, parallel_out, all_in
+
+
+@njit(cache=True, nogil=True)
+def hull_depths(points, facets, depth):
+    """``depth`` float64 [k]: how far inside the convex hull of ``facets`` float64 [F, 4] (outward
+    ``n . p + d``) each of ``points`` float64 [k, 3] lies, ``-max_f (n_f . p + d_f)`` (negative:
+    outside); the products and sums in the order of ``drivetrack.visibility.zbuffer._dot3``."""
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        top = -np.inf
+        for f in range(facets.shape[0]):
+            v = px * facets[f, 0] + py * facets[f, 1] + pz * facets[f, 2] + facets[f, 3]
+            if v > top:
+                top = v
+        depth[i] = -top
+
+
+@njit(cache=True, nogil=True)
+def splat_merge(buffer, footprint, flat, order, depth, start, stop, r, pad):
+    """:func:`scatter_min` of returns ``start:stop`` (footprint ``r``) into a buffer padded by
+    ``pad``, its square minimum of side 2r+1 (the erosion of ``zbuffer.nearest_depth``) and
+    :func:`merge_spread` into ``buffer`` float32 [H, W] / ``footprint`` int8 [H, W], in one pass:
+    each return's square written directly (min and the footprint's rule are exact and
+    order-free, so the same buffer and footprints). Cheaper than the erosion when few returns
+    have this footprint (their squares cover less than the padded buffer)."""
+    h, w = buffer.shape
+    stride = w + 2 * pad
+    for a in range(start, stop):
+        v = np.float32(depth[order[a]])
+        yc = flat[a] // stride - pad
+        xc = flat[a] % stride - pad
+        for y in range(max(yc - r, 0), min(yc + r + 1, h)):
+            for x in range(max(xc - r, 0), min(xc + r + 1, w)):
+                b = buffer[y, x]
+                if v < b:
+                    buffer[y, x] = v
+                    footprint[y, x] = r
+                elif v == b and np.isfinite(b) and footprint[y, x] < r:
+                    footprint[y, x] = r

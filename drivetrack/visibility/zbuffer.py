@@ -173,9 +173,17 @@ def nearest_depth(pixels: np.ndarray, depth: np.ndarray, width: int, height: int
     return buffer, footprint
 
 
+#: :func:`nearest_depth` with ``use_kernel``: a footprint's returns are written square by square
+#: (:func:`drivetrack.visibility.kernel.splat_merge`) when their squares' pixels number at most
+#: this many times the padded buffer's, else scattered, eroded by OpenCV and merged (the same
+#: buffer either way; on the cost bench's segment most footprints hold a few returns)
+SPLAT_DIRECT = 1.0
+
+
 def _nearest_depth_kernel(pixels, depth, width, height, focal, radius_m, max_px, buffer, footprint) -> None:
     """:func:`nearest_depth` into ``buffer`` (+inf) and ``footprint`` (0): the returns grouped by
-    footprint and scattered by numba, each group spread by OpenCV's erosion, merged by numba."""
+    footprint and scattered by numba, each group spread by OpenCV's erosion, merged by numba (or,
+    for a group of few returns, each square written directly: :data:`SPLAT_DIRECT`)."""
     from drivetrack.visibility import kernel
 
     depth = np.ascontiguousarray(depth, dtype=np.float64)
@@ -189,6 +197,9 @@ def _nearest_depth_kernel(pixels, depth, width, height, focal, radius_m, max_px,
     pad = max_px
     for r in range(max_px + 1):
         if starts[r] == starts[r + 1]:
+            continue
+        if (starts[r + 1] - starts[r]) * (2 * r + 1) ** 2 <= (height + 2 * pad) * (width + 2 * pad) * SPLAT_DIRECT:
+            kernel.splat_merge(buffer, footprint, flat, order, depth, int(starts[r]), int(starts[r + 1]), r, pad)
             continue
         centres = np.full((height + 2 * pad, width + 2 * pad), np.inf, dtype=np.float32)
         kernel.scatter_min(centres, flat, order, depth, int(starts[r]), int(starts[r + 1]))
@@ -607,6 +618,40 @@ def _dot3(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     return p[:, 0, None] * n[None, :, 0] + p[:, 1, None] * n[None, :, 1] + p[:, 2, None] * n[None, :, 2]
 
 
+
+def _clip_convex(starts: np.ndarray, ray: np.ndarray, facets: np.ndarray, use_kernel: bool):
+    """``(a, b, enter, by, leave, never, inside)`` of k rays ``starts + s ray`` (``starts`` float
+    [k, 3], or [3]: one start for all; ``ray`` float [k, 3]) against the convex hull of ``facets``
+    float [F, 4] (outward ``n . p + d``): see :func:`drivetrack.visibility.kernel.clip_convex`
+    (``use_kernel``; ``a`` and ``b`` None there) or the same figures in numpy (``a``, ``b`` float
+    [k, F])."""
+    k = ray.shape[0]
+    if use_kernel:
+        from drivetrack.visibility.kernel import clip_convex
+
+        one = starts.ndim == 1
+        enter, leave = np.empty(k), np.empty(k)
+        by = np.empty(k, dtype=np.int64)
+        never, inside = np.empty(k, dtype=bool), np.empty(k, dtype=bool)
+        clip_convex(np.ascontiguousarray(starts.reshape(-1, 3), dtype=np.float64),
+                    np.ascontiguousarray(ray, dtype=np.float64), np.ascontiguousarray(facets, dtype=np.float64),
+                    one, enter, leave, by, never, inside)
+        return None, None, enter, by, leave, never, inside
+    if starts.ndim == 1:                      # one start for all: its facet heights once
+        a = np.broadcast_to(_dot3(starts[None], facets[:, :3])[0] + facets[:, 3], (k, facets.shape[0]))
+    else:
+        a = _dot3(starts, facets[:, :3]) + facets[:, 3]                                       # [k, F]
+    b = _dot3(ray, facets[:, :3])                                                             # [k, F]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -a / b
+    entering = np.where(b < 0, s, -np.inf)
+    by = entering.argmax(axis=1)                                                              # the facet entered by
+    enter = entering[np.arange(k), by]
+    leave = np.where(b > 0, s, np.inf).min(axis=1)
+    never = ((b == 0) & (a > 0)).any(axis=1)
+    return a, b, enter, by, leave, never, (a <= 0).all(axis=1)
+
+
 def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity_world: np.ndarray,
                   yaw_rate: float, dt: np.ndarray) -> np.ndarray:
     """float64 [k, 3]: world points ``points_world`` float [k, 3] (metres) in the box frame of an
@@ -622,7 +667,7 @@ def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity
 
 def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_m: float = ROOF_OUTLIER_M,
                   surface_m: float = HULL_SURFACE_M, trust_m: float | None = None,
-                  spanned=SPAN_HERE) -> OccluderHull | None:
+                  spanned=SPAN_HERE, use_kernel: bool = False) -> OccluderHull | None:
     """The :class:`OccluderHull` of an object's surface ``cloud`` float [m, 3] (box frame): the
     convex hull of its returns (those with no other within ``outlier_m`` left out, as
     :func:`roof_fill`'s), moved in by the spread of a noisy surface; a facet is trusted when its
@@ -640,7 +685,9 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     facet spanning a concavity (from a cabin's roof to the bonnet's edge, between a pedestrian's
     legs) is air over most of its area (cabin cars with 5 cm labels: 24,792 wrong calls with every
     facet, 23,398 with the trusted ones; 24,631 without hulls). ``spanned``: :func:`returns_hull`
-    of ``cloud`` and ``outlier_m`` when the caller has it (computed here otherwise)."""
+    of ``cloud`` and ``outlier_m`` when the caller has it (computed here otherwise). ``use_kernel``:
+    the returns' depths inside the hull in numba (:func:`drivetrack.visibility.kernel.hull_depths`),
+    the same figures."""
     from scipy.spatial import cKDTree
 
     trust_m = HULL_TRUST_M if trust_m is None else float(trust_m)
@@ -652,8 +699,13 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     _, _, kept, hull = spanned
     facets = hull.equations.copy()
     inside = np.empty(kept.shape[0])
-    for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
-        inside[start:start + 4096] = -(_dot3(kept[start:start + 4096], facets[:, :3]) + facets[:, 3]).max(axis=1)
+    if use_kernel:
+        from drivetrack.visibility.kernel import hull_depths
+
+        hull_depths(np.ascontiguousarray(kept, dtype=np.float64), np.ascontiguousarray(facets), inside)
+    else:
+        for start in range(0, kept.shape[0], 4096):              # bounded memory: [4096, F]
+            inside[start:start + 4096] = -(_dot3(kept[start:start + 4096], facets[:, :3]) + facets[:, 3]).max(axis=1)
     # a noisy surface (its returns near the hull a median of more than HULL_NOISY_M inside it)
     # moved in by that median; a clean one left where its returns put it
     near = inside[inside <= surface_m]
@@ -670,7 +722,8 @@ def occluder_hull(cloud: np.ndarray, surface: np.ndarray | None = None, outlier_
     return OccluderHull(facets, np.isfinite(gap).reshape(-1, 4).all(axis=1), tree, centre, radius, shift)
 
 
-def hull_missed(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float) -> np.ndarray:
+def hull_missed(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float,
+                use_kernel: bool = False) -> np.ndarray:
     """bool [k]: the ray from the camera centre to each of k tracked points (z-depths ``depth``
     float [k], metres) misses every other object's convex hull as its returns span it (each
     :class:`OccluderHull` grown back by the ``shift`` that moved it onto a noisy surface) before
@@ -686,7 +739,9 @@ def hull_missed(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
     outside them: on the medium hard world with exact labels, the points the footprint rule hides
     within a buffer pixel of an outline and whose rays miss every hull were 2,475 of 10,404;
     freeing them took the wrong calls from 4,966 to 4,097 (with the hulls grown by 5 mm: 4,708;
-    by 1 cm: 4,931; shrunk by 5 mm: 6,852; docs/visibility.md "Both sides of the outline band")."""
+    by 1 cm: 4,931; shrunk by 5 mm: 6,852; docs/visibility.md "Both sides of the outline band").
+    ``use_kernel``: the clipping in numba (:func:`drivetrack.visibility.kernel.clip_convex`), the
+    same figures."""
     depth = np.asarray(depth, np.float64).reshape(-1)
     k = depth.size
     missed = np.ones(k, dtype=bool)
@@ -700,20 +755,14 @@ def hull_missed(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
         facets[:, 3] -= hull.shift                                 # as spanned: no farther than the returns
         centres = np.asarray(centres, np.float64)
         ray = np.asarray(points, np.float64).reshape(k, 3) - centres
-        starts = np.ascontiguousarray(np.broadcast_to(centres, (k, 3)))
-        a = _dot3(starts, facets[:, :3]) + facets[:, 3]                                   # [k, F]
-        b = _dot3(ray, facets[:, :3])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = -a / b
-        enter = np.maximum(np.where(b < 0, s, -np.inf).max(axis=1), 0.0)
-        leave = np.where(b > 0, s, np.inf).min(axis=1)
-        never = ((b == 0) & (a > 0)).any(axis=1)
+        _, _, enter, _, leave, never, _ = _clip_convex(centres, ray, facets, use_kernel)
+        enter = np.maximum(enter, 0.0)
         missed &= never | (enter >= leave) | (enter >= s_max)
     return missed
 
 
 def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: float,
-                trust_m: float = HULL_TRUST_M) -> tuple[np.ndarray, np.ndarray]:
+                trust_m: float = HULL_TRUST_M, use_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``(hidden bool [k], margin_m float32 [k])``: which of k tracked points, at z-depths ``depth``
     float [k] (metres), lie behind another object's convex hull: the ray from the camera centre to
     the point enters the hull of object j at a depth nearer than ``z - (abs_m + rel z)``, within
@@ -728,7 +777,8 @@ def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
     (:func:`hidden_by_others`); a convex part of an occluder's surface has an exact outline. The
     depth along the ray is linear in the ray parameter s (the camera centre is its origin), so the
     entry's depth is ``s z``. A hull facet spanning a concavity is air: there the entry lies
-    farther than ``trust_m`` from every return and the hull does not decide."""
+    farther than ``trust_m`` from every return and the hull does not decide. ``use_kernel``: the
+    clipping in numba (:func:`drivetrack.visibility.kernel.clip_convex`), the same figures."""
     depth = np.asarray(depth, np.float64).reshape(-1)
     k = depth.size
     hidden = np.zeros(k, dtype=bool)
@@ -751,23 +801,13 @@ def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
         near = np.flatnonzero(np.einsum("ni,ni->n", closest, closest) <= (hull.radius * (1 + 1e-9) + 1e-9) ** 2)
         if near.size == 0:
             continue
-        m = near.size
-        if centres.ndim == 1:                      # one camera centre for all: its facet heights once
-            a = np.broadcast_to(_dot3(centres[None], facets[:, :3])[0] + facets[:, 3], (m, facets.shape[0]))
-            starts = np.broadcast_to(centres, (m, 3))
-        else:
-            starts = centres[near]
-            a = _dot3(starts, facets[:, :3]) + facets[:, 3]                                   # [m, F]
-        b = _dot3(ray[near], facets[:, :3])                                                   # [m, F]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = -a / b
-        entering = np.where(b < 0, s, -np.inf)
-        by = entering.argmax(axis=1)                                                          # the facet entered by
-        enter = np.maximum(entering[np.arange(m), by], 0.0)
-        leave = np.where(b > 0, s, np.inf).min(axis=1)
+        one = centres.ndim == 1
+        starts = np.broadcast_to(centres, (near.size, 3)) if one else centres[near]
+        _, _, enter, by, leave, never, inside = _clip_convex(centres if one else starts, ray[near], facets,
+                                                             use_kernel)
+        enter = np.maximum(enter, 0.0)
         # a facet the ray runs parallel to and outside of: never inside; the camera inside: no test
-        never = ((b == 0) & (a > 0)).any(axis=1) | (a <= 0).all(axis=1)
-        hit = ~never & (enter < leave) & (enter < s_max[near]) & hull.trusted[by]
+        hit = ~(never | inside) & (enter < leave) & (enter < s_max[near]) & hull.trusted[by]
         if not hit.any():
             continue
         rows = near[hit]
