@@ -620,11 +620,10 @@ def _dot3(p: np.ndarray, n: np.ndarray) -> np.ndarray:
 
 
 def _clip_convex(starts: np.ndarray, ray: np.ndarray, facets: np.ndarray, use_kernel: bool):
-    """``(a, b, enter, by, leave, never, inside)`` of k rays ``starts + s ray`` (``starts`` float
-    [k, 3], or [3]: one start for all; ``ray`` float [k, 3]) against the convex hull of ``facets``
-    float [F, 4] (outward ``n . p + d``): see :func:`drivetrack.visibility.kernel.clip_convex`
-    (``use_kernel``; ``a`` and ``b`` None there) or the same figures in numpy (``a``, ``b`` float
-    [k, F])."""
+    """``(enter, by, leave, never, inside)`` of k rays ``starts + s ray`` (``starts`` float [k, 3],
+    or [3]: one start for all; ``ray`` float [k, 3]) against the convex hull of ``facets`` float
+    [F, 4] (outward ``n . p + d``): :func:`drivetrack.visibility.kernel.clip_convex`'s figures, by
+    it (``use_kernel``) or in numpy from [k, F] products."""
     k = ray.shape[0]
     if use_kernel:
         from drivetrack.visibility.kernel import clip_convex
@@ -636,7 +635,7 @@ def _clip_convex(starts: np.ndarray, ray: np.ndarray, facets: np.ndarray, use_ke
         clip_convex(np.ascontiguousarray(starts.reshape(-1, 3), dtype=np.float64),
                     np.ascontiguousarray(ray, dtype=np.float64), np.ascontiguousarray(facets, dtype=np.float64),
                     one, enter, leave, by, never, inside)
-        return None, None, enter, by, leave, never, inside
+        return enter, by, leave, never, inside
     if starts.ndim == 1:                      # one start for all: its facet heights once
         a = np.broadcast_to(_dot3(starts[None], facets[:, :3])[0] + facets[:, 3], (k, facets.shape[0]))
     else:
@@ -649,7 +648,7 @@ def _clip_convex(starts: np.ndarray, ray: np.ndarray, facets: np.ndarray, use_ke
     enter = entering[np.arange(k), by]
     leave = np.where(b > 0, s, np.inf).min(axis=1)
     never = ((b == 0) & (a > 0)).any(axis=1)
-    return a, b, enter, by, leave, never, (a <= 0).all(axis=1)
+    return enter, by, leave, never, (a <= 0).all(axis=1)
 
 
 def box_points_at(points_world: np.ndarray, world_from_box: np.ndarray, velocity_world: np.ndarray,
@@ -755,7 +754,7 @@ def hull_missed(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
         facets[:, 3] -= hull.shift                                 # as spanned: no farther than the returns
         centres = np.asarray(centres, np.float64)
         ray = np.asarray(points, np.float64).reshape(k, 3) - centres
-        _, _, enter, _, leave, never, _ = _clip_convex(centres, ray, facets, use_kernel)
+        enter, _, leave, never, _ = _clip_convex(centres, ray, facets, use_kernel)
         enter = np.maximum(enter, 0.0)
         missed &= never | (enter >= leave) | (enter >= s_max)
     return missed
@@ -803,8 +802,7 @@ def hull_hidden(rays: list, depth: np.ndarray, hulls: list, abs_m: float, rel: f
             continue
         one = centres.ndim == 1
         starts = np.broadcast_to(centres, (near.size, 3)) if one else centres[near]
-        _, _, enter, by, leave, never, inside = _clip_convex(centres if one else starts, ray[near], facets,
-                                                             use_kernel)
+        enter, by, leave, never, inside = _clip_convex(centres if one else starts, ray[near], facets, use_kernel)
         enter = np.maximum(enter, 0.0)
         # a facet the ray runs parallel to and outside of: never inside; the camera inside: no test
         hit = ~(never | inside) & (enter < leave) & (enter < s_max[near]) & hull.trusted[by]
