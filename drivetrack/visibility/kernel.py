@@ -448,6 +448,18 @@ def scatter_min(centres, flat, order, depth, start, stop):
             out[flat[a]] = v
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _merge_pixel(buffer, footprint, y, x, v, r):
+    """Pixel (y, x) of ``buffer`` float32 / ``footprint`` int8 takes depth ``v`` of footprint ``r``
+    when nearer, and the larger footprint when equal and finite (:func:`merge_spread`'s rule)."""
+    b = buffer[y, x]
+    if v < b:
+        buffer[y, x] = v
+        footprint[y, x] = r
+    elif v == b and np.isfinite(b) and footprint[y, x] < r:
+        footprint[y, x] = r
+
+
 @njit(cache=True, nogil=True)
 def merge_spread(buffer, footprint, spread, r):
     """Keeps the nearer of ``buffer`` and ``spread`` float32 [H, W] in ``buffer``; ``footprint``
@@ -456,13 +468,7 @@ def merge_spread(buffer, footprint, spread, r):
     h, w = buffer.shape
     for y in range(h):
         for x in range(w):
-            v = spread[y, x]
-            b = buffer[y, x]
-            if v < b:
-                buffer[y, x] = v
-                footprint[y, x] = r
-            elif v == b and np.isfinite(b) and footprint[y, x] < r:
-                footprint[y, x] = r
+            _merge_pixel(buffer, footprint, y, x, spread[y, x], r)
 
 
 @njit(cache=True, nogil=True)
@@ -638,9 +644,4 @@ def splat_merge(buffer, footprint, flat, order, depth, start, stop, r, pad):
         xc = flat[a] % stride - pad
         for y in range(max(yc - r, 0), min(yc + r + 1, h)):
             for x in range(max(xc - r, 0), min(xc + r + 1, w)):
-                b = buffer[y, x]
-                if v < b:
-                    buffer[y, x] = v
-                    footprint[y, x] = r
-                elif v == b and np.isfinite(b) and footprint[y, x] < r:
-                    footprint[y, x] = r
+                _merge_pixel(buffer, footprint, y, x, v, r)
