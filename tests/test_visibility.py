@@ -515,6 +515,45 @@ def test_shifted_neighbourhoods_keep_a_boxs_edges_sharp():
         cloud_normals(points, 30, "centered")
 
 
+def test_a_scan_line_just_under_a_denser_face_keeps_its_own_faces_normal(monkeypatch):
+    """A car's roof seen from above is sampled densely, its rear face by a lidar behind it in scan
+    lines 6 cm apart, the top one 4 mm under the roof's edge. Every neighbourhood of that line's
+    points is mostly roof, and leaning the roof's way the shifted neighbourhoods kept the roof's
+    normal: the rear face there was called visible from ahead (the medium hard world's back faces
+    called visible were mostly such points). The line's own face passes through it exactly: a
+    neighbour's plane that fits its neighbourhood and the point within ``SHIFT_TIGHT_M`` is taken
+    instead. Range noise leaves (almost) no such plane and changes (almost) nothing."""
+    import drivetrack.visibility.facing as facing
+    from drivetrack.visibility import cloud_normals
+    from drivetrack.visibility.zbuffer import surfel_means
+
+    rng = np.random.default_rng(3)
+    half = np.array([2.2, 0.95, 0.75])
+    roof = rng.uniform(-1, 1, (40000, 3)) * half
+    roof[:, 2] = half[2]
+    ys, zs = np.meshgrid(np.arange(-half[1], half[1], 0.02), half[2] - 0.004 - 0.06 * np.arange(24))
+    rear = np.stack([np.full(ys.size, -half[0]), ys.ravel(), zs.ravel()], axis=1)
+    points = np.concatenate([roof, rear])
+    on_rear = np.arange(len(points)) >= len(roof)
+    top_line = on_rear & (points[:, 2] > half[2] - 0.01)
+    ray = points - np.array([-12.0, 0.0, 2.0])
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+
+    def wrong_face(noise: float, tight_m: float) -> np.ndarray:
+        monkeypatch.setattr(facing, "SHIFT_TIGHT_M", tight_m)
+        noisy = points + np.random.default_rng(1).normal(0.0, noise, (len(points), 1)) * ray
+        fitted = cloud_normals(surfel_means(noisy, 0.025), 30)
+        normal = fitted.normal[fitted.on_plane(noisy)]
+        return np.where(on_rear, np.abs(normal[:, 0]), np.abs(normal[:, 2])) < np.cos(np.radians(45.0))
+
+    tight_m = facing.SHIFT_TIGHT_M
+    before, after = wrong_face(0.0, 0.0), wrong_face(0.0, tight_m)
+    assert top_line.sum() > 80
+    assert before[top_line].mean() > 0.5 and after[top_line].mean() < 0.02
+    assert after[on_rear & ~top_line].mean() == 0.0 and after[~on_rear].mean() < 0.001
+    assert (wrong_face(0.02, 0.0) != wrong_face(0.02, tight_m)).mean() < 0.001
+
+
 def test_config_checks_the_surfel_radius():
     with pytest.raises(ValueError, match="surfel_radius_from"):
         TrackConfig(surfel_radius_from="normals")
@@ -832,7 +871,8 @@ def test_a_point_beside_an_edge_takes_its_own_faces_normal_not_its_nearest_cube_
     took that face's normal (``transfer="nearest"``); among the cloud points nearest that one,
     the one whose plane passes nearest the return lies on its own face (``transfer="plane"``, the
     track stage's default). Exact returns 0.3-2.5 cm from an edge: the wrong face's normal (over
-    45 degrees off) for a fifth of them with the nearest, for under 1% with the plane; away from
+    45 degrees off) for 9% of them with the nearest (22% before the cloud's planes were made to
+    pass through their points, ``SHIFT_TIGHT_M``), for 0.4% with the plane (1.4%); away from
     edges the two agree. With 2 cm of range noise the plane's choice is no worse near edges and
     within 2 points away."""
     from drivetrack.visibility import cloud_normals, surfel_normals
@@ -853,7 +893,7 @@ def test_a_point_beside_an_edge_takes_its_own_faces_normal_not_its_nearest_cube_
             wrong[transfer] = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))) > 45.0
         assert near.size > 500
         if noise == 0:
-            assert wrong["nearest"][near].mean() > 0.1 and wrong["plane"][near].mean() < 0.2 * wrong["nearest"][near].mean()
+            assert wrong["nearest"][near].mean() > 0.05 and wrong["plane"][near].mean() < 0.1 * wrong["nearest"][near].mean()
             assert wrong["plane"][far].mean() == wrong["nearest"][far].mean() == 0.0
         else:
             assert wrong["plane"][near].mean() <= wrong["nearest"][near].mean()

@@ -49,7 +49,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
-           "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
+           "SHIFT_TIGHT_M", "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
            "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
            "other_boxes", "other_surface", "solid_extents", "own_box_parameters", "own_surface", "points_on_surface",
            "points_on_sweep_surface", "range_noise_m", "sensor_positions", "surface_cloud", "surfel_normals",
@@ -96,6 +96,9 @@ SHIFT_TOLERANCE_M = 0.01
 SHIFT_SIGMAS = 3.0
 #: ... and whose normal lies within this angle (degrees) of the point's own neighbourhood's.
 SHIFT_MAX_TILT_DEG = 45.0
+#: A point the chosen plane misses by more than this (metres) or :data:`SHIFT_SIGMAS` times that
+#: plane's own spread lies on another face: it takes the flattest plane that passes that close.
+SHIFT_TIGHT_M = 0.0005
 NEIGHBOURHOODS = ("shifted", "centred")
 #: :meth:`CloudNormals.on_plane`: a point takes the normal of the one of this many cloud points
 #: (its nearest cloud point's nearest, itself included) whose plane passes nearest it.
@@ -245,6 +248,11 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     keeps a flat neighbourhood of the other face, whose plane passes within the noise of a point
     near the edge, from being taken); on a flat face or a smooth surface every candidate gives
     about the same normal; the more neighbours, the farther from an edge the shift reaches.
+    A second pass (:data:`SHIFT_TIGHT_M`) gives a point whose chosen plane misses it beyond that
+    plane's spread, or is no precise plane through it, the flattest of its neighbours' chosen
+    planes (of any tilt) that passes through it that closely: the top scan line of a sparsely
+    sampled face just under a densely sampled one leaned the dense face's way and took its plane
+    (docs/visibility.md "Planes that pass through their points").
     """
     from drivetrack.refine.kernel import knn, plane_fits
     from drivetrack.visibility.kernel import shifted_neighbourhoods
@@ -259,7 +267,7 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     choice = np.arange(cloud.shape[0])
     if neighbourhood == "shifted":
         choice = shifted_neighbourhoods(cloud, index, normal, centroid, eigen, SHIFT_TOLERANCE_M, SHIFT_SIGMAS,
-                                        SHIFT_MAX_TILT_DEG)
+                                        SHIFT_MAX_TILT_DEG, SHIFT_TIGHT_M)
     return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1],
                         neighbours=np.ascontiguousarray(index[:, :PLANE_CANDIDATES], dtype=np.int64))
 

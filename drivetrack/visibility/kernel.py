@@ -27,7 +27,14 @@ __all__ = ["NUMBA_AVAILABLE", "CloudGrid", "cloud_grid", "grid_cell", "nearest_i
 
 
 @njit(cache=True, nogil=True)
-def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, min_cos, choice):
+def _plane_offset(cloud, i, normal, centroid, j):
+    """Distance (metres) of cloud point i from the plane of neighbourhood j."""
+    return abs(normal[j, 0] * (cloud[i, 0] - centroid[j, 0]) + normal[j, 1] * (cloud[i, 1] - centroid[j, 1])
+               + normal[j, 2] * (cloud[i, 2] - centroid[j, 2]))
+
+
+@njit(cache=True, nogil=True)
+def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, min_cos, tight_m, choice):
     m, k = index.shape
     for i in range(m):
         best, best_variation = index[i, 0], np.inf
@@ -35,9 +42,7 @@ def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, 
             j = index[i, a]
             if a > 0:
                 # its plane must pass through the point, within the tolerance ...
-                off = abs(normal[j, 0] * (cloud[i, 0] - centroid[j, 0]) + normal[j, 1] * (cloud[i, 1] - centroid[j, 1])
-                          + normal[j, 2] * (cloud[i, 2] - centroid[j, 2]))
-                if off > max(tolerance_m, sigmas * np.sqrt(max(eigen[j, 0], 0.0))):
+                if _plane_offset(cloud, i, normal, centroid, j) > max(tolerance_m, sigmas * np.sqrt(max(eigen[j, 0], 0.0))):
                     continue
                 # ... and lean the way the point's own neighbourhood does
                 cos = normal[j, 0] * normal[i, 0] + normal[j, 1] * normal[i, 1] + normal[j, 2] * normal[i, 2]
@@ -47,10 +52,41 @@ def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, 
             if variation < best_variation:
                 best, best_variation = j, variation
         choice[i] = best
+    if tight_m <= 0.0:
+        return
+    first = choice.copy()
+    for i in range(m):
+        own = first[i]
+        off = _plane_offset(cloud, i, normal, centroid, own)
+        spread = sigmas * np.sqrt(max(eigen[own, 0], 0.0))
+        loose = off > max(tight_m, spread)
+        if not loose and off <= tight_m and spread <= tight_m:
+            continue
+        # The chosen plane misses the point by more than its own spread (loose), or it is no
+        # precise plane through the point: the point may lie on another face than the one its
+        # neighbourhood leaned to (a denser face across an edge). The flattest of its neighbours'
+        # chosen planes, of any tilt, that passes through it within its own spread (loose) or
+        # that is a precise plane through it (otherwise), where there is one
+        other, other_variation = -1, np.inf
+        for a in range(k):
+            j = first[index[i, a]]
+            off_j = _plane_offset(cloud, i, normal, centroid, j)
+            spread_j = sigmas * np.sqrt(max(eigen[j, 0], 0.0))
+            if loose:
+                if off_j > max(tight_m, spread_j):
+                    continue
+            elif off_j > tight_m or spread_j > tight_m:
+                continue
+            variation = eigen[j, 0] / max(eigen[j, 0] + eigen[j, 1] + eigen[j, 2], 1e-300)
+            if variation < other_variation:
+                other, other_variation = j, variation
+        if other >= 0:
+            choice[i] = other
 
 
 def shifted_neighbourhoods(cloud: np.ndarray, index: np.ndarray, normal: np.ndarray, centroid: np.ndarray,
-                           eigen: np.ndarray, tolerance_m: float, sigmas: float, max_tilt_deg: float) -> np.ndarray:
+                           eigen: np.ndarray, tolerance_m: float, sigmas: float, max_tilt_deg: float,
+                           tight_m: float = 0.0) -> np.ndarray:
     """int64 [m]: for each point of ``cloud`` float64 [m, 3] the neighbour (an index into
     ``cloud``) whose neighbourhood's plane to take (see
     :func:`drivetrack.visibility.facing.cloud_normals`).
@@ -60,13 +96,16 @@ def shifted_neighbourhoods(cloud: np.ndarray, index: np.ndarray, normal: np.ndar
     (``drivetrack.refine.kernel.plane_fits``). Among the neighbourhoods of a point's neighbours,
     its own always and the others when their plane passes within ``max(tolerance_m, sigmas *
     sqrt(l1))`` of the point and their normal lies within ``max_tilt_deg`` of the point's own
-    neighbourhood's (either sign), the flattest (smallest ``l1 / (l1 + l2 + l3)``) wins.
+    neighbourhood's (either sign), the flattest (smallest ``l1 / (l1 + l2 + l3)``) wins. With
+    ``tight_m`` > 0, when the winner's plane misses the point by more than ``max(tight_m, sigmas *
+    sqrt(l1))`` of its own, the flattest of its neighbours' winners whose plane passes within that
+    of the point, of any tilt, wins instead (where there is one).
     """
     choice = np.empty(cloud.shape[0], dtype=np.int64)
     _shifted_kernel(np.ascontiguousarray(cloud, dtype=np.float64), np.ascontiguousarray(index, dtype=np.int64),
                     np.ascontiguousarray(normal, dtype=np.float64), np.ascontiguousarray(centroid, dtype=np.float64),
                     np.ascontiguousarray(eigen, dtype=np.float64), float(tolerance_m), float(sigmas),
-                    float(np.cos(np.radians(max_tilt_deg))), choice)
+                    float(np.cos(np.radians(max_tilt_deg))), float(tight_m), choice)
     return choice
 
 
