@@ -515,15 +515,15 @@ def test_shifted_neighbourhoods_keep_a_boxs_edges_sharp():
         cloud_normals(points, 30, "centered")
 
 
-def test_a_scan_line_just_under_a_denser_face_keeps_its_own_faces_normal(monkeypatch):
+def test_a_scan_line_just_under_a_denser_face_keeps_its_own_faces_normal():
     """A car's roof seen from above is sampled densely, its rear face by a lidar behind it in scan
     lines 6 cm apart, the top one 4 mm under the roof's edge. Every neighbourhood of that line's
     points is mostly roof, and leaning the roof's way the shifted neighbourhoods kept the roof's
     normal: the rear face there was called visible from ahead (the medium hard world's back faces
     called visible were mostly such points). The line's own face passes through it exactly: a
-    neighbour's plane that fits its neighbourhood and the point within ``SHIFT_TIGHT_M`` is taken
-    instead. Range noise leaves (almost) no such plane and changes (almost) nothing."""
-    import drivetrack.visibility.facing as facing
+    neighbour's plane that fits its neighbourhood and the point within ``precise_m``
+    (``TrackConfig.normal_precise_m``) is taken instead. Range noise leaves (almost) no such plane
+    and changes (almost) nothing."""
     from drivetrack.visibility import cloud_normals
     from drivetrack.visibility.zbuffer import surfel_means
 
@@ -539,19 +539,22 @@ def test_a_scan_line_just_under_a_denser_face_keeps_its_own_faces_normal(monkeyp
     ray = points - np.array([-12.0, 0.0, 2.0])
     ray /= np.linalg.norm(ray, axis=1, keepdims=True)
 
-    def wrong_face(noise: float, tight_m: float) -> np.ndarray:
-        monkeypatch.setattr(facing, "SHIFT_TIGHT_M", tight_m)
+    def wrong_face(noise: float, precise_m: float) -> np.ndarray:
         noisy = points + np.random.default_rng(1).normal(0.0, noise, (len(points), 1)) * ray
-        fitted = cloud_normals(surfel_means(noisy, 0.025), 30)
+        fitted = cloud_normals(surfel_means(noisy, 0.025), 30, precise_m=precise_m)
         normal = fitted.normal[fitted.on_plane(noisy)]
         return np.where(on_rear, np.abs(normal[:, 0]), np.abs(normal[:, 2])) < np.cos(np.radians(45.0))
 
-    tight_m = facing.SHIFT_TIGHT_M
+    tight_m = TrackConfig().normal_precise_m
+    assert tight_m > 0
     before, after = wrong_face(0.0, 0.0), wrong_face(0.0, tight_m)
     assert top_line.sum() > 80
     assert before[top_line].mean() > 0.5 and after[top_line].mean() < 0.02
     assert after[on_rear & ~top_line].mean() == 0.0 and after[~on_rear].mean() < 0.001
     assert (wrong_face(0.02, 0.0) != wrong_face(0.02, tight_m)).mean() < 0.001
+    for bad in (-0.001, 0.1, True, "0.5 mm"):
+        with pytest.raises(ValueError, match="normal_precise_m"):
+            TrackConfig(normal_precise_m=bad)
 
 
 def test_config_checks_the_surfel_radius():

@@ -115,6 +115,14 @@ class TrackConfig:
             noise (:func:`drivetrack.visibility.facing.noise_aware_normals`; docs/visibility.md
             "Normals under range noise"). Default 12 (since 2026-11-29, twenty-ninth session;
             measured); None: the fine cubes always. Exact ranges are left bit for bit.
+        normal_precise_m: a cloud point whose chosen plane misses it beyond that plane's own
+            spread, or is no plane that fits its neighbourhood and passes through it within this
+            (metres), takes the flattest of its neighbours' chosen planes that does, of any tilt:
+            the top scan line of a sparsely sampled face just under a densely sampled one (a rear
+            face under the roof) had taken the dense face's normal
+            (:func:`drivetrack.visibility.cloud_normals`; docs/visibility.md "Planes that pass
+            through their points"). Default 0.0005 (since 2026-12-02, thirty-third session); 0:
+            off (before).
         box_face_normals_m: a point whose normal is unreliable (too few or too collinear
             neighbours: a roof or a side the lidar sees at a grazing angle) but which lies within
             this distance (metres) of exactly one face of its label box, away from its edges,
@@ -270,6 +278,7 @@ class TrackConfig:
     normal_neighbourhood: str = "shifted"
     normal_transfer: str = "plane"
     normal_noise_cubes: float | None = 12.0
+    normal_precise_m: float = 0.0005
     box_face_normals_m: float | None = 0.1
     occlusion: str = "surface"
     occluder_tolerance_m: float = 0.15
@@ -359,6 +368,9 @@ class TrackConfig:
                              f"got {self.normal_neighbourhood!r}")
         if self.normal_transfer not in NORMAL_TRANSFERS:
             raise ValueError(f"TrackConfig.normal_transfer must be 'plane' or 'nearest', got {self.normal_transfer!r}")
+        if not (isinstance(self.normal_precise_m, (int, float)) and not isinstance(self.normal_precise_m, bool)
+                and 0 <= self.normal_precise_m <= 0.05):
+            raise ValueError(f"TrackConfig.normal_precise_m must be metres in [0, 0.05], got {self.normal_precise_m!r}")
         if self.normal_noise_cubes is not None and not (
                 isinstance(self.normal_noise_cubes, (int, float)) and not isinstance(self.normal_noise_cubes, bool)
                 and 0 < self.normal_noise_cubes <= 100):

@@ -641,7 +641,7 @@ def segment_cloud_normals(plan, object_id: str, poses):
         plan.occluder_cache[key] = noise_aware_normals(
             segment_normals_cloud(plan, object_id, poses), _surfel_cube_m(config), config.normal_neighbours,
             config.normal_neighbourhood, config.normal_noise_cubes,
-            returns_of=lambda: _segment_points(plan, object_id, poses))
+            returns_of=lambda: _segment_points(plan, object_id, poses), precise_m=config.normal_precise_m)
     return plan.occluder_cache[key]
 
 
@@ -1117,7 +1117,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                                              surfels.reliable, float(config.surface_snap_max_m), keys=lidar_rows)
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
-                                     neighbourhood=config.normal_neighbourhood)
+                                     neighbourhood=config.normal_neighbourhood, precise_m=config.normal_precise_m)
         if config.box_face_normals_m is not None:
             # too thinly sampled for a plane, but on one face of the label box: that face's normal
             # (a roof or a side seen at a grazing angle by the lidar; docs/visibility.md)

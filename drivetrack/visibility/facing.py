@@ -200,7 +200,8 @@ def surface_spread_m(fitted: CloudNormals) -> float:
 
 def noise_aware_normals(fine: np.ndarray, cube_m: float, neighbours: int, neighbourhood: str = "shifted",
                         noise_cubes: float | None = None,
-                        returns_of: Callable[[], np.ndarray] | None = None) -> CloudNormals | None:
+                        returns_of: Callable[[], np.ndarray] | None = None,
+                        precise_m: float | None = None) -> CloudNormals | None:
     """The back-face normals of an object: :func:`cloud_normals` of ``fine`` float64 [k, 3], the
     means of its returns in cubes of side ``cube_m`` (box frame, metres), or of coarser cubes'
     means where the returns carry range noise.
@@ -216,21 +217,22 @@ def noise_aware_normals(fine: np.ndarray, cube_m: float, neighbours: int, neighb
     returns ``returns_of()`` float64 [m, 3] (called only then): each coarse cube's mean averages
     the noise of many returns, and its neighbourhood spans decimetres. Returns on flat faces with
     exact ranges have no spread and keep the fine cubes' normals bit for bit. None when ``fine``
-    has fewer than ``neighbours`` points (as :func:`cloud_normals`)."""
+    has fewer than ``neighbours`` points (as :func:`cloud_normals`, which takes ``precise_m``)."""
     from drivetrack.visibility.zbuffer import surfel_means
 
-    fitted = cloud_normals(fine, neighbours, neighbourhood)
+    fitted = cloud_normals(fine, neighbours, neighbourhood, precise_m)
     if fitted is None or noise_cubes is None or returns_of is None:
         return fitted
     coarse_m = min(float(noise_cubes) * surface_spread_m(fitted), NOISY_CUBE_MAX_M)
     if coarse_m < NOISY_CUBE_MIN_GAIN * cube_m:
         return fitted
     coarse = cloud_normals(surfel_means(np.ascontiguousarray(returns_of(), dtype=np.float64), coarse_m), neighbours,
-                           neighbourhood)
+                           neighbourhood, precise_m)
     return fitted if coarse is None else coarse
 
 
-def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shifted") -> CloudNormals | None:
+def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shifted",
+                  precise_m: float | None = None) -> CloudNormals | None:
     """PCA normals of every point of ``cloud`` float64 [m, 3] (box frame) from ``neighbours``
     nearest points (itself included; ``drivetrack.refine.kernel``'s estimator); None when the
     cloud has fewer than ``neighbours`` points.
@@ -248,7 +250,7 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     keeps a flat neighbourhood of the other face, whose plane passes within the noise of a point
     near the edge, from being taken); on a flat face or a smooth surface every candidate gives
     about the same normal; the more neighbours, the farther from an edge the shift reaches.
-    A second pass (:data:`SHIFT_TIGHT_M`) gives a point whose chosen plane misses it beyond that
+    A second pass (``precise_m``, default :data:`SHIFT_TIGHT_M`; 0: none) gives a point whose chosen plane misses it beyond that
     plane's spread, or is no precise plane through it, the flattest of its neighbours' chosen
     planes (of any tilt) that passes through it that closely: the top scan line of a sparsely
     sampled face just under a densely sampled one leaned the dense face's way and took its plane
@@ -267,7 +269,7 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     choice = np.arange(cloud.shape[0])
     if neighbourhood == "shifted":
         choice = shifted_neighbourhoods(cloud, index, normal, centroid, eigen, SHIFT_TOLERANCE_M, SHIFT_SIGMAS,
-                                        SHIFT_MAX_TILT_DEG, SHIFT_TIGHT_M)
+                                        SHIFT_MAX_TILT_DEG, SHIFT_TIGHT_M if precise_m is None else float(precise_m))
     return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1],
                         neighbours=np.ascontiguousarray(index[:, :PLANE_CANDIDATES], dtype=np.int64))
 
@@ -275,7 +277,8 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
 def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: int = 12,
                    max_neighbour_m: float = 0.5, min_planarity: float = 0.2,
                    cloud: np.ndarray | None = None, neighbourhood: str = "shifted",
-                   fitted: CloudNormals | None = None, transfer: str = "nearest") -> SurfelNormals:
+                   fitted: CloudNormals | None = None, transfer: str = "nearest",
+                   precise_m: float | None = None) -> SurfelNormals:
     """Normals of every point float64 [n, 3] of one object, from its own point cloud.
 
     Args:
@@ -296,6 +299,7 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
         transfer: with ``cloud`` or ``fitted``, how each point takes a cloud point's normal
             (:data:`NORMAL_TRANSFERS`): ``nearest`` (:meth:`CloudNormals.nearest`) or ``plane``
             (:meth:`CloudNormals.on_plane`: right at an edge; the track stage's back-face normals).
+        precise_m: :func:`cloud_normals`' second pass (without ``fitted``).
     """
     if transfer not in NORMAL_TRANSFERS:
         raise ValueError(f"surfel_normals: transfer must be one of {NORMAL_TRANSFERS}, got {transfer!r}")
@@ -303,7 +307,7 @@ def surfel_normals(points_box: np.ndarray, sensor_box: np.ndarray, neighbours: i
     n = points_box.shape[0]
     own = cloud is None and fitted is None
     if fitted is None:
-        fitted = cloud_normals(points_box if cloud is None else cloud, neighbours, neighbourhood)
+        fitted = cloud_normals(points_box if cloud is None else cloud, neighbours, neighbourhood, precise_m)
     if fitted is None:
         return SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool))
     at = np.arange(n) if own else fitted.on_plane(points_box) if transfer == "plane" else fitted.nearest(points_box)
@@ -519,7 +523,8 @@ def _sweep_moves(points: np.ndarray, frame: np.ndarray, sensor: np.ndarray, chos
     _, starts = np.unique(frame[order], return_index=True)
     for at in np.split(order, starts[1:]) if n else []:
         fit = at[chosen[at]]
-        fitted = cloud_normals(points[fit], SWEEP_NORMAL_NEIGHBOURS) if fit.size else None
+        # (the registration's surface: no second pass, docs/visibility.md "Planes that pass through their points")
+        fitted = cloud_normals(points[fit], SWEEP_NORMAL_NEIGHBOURS, precise_m=0.0) if fit.size else None
         if fitted is not None:      # each return takes its nearest fitted one's (surfel_normals)
             surfels = surfel_normals(points[at], sensor[at], fitted=fitted)
             normal[at], usable[at] = surfels.normal, surfels.reliable
