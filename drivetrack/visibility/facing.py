@@ -49,7 +49,8 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_TILT_DEG", "SHIFT_SIGMAS",
-           "SHIFT_TIGHT_M", "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals", "box_face_normals",
+           "SHIFT_TIGHT_M", "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals",
+           "box_face_normals",
            "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
            "other_boxes", "other_surface", "solid_extents", "own_box_parameters", "own_surface", "points_on_surface",
            "points_on_sweep_surface", "range_noise_m", "sensor_positions", "surface_cloud", "surfel_normals",
@@ -96,8 +97,10 @@ SHIFT_TOLERANCE_M = 0.01
 SHIFT_SIGMAS = 3.0
 #: ... and whose normal lies within this angle (degrees) of the point's own neighbourhood's.
 SHIFT_MAX_TILT_DEG = 45.0
-#: A point the chosen plane misses by more than this (metres) or :data:`SHIFT_SIGMAS` times that
-#: plane's own spread lies on another face: it takes the flattest plane that passes that close.
+#: :func:`cloud_normals`' second pass (``TrackConfig.normal_precise_m``'s default): a point whose
+#: chosen plane misses it by more than this (metres) or :data:`SHIFT_SIGMAS` times that plane's own
+#: spread, or is no precise plane through it (spread and miss both within this), may lie on
+#: another face: it takes the flattest of its neighbours' chosen planes that passes that close.
 SHIFT_TIGHT_M = 0.0005
 NEIGHBOURHOODS = ("shifted", "centred")
 #: :meth:`CloudNormals.on_plane`: a point takes the normal of the one of this many cloud points
@@ -250,12 +253,11 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     keeps a flat neighbourhood of the other face, whose plane passes within the noise of a point
     near the edge, from being taken); on a flat face or a smooth surface every candidate gives
     about the same normal; the more neighbours, the farther from an edge the shift reaches.
-    A second pass (``precise_m``, default :data:`SHIFT_TIGHT_M`; 0: none) gives a point whose chosen plane misses it beyond that
-    plane's spread, or is no precise plane through it, the flattest of its neighbours' chosen
-    planes (of any tilt) that passes through it that closely: the top scan line of a sparsely
-    sampled face just under a densely sampled one leaned the dense face's way and took its plane
-    (docs/visibility.md "Planes that pass through their points").
-    """
+    A second pass (``precise_m``, default :data:`SHIFT_TIGHT_M`; 0: none) gives a point whose
+    chosen plane misses it beyond that plane's spread, or is no precise plane through it, the
+    flattest of its neighbours' chosen planes (of any tilt) that passes through it that closely:
+    the top scan line of a sparsely sampled face just under a densely sampled one leaned the dense
+    face's way and took its plane (docs/visibility.md "Planes that pass through their points")."""
     from drivetrack.refine.kernel import knn, plane_fits
     from drivetrack.visibility.kernel import shifted_neighbourhoods
 
@@ -268,8 +270,9 @@ def cloud_normals(cloud: np.ndarray, neighbours: int, neighbourhood: str = "shif
     normal, planarity, centroid, eigen = plane_fits(cloud, index)
     choice = np.arange(cloud.shape[0])
     if neighbourhood == "shifted":
+        tight_m = SHIFT_TIGHT_M if precise_m is None else float(precise_m)
         choice = shifted_neighbourhoods(cloud, index, normal, centroid, eigen, SHIFT_TOLERANCE_M, SHIFT_SIGMAS,
-                                        SHIFT_MAX_TILT_DEG, SHIFT_TIGHT_M if precise_m is None else float(precise_m))
+                                        SHIFT_MAX_TILT_DEG, tight_m)
     return CloudNormals(cloud, normal[choice], planarity[choice], dist[choice, -1],
                         neighbours=np.ascontiguousarray(index[:, :PLANE_CANDIDATES], dtype=np.int64))
 
@@ -523,7 +526,8 @@ def _sweep_moves(points: np.ndarray, frame: np.ndarray, sensor: np.ndarray, chos
     _, starts = np.unique(frame[order], return_index=True)
     for at in np.split(order, starts[1:]) if n else []:
         fit = at[chosen[at]]
-        # (the registration's surface: no second pass, docs/visibility.md "Planes that pass through their points")
+        # the registration's surface: no second pass (not measured there; docs/visibility.md
+        # "Planes that pass through their points")
         fitted = cloud_normals(points[fit], SWEEP_NORMAL_NEIGHBOURS, precise_m=0.0) if fit.size else None
         if fitted is not None:      # each return takes its nearest fitted one's (surfel_normals)
             surfels = surfel_normals(points[at], sensor[at], fitted=fitted)

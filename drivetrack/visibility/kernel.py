@@ -34,6 +34,12 @@ def _plane_offset(cloud, i, normal, centroid, j):
 
 
 @njit(cache=True, nogil=True)
+def _variation(eigen, j):
+    """Surface variation ``l1 / (l1 + l2 + l3)`` of neighbourhood j (0: flat)."""
+    return eigen[j, 0] / max(eigen[j, 0] + eigen[j, 1] + eigen[j, 2], 1e-300)
+
+
+@njit(cache=True, nogil=True)
 def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, min_cos, tight_m, choice):
     m, k = index.shape
     for i in range(m):
@@ -42,13 +48,14 @@ def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, 
             j = index[i, a]
             if a > 0:
                 # its plane must pass through the point, within the tolerance ...
-                if _plane_offset(cloud, i, normal, centroid, j) > max(tolerance_m, sigmas * np.sqrt(max(eigen[j, 0], 0.0))):
+                spread_j = sigmas * np.sqrt(max(eigen[j, 0], 0.0))
+                if _plane_offset(cloud, i, normal, centroid, j) > max(tolerance_m, spread_j):
                     continue
                 # ... and lean the way the point's own neighbourhood does
                 cos = normal[j, 0] * normal[i, 0] + normal[j, 1] * normal[i, 1] + normal[j, 2] * normal[i, 2]
                 if abs(cos) < min_cos:
                     continue
-            variation = eigen[j, 0] / max(eigen[j, 0] + eigen[j, 1] + eigen[j, 2], 1e-300)
+            variation = _variation(eigen, j)
             if variation < best_variation:
                 best, best_variation = j, variation
         choice[i] = best
@@ -77,7 +84,7 @@ def _shifted_kernel(cloud, index, normal, centroid, eigen, tolerance_m, sigmas, 
                     continue
             elif off_j > tight_m or spread_j > tight_m:
                 continue
-            variation = eigen[j, 0] / max(eigen[j, 0] + eigen[j, 1] + eigen[j, 2], 1e-300)
+            variation = _variation(eigen, j)
             if variation < other_variation:
                 other, other_variation = j, variation
         if other >= 0:
