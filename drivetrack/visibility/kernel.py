@@ -104,9 +104,12 @@ def shifted_neighbourhoods(cloud: np.ndarray, index: np.ndarray, normal: np.ndar
     its own always and the others when their plane passes within ``max(tolerance_m, sigmas *
     sqrt(l1))`` of the point and their normal lies within ``max_tilt_deg`` of the point's own
     neighbourhood's (either sign), the flattest (smallest ``l1 / (l1 + l2 + l3)``) wins. With
-    ``tight_m`` > 0, when the winner's plane misses the point by more than ``max(tight_m, sigmas *
-    sqrt(l1))`` of its own, the flattest of its neighbours' winners whose plane passes within that
-    of the point, of any tilt, wins instead (where there is one).
+    ``tight_m`` > 0 a second pass follows: when the winner's plane misses the point by more than
+    ``max(tight_m, sigmas * sqrt(l1))`` of its own, the flattest of its neighbours' winners whose
+    plane passes within that of the point wins instead; when it passes that close but is no
+    precise plane through the point (its spread ``sigmas * sqrt(l1)`` or its miss beyond
+    ``tight_m``), the flattest of its neighbours' winners that is one (spread and miss both within
+    ``tight_m``) wins instead. Either of any tilt, and only where there is one.
     """
     choice = np.empty(cloud.shape[0], dtype=np.int64)
     _shifted_kernel(np.ascontiguousarray(cloud, dtype=np.float64), np.ascontiguousarray(index, dtype=np.int64),
