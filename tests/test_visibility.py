@@ -225,6 +225,43 @@ def test_zbuffer_closes_each_objects_holes_but_not_the_gap_between_two_objects()
     np.testing.assert_array_equal(apart, ((columns > 80) & (columns < 94)) | ((columns > 100) & (columns < 114)))
 
 
+def test_default_footprints_leave_a_gap_between_two_objects_open():
+    """Two walls 5 m away, 6 cm apart (12 px at f = 1000), each its own object: a point 8 m away
+    seen through the middle of the gap is visible with the default 2 cm footprints and hidden with
+    the 5 cm ones of before 2026-12-02 (each wall's splats reach 5 cm past its outermost returns
+    and close the gap); a point seen beyond the gap's edge by 0.4 cm (at the walls' depth) likewise.
+    A point behind a wall is hidden with both."""
+    from drivetrack.visibility.zbuffer import hidden_by_others
+
+    focal, width, height = 1000.0, 400, 200
+    ys = np.concatenate([np.arange(-0.5, -0.0299, 0.01), np.arange(0.03, 0.5001, 0.01)])
+    y, z = np.meshgrid(ys, np.arange(-0.3, 0.3001, 0.01))
+    walls = np.column_stack([np.full(y.size, 5.0), y.ravel(), z.ravel()])
+    wall_of = (walls[:, 1] > 0).astype(np.int64)
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                focal * points[:, 2] / points[:, 0] + height / 2])
+
+    behind = np.array([[8.0, 0.0, 0.0], [8.0, 0.004 * 8 / 5, 0.0], [8.0, -0.2, 0.0]])
+    default = TrackConfig()
+    assert default.surfel_radius_m == 0.02
+    for radius_m, expected in ((default.surfel_radius_m, [False, False, True]), (0.05, [True, True, True])):
+        for subpixels in (1, default.occluder_subpixels):
+            occluders = [(project(walls), walls[:, 0], np.full(len(walls), radius_m), wall_of)]
+            hidden = hidden_by_others(behind[None], project(behind)[None], np.ones((1, len(behind)), bool), occluders,
+                                      width, height, focal, radius_m, default.surfel_max_px,
+                                      default.occluder_tolerance_m, default.occluder_tolerance_rel,
+                                      fill_px=default.occluder_fill_px, subpixels=subpixels)[0][0]
+            np.testing.assert_array_equal(hidden, expected, err_msg=f"{radius_m} m, {subpixels} subpixels")
+
+
+def test_surfel_cube_m_is_validated():
+    for bad in (0.0, -0.01, 0.6, True, "0.025"):
+        with pytest.raises(ValueError, match="surfel_cube_m"):
+            TrackConfig(surfel_cube_m=bad)
+
+
 def test_zbuffer_subpixels_place_an_outline_to_half_a_pixel():
     """An occluder whose outermost returns lie at column 120.3: a far point at 120.8 falls in the
     same image pixel and is called hidden at one buffer pixel per image pixel; with two per pixel
@@ -1934,7 +1971,7 @@ def test_normals_under_range_noise_from_cubes_sized_to_the_noise():
     inner = np.sum(np.abs(points) > np.array([2.0, 0.9, 0.75]) - 0.15, axis=1) <= 1       # off the edges
     clip = rng.choice(np.flatnonzero(inner), 3000, replace=False)
     config = TrackConfig()
-    cube_m = 0.5 * config.surfel_radius_m
+    cube_m = config.surfel_cube_m
 
     def errors_deg(fitted):
         at = fitted.on_plane(noisy[clip])

@@ -165,13 +165,22 @@ class TrackConfig:
             noise moved them inwards, and their mean lies inside the true surface.
         surfel_radius_m, surfel_max_px: each occluder return covers a square of
             ``min(surfel_max_px, round(f * r / z))`` pixels either side of its own, r its radius:
-            ``surfel_radius_m`` for every return (``surfel_radius_from: fixed``) or, with
+            ``surfel_radius_m`` for every return (``surfel_radius_from: fixed``; default 0.02 m
+            since 2026-12-02, thirty-fourth session, 0.05 before: a footprint reaches that far
+            beyond an occluder's outline, and a tracked point's own window is as wide, so the
+            band along every outline where the decision is a footprint's guess narrows with it;
+            the closing of ``occluder_fill_px`` fills the gaps between the smaller splats;
+            docs/visibility.md "Footprints of 2 cm") or, with
             ``spacing``, ``surfel_spacing_scale`` times the distance to its 4th nearest neighbour
             on the object's surface, within [``surfel_radius_m``, ``surfel_max_radius_m``]
             (:func:`drivetrack.tracks.core.segment_surface_radius`; the clip's returns under
             ``time_model="velocity"`` keep ``surfel_radius_m``).
             Only objects of ``object_types`` and ``occluder_types`` have returns, so only they
             occlude this way.
+        surfel_cube_m: side (metres) of the cubes an object's returns over the segment are
+            thinned to, one return each (the z-buffer's surface), and whose means the back-face
+            normals are fitted on (:func:`drivetrack.tracks.core.segment_surface`). Default 0.025
+            (half the footprint of 0.05 m it was tied to before 2026-12-02).
         occluder_fill_px: the z-buffer is closed by this many pixels (a grey-level closing,
             nearest depth spread then the farthest taken back: holes up to twice as wide between an
             occluder's splats are filled at its depth, its outlines and depth steps stay where
@@ -285,7 +294,8 @@ class TrackConfig:
     occluder_tolerance_rel: float = 0.0
     ambiguity_m: float = 0.1
     ambiguity_deg: float = 5.0
-    surfel_radius_m: float = 0.05
+    surfel_radius_m: float = 0.02
+    surfel_cube_m: float = 0.025
     surface_snap_max_m: float | None = 0.1
     surface_snap_margin_m: float = 0.1
     surfel_max_px: int = 8
@@ -389,6 +399,9 @@ class TrackConfig:
         if not (self.surfel_radius_m > 0 and self.surfel_max_px >= 0):
             raise ValueError(f"TrackConfig.surfel_radius_m must be > 0 and surfel_max_px >= 0, got "
                              f"{self.surfel_radius_m!r}, {self.surfel_max_px!r}")
+        if not (isinstance(self.surfel_cube_m, (int, float)) and not isinstance(self.surfel_cube_m, bool)
+                and 0.001 <= self.surfel_cube_m <= 0.5):
+            raise ValueError(f"TrackConfig.surfel_cube_m must be metres in [0.001, 0.5], got {self.surfel_cube_m!r}")
         if self.surface_snap_max_m is not None and not self.surface_snap_max_m > 0:
             raise ValueError(f"TrackConfig.surface_snap_max_m must be None or > 0 metres, got "
                              f"{self.surface_snap_max_m!r}")

@@ -546,11 +546,13 @@ _OCCLUDER_ANGLE_MARGIN_RAD = np.radians(5.0)
 
 
 def _surfel_cube_m(config) -> float:
-    """Side (metres) of the cubes object surfaces are thinned to, one return each: half the splat
-    footprint ``surfel_radius_m`` (a return covers the footprint either side of its own position,
-    so half is dense enough for the footprints of a sampled surface to overlap: measured on the
-    small hard world, a whole footprint drops OA)."""
-    return 0.5 * float(config.surfel_radius_m)
+    """Side (metres) of the cubes object surfaces are thinned to, one return each, and whose means
+    the back-face normals are fitted on: ``TrackConfig.surfel_cube_m`` (2.5 cm; until 2026-12-02
+    half the splat footprint ``surfel_radius_m``, then 5 cm; measured on the small hard world, a
+    cube of a whole footprint dropped OA). The footprint is 2 cm now and the closing of
+    ``occluder_fill_px`` spans the gaps between splats; finer cubes would change the normals'
+    neighbourhoods (back faces called visible on the exact medium world 39 -> 83 with 1 cm cubes)."""
+    return float(config.surfel_cube_m)
 
 
 def _object_rows(boxes, object_id: str) -> np.ndarray:
@@ -585,7 +587,7 @@ def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray
 
 def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
-    to one per cube of half ``surfel_radius_m`` (the first, a return itself: the z-buffer's
+    to one per cube of ``surfel_cube_m`` (the first, a return itself: the z-buffer's
     surface); computed once per object and segment (``plan.occluder_cache``). ``poses``: any
     :func:`clip_poses` of the object on the segment's trajectory (the returns' box-frame
     positions do not depend on the camera or the clip)."""
@@ -890,7 +892,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     ``job.camera``'s image). Its surface is its returns in its box frame (:func:`_points_box`):
     under the trajectory all its returns over the segment, computed once per object
     (``plan.occluder_cache``); under ``time_model="velocity"`` those of the clip frames. Both are
-    thinned to one return per cube of half ``surfel_radius_m``
+    thinned to one return per cube of ``surfel_cube_m``
     (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). With ``roof_fill`` (on the
     trajectory), each other object's surface also holds the part of its roof its returns leave
     unsampled (:func:`segment_roof_fill`; splats only: the boxes' ``solid`` parts stay its
