@@ -563,11 +563,40 @@ def _object_rows(boxes, object_id: str) -> np.ndarray:
 
 def _segment_points(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame (on the
-    trajectory of ``poses``)."""
+    trajectory of ``poses``): those inside its boxes grown by ``segment_margin_m``
+    (:func:`_segment_selection`), or with None the tracked points' selection."""
     boxes = plan.scene.boxes
     all_rows = _object_rows(boxes, object_id)
-    lidar_rows, source = plan.box_points(all_rows)
+    if plan.config.segment_margin_m is None:
+        lidar_rows, source = plan.box_points(all_rows)
+    else:
+        from drivetrack.tracks.plan import box_members
+
+        lidar_rows, source = box_members(*_segment_selection(plan), all_rows)
     return _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+
+
+def _segment_selection(plan) -> tuple[np.ndarray, np.ndarray]:
+    """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of every box row
+    of the objects whose returns the track stage reads (``returns_type_values``), grown by
+    ``segment_margin_m``: one pass over the segment's returns for all of them, made when the
+    first object needs it and cached in ``plan.occluder_cache`` (as :func:`_grown_selection`)."""
+    from dataclasses import replace
+
+    from drivetrack.tracks.plan import select_object_points
+
+    cache = plan.occluder_cache
+    grown = cache.get("#segment")
+    if grown is None:
+        with cache.setdefault("#segment-lock", threading.Lock()):
+            grown = cache.get("#segment")
+            if grown is None:
+                config, boxes = plan.config, plan.scene.boxes
+                rows = np.flatnonzero(np.isin(boxes.type, config.returns_type_values))
+                grown = select_object_points(plan.scene, replace(config, box_margin_m=config.segment_margin_m), rows)
+                cache["#segment"] = grown
+        cache.pop("#segment-lock", None)
+    return grown
 
 
 def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
