@@ -579,23 +579,32 @@ def _segment_points(plan, object_id: str, poses) -> np.ndarray:
 def _segment_selection(plan) -> tuple[np.ndarray, np.ndarray]:
     """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of every box row
     of the objects whose returns the track stage reads (``returns_type_values``), grown by
-    ``segment_margin_m``: one pass over the segment's returns for all of them, made when the
-    first object needs it and cached in ``plan.occluder_cache`` (as :func:`_grown_selection`)."""
+    ``segment_margin_m`` (:func:`_cached_selection`)."""
+    config, boxes = plan.config, plan.scene.boxes
+    return _cached_selection(plan, "#segment", float(config.segment_margin_m),
+                             lambda: np.flatnonzero(np.isin(boxes.type, config.returns_type_values)))
+
+
+def _cached_selection(plan, key: str, margin_m: float, rows_of) -> tuple[np.ndarray, np.ndarray]:
+    """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of the box rows
+    ``rows_of()`` (int [R]) grown by ``margin_m``: one pass over the segment's returns for all of
+    them (a pass per object scans each frame's returns once per object), made when the first
+    object needs it and cached in ``plan.occluder_cache[key]``."""
     from dataclasses import replace
 
     from drivetrack.tracks.plan import select_object_points
 
     cache = plan.occluder_cache
-    grown = cache.get("#segment")
+    grown = cache.get(key)
     if grown is None:
-        with cache.setdefault("#segment-lock", threading.Lock()):
-            grown = cache.get("#segment")
+        # the other objects' jobs wait for it rather than make it again (the lock leaves the
+        # cache once it is made: a plan sent to another process carries no lock)
+        with cache.setdefault(f"{key}-lock", threading.Lock()):
+            grown = cache.get(key)
             if grown is None:
-                config, boxes = plan.config, plan.scene.boxes
-                rows = np.flatnonzero(np.isin(boxes.type, config.returns_type_values))
-                grown = select_object_points(plan.scene, replace(config, box_margin_m=config.segment_margin_m), rows)
-                cache["#segment"] = grown
-        cache.pop("#segment-lock", None)
+                grown = select_object_points(plan.scene, replace(plan.config, box_margin_m=margin_m), rows_of())
+                cache[key] = grown
+        cache.pop(f"{key}-lock", None)
     return grown
 
 
@@ -705,29 +714,11 @@ def _pocket_points(plan, object_id: str, poses, p_box: np.ndarray, size: np.ndar
 
 def _grown_selection(plan) -> tuple[np.ndarray, np.ndarray]:
     """``(offsets, index)`` (:func:`drivetrack.tracks.plan.select_object_points`) of every box row
-    of the plan's tracked objects, grown by ``surface_snap_margin_m``: one pass over the segment's
-    returns for all of them (a pass per object scans each frame's returns once per object), made
-    when the first object needs it and cached in ``plan.occluder_cache``."""
-    from dataclasses import replace
-
-    from drivetrack.tracks.plan import select_object_points
-
-    cache = plan.occluder_cache
-    grown = cache.get("#grown")
-    if grown is None:
-        # the other objects' jobs wait for it rather than make it again (the lock leaves the
-        # cache once it is made: a plan sent to another process carries no lock)
-        with cache.setdefault("#grown-lock", threading.Lock()):
-            grown = cache.get("#grown")
-            if grown is None:
-                config, boxes = plan.config, plan.scene.boxes
-                tracked = sorted({job.object_id for job in plan.jobs})
-                rows = np.flatnonzero(np.isin(boxes.object_id.astype(str), tracked))
-                grown = select_object_points(plan.scene, replace(config, box_margin_m=config.surface_snap_margin_m),
-                                             rows)
-                cache["#grown"] = grown
-        cache.pop("#grown-lock", None)
-    return grown
+    of the plan's tracked objects, grown by ``surface_snap_margin_m`` (:func:`_cached_selection`)."""
+    boxes = plan.scene.boxes
+    tracked = sorted({job.object_id for job in plan.jobs})
+    return _cached_selection(plan, "#grown", plan.config.surface_snap_margin_m,
+                             lambda: np.flatnonzero(np.isin(boxes.object_id.astype(str), tracked)))
 
 
 def segment_surface_cloud(plan, object_id: str, poses):
