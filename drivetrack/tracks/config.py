@@ -169,7 +169,8 @@ class TrackConfig:
             inside its label boxes grown by this much (metres); the tracked points stay those
             inside the boxes grown by ``box_margin_m``. None (default): the tracked points'
             selection. A box drawn tight has its object's outer returns on its faces, and carried
-            into the box frame about half of them land a few millimetres outside: with no margin
+            into the box frame many land a few millimetres outside (a pedestrian's surface held
+            14,966 of its 31,405 returns, a car's 43,486 of 58,927): with no margin
             the occluders' faces have holes, through which hidden points are called visible
             (medium hard world, exact labels: 3,405 wrong calls, 2,036 with 0.01, 2,024 with 0.02
             or 0.1; cabin cars 10,848 -> 9,936). Not the default: with 2 cm of range noise on
