@@ -1188,7 +1188,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         :func:`drivetrack.visibility.facing_mask`, computed once for all candidates below."""
         if front_facing is None:
             return None
-        return front_facing[:, start:stop] if where is None else front_facing[:, where]
+        return front_facing[:, start - held_from:stop - held_from] if where is None else front_facing[:, where - held_from]
 
     def project_global(chunk: np.ndarray, tau: int | None = None):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
@@ -1253,6 +1253,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     # ``hidden_other`` / ``zbuffer_margin``, [1, n]): the tests write clip frame(s) ``at`` at row(s)
     # ``stored(at)``.
     one_row = False
+    # Under a rolling shutter (the numpy path) they hold one chunk of candidates at a time, from
+    # candidate ``held_from`` on (its columns): a candidate's column is its row - ``held_from``.
+    held_from = 0
 
     def stored(at):
         """The row(s) of ``hidden_other`` / ``zbuffer_margin`` holding clip frame(s) ``at`` (int or slice)."""
@@ -1269,7 +1272,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         at = slice(None) if tau is None else slice(tau, tau + 1)
         rescued = None if hull_test is None else np.zeros(valid.shape, dtype=bool)
         edge = None if edge_test is None else np.zeros(valid.shape, dtype=bool)
-        hidden_other[stored(at), start:stop], zbuffer_margin[stored(at), start:stop] = hidden_by_others(
+        cols = slice(start - held_from, stop - held_from)
+        hidden_other[stored(at), cols], zbuffer_margin[stored(at), cols] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
             int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued, edge=edge)
         tests = [(band_of, test) for band_of, test in ((rescued, hull_test), (edge, edge_test)) if band_of is not None]
@@ -1307,8 +1311,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                                          *zbuffer_args, 0, int(config.occluder_subpixels), use_kernel=use_kernel)
         own_margin += own_plane_slack(t_box[pocket], t_normal[pocket], t_reliable[pocket],
                                       centres_box[at], float(config.surfel_radius_m))
-        hidden_other[stored(at), pocket] |= own_margin < 0
-        zbuffer_margin[stored(at), pocket] = np.minimum(zbuffer_margin[stored(at), pocket], own_margin)
+        cols = pocket - held_from
+        hidden_other[stored(at), cols] |= own_margin < 0
+        zbuffer_margin[stored(at), cols] = np.minimum(zbuffer_margin[stored(at), cols], own_margin)
 
     depth = ctx.depth.get(job.camera)
     if depth is None or np.any(depth.slot[frames] < 0):
@@ -1381,17 +1386,19 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 if in_pocket is not None:
                     t_pocket = in_pocket[tested]
         n_tested = t_box.shape[0]
-        # the kernel's path tests one image at a time (below): one row of results
+        # the kernel's path tests one image at a time (below): one row of results; the rolling
+        # shutter's, one chunk of candidates at a time (allocated there: none here)
         one_row = fast
         rows_held = 1 if fast else t_count
+        cols_held = 0 if rolling else n_tested
         if any_occluder or own_splats is not None:
-            hidden_other = np.zeros((rows_held, n_tested), dtype=bool)
-            zbuffer_margin = np.empty((rows_held, n_tested), dtype=np.float32)
+            hidden_other = np.zeros((rows_held, cols_held), dtype=bool)
+            zbuffer_margin = np.empty((rows_held, cols_held), dtype=np.float32)
         if surfels is not None:
             from drivetrack.visibility.facing import facing_test
 
-            face_margin = np.full((rows_held, n_tested), np.inf, dtype=np.float32)
-            front_facing = np.ones((rows_held, n_tested), dtype=bool)
+            face_margin = np.full((rows_held, cols_held), np.inf, dtype=np.float32)
+            front_facing = np.ones((rows_held, cols_held), dtype=bool)
         if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
             from drivetrack.visibility.zbuffer import box_points_at, hull_hidden, hull_missed
 
@@ -1441,9 +1448,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 (hull_hidden)."""
                 hit, hull_margin = hull_hidden(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                                float(config.occluder_tolerance_rel), use_kernel=use_kernel)
-                hidden_other[stored(tau), rows[hit]] = True
-                zbuffer_margin[stored(tau), rows[hit]] = np.minimum(zbuffer_margin[stored(tau), rows[hit]],
-                                                                    hull_margin[hit])
+                cols = rows[hit] - held_from
+                hidden_other[stored(tau), cols] = True
+                zbuffer_margin[stored(tau), cols] = np.minimum(zbuffer_margin[stored(tau), cols], hull_margin[hit])
 
             def edge_test(tau: int, rows: np.ndarray, depth: np.ndarray, placed) -> None:
                 """The points ``rows`` int [k] at clip frame ``tau`` (as :func:`hull_test`'s) that the
@@ -1453,8 +1460,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 (on the visible side, and ambiguous: a buffer pixel from an outline)."""
                 missed = hull_missed(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                      float(config.occluder_tolerance_rel), use_kernel=use_kernel)
-                hidden_other[stored(tau), rows[missed]] = False
-                zbuffer_margin[stored(tau), rows[missed]] = 0.0
+                hidden_other[stored(tau), rows[missed] - held_from] = False
+                zbuffer_margin[stored(tau), rows[missed] - held_from] = 0.0
 
             if not config.occluder_hull_edges:
                 edge_test = None
@@ -1463,14 +1470,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             # (per chunk of candidates it was drawn once per chunk over much the same window)
             for tau in range(t_count):
                 zbuffer_test(0, *(project_frame(t_box, tau) if use_kernel else project_global(t_box, tau)), tau=tau)
-        if surfels is not None and use_kernel and rolling:   # global shutter: for the candidates kept, below
-            from drivetrack.visibility import kernel as visibility_kernel
-
-            visibility_kernel.facing_test(np.ascontiguousarray(p_box), np.ascontiguousarray(surfels.normal, dtype=np.float64),
-                                          np.ascontiguousarray(surfels.reliable, dtype=bool),
-                                          np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
-                                          front_facing, face_margin)
-        for start in range(0, n if surfels is not None and not use_kernel else 0, config.chunk_points):
+        # the back-face test of every candidate here on the numpy global-shutter path (per chunk
+        # under a rolling shutter, per image on the kernel's path: below)
+        for start in range(0, n if surfels is not None and not use_kernel and not rolling else 0, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             # the back-face test and its margin from one cosine per point-frame
             front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
@@ -1485,7 +1487,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         faces = back_faces(start, stop, where)
         if hidden_other is None:
             return faces
-        idx = np.arange(start, stop) if where is None else where
+        idx = (np.arange(start, stop) if where is None else where) - held_from
         return ~hidden_other[:, idx] if faces is None else faces & ~hidden_other[:, idx]
 
     if fast:
@@ -1576,12 +1578,40 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
         parts: list[tuple[np.ndarray, np.ndarray]] = []
+        margin_parts: list[np.ndarray] = []
         keep = np.zeros(n, dtype=bool)
         speeds = np.zeros(n, dtype=np.float64)
         checks = np.zeros(2, dtype=np.int64)
-        dropped_invisible = dropped_speed = 0
+        dropped_invisible = dropped_speed = num_ambiguous = 0
+
+        def project(chunk: np.ndarray):
+            return projection.project(chunk, at_capture=True)
+
         for start in range(0, n, config.chunk_points):
             chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
+            stop = start + chunk.shape[0]
+            if rolling:
+                # the surface tests' results of this chunk alone (its columns)
+                held_from = start
+                if hidden_other is not None:
+                    hidden_other = np.zeros((t_count, chunk.shape[0]), dtype=bool)
+                    zbuffer_margin = np.empty((t_count, chunk.shape[0]), dtype=np.float32)
+                if surfels is not None:
+                    # the back-face test and its margin from one cosine per point-frame
+                    if use_kernel:
+                        from drivetrack.visibility import kernel as visibility_kernel
+
+                        front_facing = np.ones((t_count, chunk.shape[0]), dtype=bool)
+                        face_margin = np.full((t_count, chunk.shape[0]), np.inf, dtype=np.float32)
+                        visibility_kernel.facing_test(np.ascontiguousarray(chunk, dtype=np.float64),
+                                                      np.ascontiguousarray(surfels.normal[start:stop], dtype=np.float64),
+                                                      np.ascontiguousarray(surfels.reliable[start:stop], dtype=bool),
+                                                      np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
+                                                      front_facing, face_margin)
+                    else:
+                        front_facing, face_margin = facing_test(
+                            chunk, SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                            centres_box, float(config.back_face_max_deg))
             # under a rolling shutter the depths at the capture time (the depth maps and the
             # z-buffer are drawn there too)
             points_camera, pixels, valid = projection.project(chunk, at_capture=True)
@@ -1598,7 +1628,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             faces = facing(start, start + chunk.shape[0])
             if faces is not None:
                 visible &= faces
-            stop = start + chunk.shape[0]
             # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
             if t_count > 1 and duration_s > 0:
                 steps = _carry(world_step, chunk)                                      # [T-1, n, 3]
@@ -1619,6 +1648,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             chunk_query, chunk_checks = _summarise_tracks(tracks, chunk_visibles, source_clip[start:stop][idx], model)
             checks += chunk_checks
             parts.append((chunk_visibles, chunk_query))
+            # the kept point-frames' occlusion margins, while the chunk's test results are held
+            margins = _occlusion_margins(config, model, clip_maps, project, p_box[held_from:], start - held_from + idx,
+                                         zbuffer_margin, face_margin, own_box, own_points[held_from:], others)
+            num_ambiguous += int((np.abs(margins) < 1.0).sum())     # NaN (outside the image) compares False
+            if config.occlusion_margins:
+                margin_parts.append(margins.astype(np.float16))
+            del margins
         if parts:
             visibles = np.concatenate([p[0] for p in parts], axis=0)
             query_pixels = np.concatenate([p[1] for p in parts], axis=0)
@@ -1626,19 +1662,14 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             visibles = np.empty((0, t_count), dtype=bool)
             query_pixels = np.empty((0, 2), dtype=np.float32)
         del parts
+        margin16 = None
+        if config.occlusion_margins:
+            margin16 = (np.concatenate(margin_parts, axis=0) if margin_parts
+                        else np.empty((0, t_count), dtype=np.float16))
+        del margin_parts
         source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
-        final_rows = np.flatnonzero(keep)
         occluders = []
-
-        def project(chunk: np.ndarray):
-            return projection.project(chunk, at_capture=True)
-
-        margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
-                                     own_box, own_points, others)
-        num_ambiguous = int((np.abs(margins) < 1.0).sum())     # NaN (outside the image) compares False
-        margin16 = margins.astype(np.float16) if config.occlusion_margins else None
-        del margins
     errors = np.abs(speeds - box_speed_mean)
     sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
                         lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
