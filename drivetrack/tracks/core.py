@@ -1671,13 +1671,14 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
         occluders = []
     errors = np.abs(speeds - box_speed_mean)
-    sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
-                        lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
+    kept_lidar = lidar_rows[keep]
+    sources = np.stack([lidar.laser[kept_lidar], lidar.return_index[kept_lidar],
+                        lidar.row[kept_lidar], lidar.col[kept_lidar]], axis=-1).astype(np.int32)
     result = ObjectTracks(
         split=scene.split, segment=scene.segment, camera=job.camera, object_id=job.object_id,
         object_type=job.object_type, frames=frames.copy(), timestamps_micros=timestamps,
         visibles=visibles, points_box=source.points_box,
-        query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources[keep],
+        query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources,
         track_speed_mps=speeds[keep], box_speed_mps=box_speed_mean, speed_error_mps=errors[keep],
         camera_model=model, camera_from_vehicle=geometry.camera_from_vehicle[frames].copy(),
         world_from_vehicle=scene.world_from_vehicle[frames].copy(),
@@ -1691,7 +1692,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         rejection=None if keep.any() else RejectionReason.NO_VISIBLE_POINTS,
         time_model=config.time_model,
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
-        time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
+        time_residual_m=_outside_box_m(p_box, boxes.size[rows], source_clip),
         num_unreliable_normals=0 if surfels is None else surfels.num_unreliable,
         num_ambiguous_occlusion=num_ambiguous,
         occlusion_margin=margin16,
@@ -1764,11 +1765,17 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     return out
 
 
-def _outside_box_m(points_box: np.ndarray, size: np.ndarray) -> float:
-    """Mean distance (metres) of box-frame points float [n, 3] outside boxes of ``size`` [n, 3]; NaN if none."""
+def _outside_box_m(points_box: np.ndarray, size: np.ndarray, box: np.ndarray, step: int = 1 << 16) -> float:
+    """Mean distance (metres) of box-frame points float [n, 3] outside their boxes, point ``i`` of
+    the box of size ``size[box[i]]`` (``size`` float [T, 3], ``box`` int [n]); NaN if none. The
+    distances are computed ``step`` points at a time (bounded temporaries), their mean at once."""
     if points_box.shape[0] == 0:
         return float("nan")
-    return float(np.linalg.norm(np.maximum(np.abs(points_box) - size / 2.0, 0.0), axis=-1).mean())
+    distance = np.empty(points_box.shape[0], dtype=np.float64)
+    for start in range(0, points_box.shape[0], step):
+        part = slice(start, start + step)
+        distance[part] = np.linalg.norm(np.maximum(np.abs(points_box[part]) - size[box[part]] / 2.0, 0.0), axis=-1)
+    return float(distance.mean())
 
 
 def _summarise_tracks(tracks: np.ndarray, visibles: np.ndarray, source_frames: np.ndarray,
