@@ -983,6 +983,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     own_rows = (np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id == job.object_id))
                 if with_own else np.zeros(0, np.int64))
     own_frame: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(t_count)]
+    records: list[tuple] = []                      # the kernel path's objects, splatted lazily
     for label, object_id in enumerate(others + ([job.object_id] if own_rows.size else [])):
         is_own = label == len(others)
         obj_rows = own_rows if is_own else in_clip[boxes.object_id[in_clip] == object_id]
@@ -1026,10 +1027,22 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
         if use_kernel:
+            # splatted lazily, one image at a time (_LazySplats); here only whether some return
+            # projects validly somewhere (the first valid frame settles it)
             points_box = np.ascontiguousarray(points_box, dtype=np.float64)
-            pixels = np.empty((points_box.shape[0], 2))
-            depth = np.empty(points_box.shape[0])
-            index = np.empty(points_box.shape[0], dtype=np.int64)
+            record = len(records)
+            records.append((points_box, placed, radius_m, 0 if is_own else label))
+            if not (own_seen if is_own else seen):
+                scratch = (np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0]),
+                           np.empty(points_box.shape[0], dtype=np.int64))
+                for k in range(obj_frames.size):
+                    if project_in_window(points_box, placed[k], params, np.inf, -np.inf, np.inf, -np.inf,
+                                         *scratch)[1] > 0:
+                        if is_own:
+                            own_seen = True
+                        else:
+                            seen = True
+                        break
         else:
             points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
             pixels, valid = model.pixels_from_camera(points_camera)
@@ -1041,13 +1054,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         for k, t in enumerate(obj_frames.tolist()):
             x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
             if use_kernel:
-                kept, valid_count = project_in_window(points_box, placed[k], params, x_lo, x_hi, y_lo, y_hi, pixels,
-                                                      depth, index)
-                if is_own:
-                    own_seen = own_seen or valid_count > 0
-                else:
-                    seen = seen or valid_count > 0
-                splats = (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]])
+                splats = (record, k, slot[t])             # splatted when the frame is asked for
             else:
                 near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
                         & (pixels[k, :, 1] <= y_hi))
@@ -1055,27 +1062,71 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                     splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
                 else:
                     splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
-            if is_own:
+            if use_kernel:
+                (own_frame if is_own else per_frame)[slot[t]].append(splats)
+                if is_own:
+                    continue
+            elif is_own:
                 own_frame[slot[t]].append(splats + (np.zeros(splats[1].shape[0], dtype=np.int32),))
                 continue
-            per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
+            else:
+                per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
             world_from_other = poses.world_from_box[k].copy()
             world_from_other[:3, 3] += poses.shift_world[k]
             frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
                                        float(poses.yaw_rate_world[k])))
-    def joined(frames_parts):
-        return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
-                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
-                for parts in frames_parts]
+    if use_kernel:
+        def joined(frames_parts):
+            return _LazySplats(frames_parts, records, params, windows)
+    else:
+        def joined(frames_parts):
+            return _joined_splats(frames_parts)
 
     return (joined(per_frame),
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
               np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
               np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
             seen, joined(own_frame) if own_seen else None, frame_ids)
+
+
+def _joined_splats(frames_parts):
+    """Per frame, the (pixels, depth, radius, object) of its parts, each concatenated."""
+    return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
+                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
+            for parts in frames_parts]
+
+
+class _LazySplats:
+    """:func:`_occluders`' per-frame splats on the kernel path, splatted when a frame is asked
+    for (``splats[tau]`` or ``splats[slice]``, a list) and not kept: a clip's images are asked
+    for one at a time, so only one image's splats are held (a near car's own returns over 54
+    full-size frames held 45 MiB, its occluders' 37 MiB). ``frames_parts`` per frame the
+    ``(record, k, slot)`` of each object there, in order; ``records`` per object ``(points_box
+    float64 [m, 3], placed float64 [K, 4, 4], radius_m float64 [m], label)``."""
+
+    def __init__(self, frames_parts, records, params, windows):
+        self.frames_parts, self.records, self.params, self.windows = frames_parts, records, params, windows
+
+    def __len__(self) -> int:
+        return len(self.frames_parts)
+
+    def __getitem__(self, at):
+        if isinstance(at, slice):
+            return [self[tau] for tau in range(len(self))[at]]
+        return _joined_splats([[self._splat(*part) for part in self.frames_parts[at]]])[0]
+
+    def _splat(self, record: int, k: int, slot: int):
+        from drivetrack.visibility.kernel import project_in_window
+
+        points_box, placed, radius_m, label = self.records[record]
+        pixels, depth = np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0])
+        index = np.empty(points_box.shape[0], dtype=np.int64)
+        kept, _ = project_in_window(points_box, placed[k], self.params, *self.windows[slot], pixels, depth, index)
+        return (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]],
+                np.full(kept, label, dtype=np.int32))
 
 
 def segment_hull(plan, object_id: str, poses):
@@ -1243,7 +1294,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     others = np.zeros((0, 0, 21))
     occluders = []
     own_splats = None
-    defer_own = False
     # the z-buffer's image, footprint and tolerance (drivetrack.visibility.zbuffer.hidden_by_others)
     zbuffer_args = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
                     int(config.surfel_max_px), float(config.occluder_tolerance_m),
@@ -1292,7 +1342,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     rays = [(centres if centres.ndim == 1 else centres[part], points[part])
                             for centres, points in placed[1]]
                     test(frame_tau, start + band, points_camera[i, band, 0], (placed[0], rays))
-        if own_splats is not None and not defer_own:
+        if own_splats is not None:
             sub = np.flatnonzero(t_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
 
