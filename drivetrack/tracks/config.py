@@ -280,7 +280,7 @@ class TrackConfig:
         chunk_points: points processed at once (bounds the [T, chunk, 3] float64 temporaries). On
             the numpy path (rolling-shutter cameras, i.e. real ones) a job's peak grows with T x
             chunk_points: measured on a 210-frame clip (docs/benchmarks.md, track stage), 440 MiB
-            (tracemalloc) at 8,192, 136 MiB at 2,048 for 55% more CPU (each chunk draws its own
+            (tracemalloc) at 8,192, 136 MiB at 2,048 for 55-70% more CPU (each chunk draws its own
             z-buffers); the outputs do not depend on it (the z-buffer's crop holds each point's
             whole-image buffer: ``drivetrack.visibility.zbuffer.crop_growth_px``).
         kernel: inner loop of the global-shutter projection, ``numba`` (fused kernel,
