@@ -10,7 +10,9 @@ takes many CPU-minutes, so it is cached under ``.bench-cache/``; ``--frames`` ke
   folder), beyond the shared segment context (scene, depth maps): tracemalloc (numpy's buffers)
   and RSS (everything, incl. OpenCV and numba), at N x T, N/2 x T and the first T/2 frames, fitted
   as fixed + per point + per point-frame and evaluated for a 200-frame clip; ``--long-frames 210``
-  also measures the longest clips of a 210-frame small-preset segment directly (target < 1 GiB);
+  also measures the longest clips of two 210-frame small-preset segments directly, one with
+  global-shutter cameras and one with rolling-shutter cameras as real ones (target < 1 GiB);
+  every measured run starts with an empty per-segment cache (its object's segment clouds);
   ``--memory-only`` runs just this;
 - accuracy against the exact truth (``drivetrack.evaluation``): OA, AJ, delta_avg (query mode
   ``first`` and ``strided``), pixel error, purity, recall, for each depth completer, without and
@@ -61,17 +63,19 @@ TARGET_JOB_BYTES = 1 << 30
 SPLIT = "training"
 
 
-def ensure_source(cache: Path, preset: str, seed: int, frames: int) -> tuple[str, str]:
-    """(root, segment) of a cached synthetic segment, generated when absent."""
+def ensure_source(cache: Path, preset: str, seed: int, frames: int, rolling_shutter: bool = False) -> tuple[str, str]:
+    """(root, segment) of a cached synthetic segment, generated when absent (``rolling_shutter``:
+    rolling-shutter cameras, as real ones)."""
     from drivetrack.synth import SynthConfig, generate_segment, segment_name
 
-    root = cache / f"synth_{preset}_s{seed}_f{frames}"
+    root = cache / f"synth_{preset}_s{seed}_f{frames}{'_rs' if rolling_shutter else ''}"
     segment = segment_name(seed, 0)
     done = root / SPLIT / "drivetrack_ground_truth" / segment / "lidar_hits.npz"
     if not done.exists():
         print(f"generating {preset} segment ({frames} frames) into {root} (cached for later runs) ...", flush=True)
         start = time.process_time()
-        generate_segment(str(root), SynthConfig(seed=seed, frames=frames, preset=preset), 0)
+        generate_segment(str(root), SynthConfig(seed=seed, frames=frames, preset=preset,
+                                                rolling_shutter=rolling_shutter), 0)
         print(f"  generated in {time.process_time() - start:.0f} CPU s", flush=True)
     return str(root), segment
 
@@ -180,7 +184,9 @@ def _job_peak(ctx, job, max_tracks: int | None, out_dir: str, rss_base: int) -> 
     """Peak memory of one job computed AND written (both files) beyond what exists before it.
 
     tracemalloc peaks of the job alone and of job + writing (the result stays alive while it is
-    written), and the RSS peak above ``rss_base`` (the process after loading the shared context
+    written), with an empty per-segment cache (``SegmentPlan.occluder_cache``: the job builds its
+    object's and its occluders' segment clouds, as a worker's first job of them does), and the RSS
+    peak above ``rss_base`` (the process after loading the shared context
     and a warm-up on the smallest job: freed heap pages stay mapped, so RSS is taken against one
     base and the runs go from small to large); plus the job's N and T.
     """
@@ -189,7 +195,9 @@ def _job_peak(ctx, job, max_tracks: int | None, out_dir: str, rss_base: int) -> 
     from drivetrack.tracks import write_object_outputs
     from drivetrack.tracks.context import SegmentContext
 
-    plan = replace(ctx.plan, config=replace(ctx.plan.config, max_tracks_per_object=max_tracks))
+    # a fresh per-segment cache (the objects' segment clouds, normals, hulls): every run pays what
+    # the first job of its object pays in a worker (otherwise the first run pays for all)
+    plan = replace(ctx.plan, config=replace(ctx.plan.config, max_tracks_per_object=max_tracks), occluder_cache={})
     sub = SegmentContext(plan, ctx.depth)
     with RssPeak() as rss:
         tracemalloc.start()
@@ -280,10 +288,17 @@ def memory_markdown(memories: list[dict]) -> list[str]:
         text = (f"Object-job memory, {m['label']}: the largest job ({m['camera']}, {m['candidates']:,} candidate "
                 f"points x {m['frames']} frames) computed and both files written: peak **{h['peak_bytes'] / 2**20:.0f} MiB** "
                 f"tracemalloc ({h['job_peak_bytes'] / 2**20:.0f} MiB during the job), **{h['rss_peak_bytes'] / 2**20:.0f} MiB** "
-                f"RSS growth (after ``malloc_trim``), beyond the shared segment context (measured). Marginal costs, fitted on "
-                f"three runs with {FIT_CHUNK_POINT_FRAMES:,}-point-frame chunks (N x T: tracemalloc MiB: "
-                + "; ".join(f"{r['candidates']:,} x {r['frames']}: {r['peak_bytes'] / 2**20:.1f}" for r in m["fit_runs"])
-                + f"): {per_point:.0f} B per candidate + {per_pf:.2f} B per candidate-frame (`visibles` is 1).")
+                f"RSS growth (after ``malloc_trim``), beyond the shared segment context (measured). Runs (N x T: "
+                f"tracemalloc MiB): "
+                + "; ".join(f"{r['candidates']:,} x {r['frames']}: {r['peak_bytes'] / 2**20:.1f}" for r in m["fit_runs"]))
+        if m.get("rolling_shutter"):
+            text += (". The numpy path's chunks are `chunk_points` candidates whatever T, so its peak follows "
+                     "T x `chunk_points` (the chunk's [T, k, 3] temporaries), not N x T: no marginal costs.")
+        else:
+            text += (f", with {FIT_CHUNK_POINT_FRAMES:,}-point-frame chunks; marginal costs fitted on them: "
+                     f"{per_point:.0f} B per candidate + {per_pf:.2f} B per candidate-frame (`visibles` is 1)")
+            text += (" (a negative slope: the peak is not linear in N and N x T here, another phase sets it; a "
+                     "projection counts it 0)." if min(per_point, per_pf) < 0 else ".")
         if m.get("bound_200"):
             b = m["bound_200"]
             text += (f" A 200-frame clip of the same object ({m['points_per_frame']:.0f} points per frame, "
@@ -320,10 +335,12 @@ def accuracy_row(label: str, evaluation, extra: dict) -> dict:
     return row
 
 
-def long_clip_memory(cache: Path, seed: int, frames: int) -> dict:
+def long_clip_memory(cache: Path, seed: int, frames: int, rolling_shutter: bool = False) -> dict:
     """:func:`job_memory` on a ``--preset small`` segment of ``frames`` frames (its longest clips
-    are measured, not extrapolated; generating it takes ~1 CPU-s per frame, cached)."""
-    root, segment = ensure_source(cache, "small", seed, frames)
+    are measured, not extrapolated; generating it takes ~1 CPU-s per frame, cached); with
+    ``rolling_shutter`` its cameras are rolling-shutter ones, as real cameras: the track stage's
+    numpy path, in chunks of ``TrackConfig.chunk_points`` candidates."""
+    root, segment = ensure_source(cache, "small", seed, frames, rolling_shutter)
     scene = load_scene_for(root, SPLIT, segment, AnnotateConfig(), refine=False)
     model = scene.cameras[min(scene.cameras)].model
     track = TrackConfig()
@@ -331,8 +348,10 @@ def long_clip_memory(cache: Path, seed: int, frames: int) -> dict:
     ctx = prepare_segment(scene, track, depth=depth_for(scene, track, [plan])[0], plan=plan)
     longest = max(j.frames.size for j in plan.jobs)
     print(f"  long clip: {len(plan.jobs)} clips, the longest {longest} frames", flush=True)
-    return job_memory(ctx, f"`--preset small --frames {frames}` ({model.width}x{model.height}, longest clip "
-                           f"{longest} frames)")
+    shutter = ", rolling shutter" if rolling_shutter else ""
+    memory = job_memory(ctx, f"`--preset small --frames {frames}{' --rolling-shutter' if rolling_shutter else ''}` "
+                             f"({model.width}x{model.height}{shutter}, longest clip {longest} frames)")
+    return {**memory, "rolling_shutter": rolling_shutter}
 
 
 def memory_only(preset: str, frames: int, seed: int, cache: Path, long_frames: int | None) -> dict:
@@ -348,7 +367,7 @@ def memory_only(preset: str, frames: int, seed: int, cache: Path, long_frames: i
     del ctx, scene
     out = [memory]
     if long_frames:
-        out.append(long_clip_memory(cache, seed, long_frames))
+        out += [long_clip_memory(cache, seed, long_frames, rolling) for rolling in (False, True)]
     return {"machine": machine_description(), "memory": out}
 
 
@@ -395,7 +414,7 @@ def run(preset: str, frames: int, seed: int, cache: Path, methods: list[str], bo
                 memory["bound_200"] = bound_200(memory)
                 results["memory"] = [memory]
                 if long_frames:
-                    results["memory"].append(long_clip_memory(cache, seed, long_frames))
+                    results["memory"] += [long_clip_memory(cache, seed, long_frames, rolling) for rolling in (False, True)]
                 print("  memory:", results["memory"], flush=True)
                 if rate < TARGET_ANNOTATIONS_PER_CPU_S:
                     results["profile"] = profile_job(ctx)
@@ -525,8 +544,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-docs", action="store_true", help="do not rewrite docs/benchmarks.md")
     parser.add_argument("--json", default=None, help="also write the raw results to this file")
     parser.add_argument("--long-frames", type=int, default=None,
-                        help="also measure the object-job memory on a --preset small segment of this many "
-                             "frames (e.g. 210: clips of ~200 frames, measured rather than extrapolated)")
+                        help="also measure the object-job memory on --preset small segments of this many "
+                             "frames (e.g. 210: clips of ~200 frames, measured rather than extrapolated), one with "
+                             "global-shutter and one with rolling-shutter cameras (real cameras' path)")
     parser.add_argument("--memory-only", action="store_true",
                         help="measure only the object-job memory and rewrite only its paragraphs in the docs")
     parser.add_argument("--render", nargs="+", default=None, metavar="JSON",

@@ -187,6 +187,45 @@ def test_zbuffer_hole_fill_closes_gaps_in_an_occluder_but_not_its_outline():
     np.testing.assert_array_equal(with_fill, ((columns > 80) & (columns < 120)) | ((columns > 130) & (columns < 140)))
 
 
+@pytest.mark.parametrize("use_kernel", [False, True])
+@pytest.mark.parametrize("subpixels", [1, 2])
+def test_zbuffer_decides_a_point_alone_as_among_others(use_kernel, subpixels):
+    """The z-buffer is drawn in a crop round the points tested together; a point's decision and
+    margin must not depend on which others share the call (a chunk of candidates, or the kept
+    ones). Far points behind an occluder's 8 px strip of missing returns, which the 4 px closing
+    fills: tested one at a time, each is hidden as when all are tested at once (with a crop
+    grown by the footprint alone, a lone point's crop cut the closing off and it was visible)."""
+    from drivetrack.visibility.zbuffer import hidden_by_others
+
+    focal, width, height = 500.0, 200, 100
+
+    def project(points):
+        return np.column_stack([focal * points[:, 1] / points[:, 0] + width / 2,
+                                focal * points[:, 2] / points[:, 0] + height / 2])
+
+    cols = np.concatenate([np.arange(80, 96), np.arange(104, 120)]) + 0.5
+    c, r = np.meshgrid(cols, np.arange(40, 60) + 0.5)
+    near = np.column_stack([np.full(c.size, 5.0), (c.ravel() - width / 2) * 5.0 / focal,
+                            (r.ravel() - height / 2) * 5.0 / focal])
+    columns = np.arange(70, 130) + 0.5
+    far = np.column_stack([np.full(columns.size, 20.0), (columns - width / 2) * 20.0 / focal,
+                           np.full(columns.size, 0.5 * 20.0 / focal)])
+
+    def test(points):
+        return hidden_by_others(points[None], project(points)[None], np.ones((1, len(points)), bool),
+                                [(project(near), near[:, 0])], width, height, focal, 0.002, 1, 0.15, 0.0,
+                                fill_px=4, subpixels=subpixels, use_kernel=use_kernel)
+
+    together_hidden, together_margin = test(far)
+    assert together_hidden.any() and not together_hidden.all()
+    if subpixels == 1:
+        assert together_hidden[0, (columns > 96) & (columns < 104)].all()      # the strip, closed
+    for i in range(len(far)):
+        hidden, margin = test(far[i:i + 1])
+        assert hidden[0, 0] == together_hidden[0, i], columns[i]
+        assert margin[0, 0] == together_margin[0, i], columns[i]
+
+
 def test_zbuffer_closes_each_objects_holes_but_not_the_gap_between_two_objects():
     """Two near occluders (a 'pole' and a 'pedestrian') 6 px apart, each sampled with a 6 px
     strip no return covers. Closed by 4 px as one surface, the gap between them is filled too and

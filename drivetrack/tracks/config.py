@@ -277,7 +277,12 @@ class TrackConfig:
             box's annotated mean speed by more than this (paper's remedy for non-rigid parts).
         max_tracks_per_object: if set, keep a seeded random subset of this many candidate points.
         seed: seed of that subset.
-        chunk_points: points processed at once (bounds the [T, chunk, 3] float64 temporaries).
+        chunk_points: points processed at once (bounds the [T, chunk, 3] float64 temporaries). On
+            the numpy path (rolling-shutter cameras, i.e. real ones) a job's peak grows with T x
+            chunk_points: measured on a 210-frame clip (docs/benchmarks.md, track stage), 440 MiB
+            (tracemalloc) at 8,192, 136 MiB at 2,048 for 55-70% more CPU (each chunk draws its own
+            z-buffers); the outputs do not depend on it (the z-buffer's crop holds each point's
+            whole-image buffer: ``drivetrack.visibility.zbuffer.crop_growth_px``).
         kernel: inner loop of the global-shutter projection, ``numba`` (fused kernel,
             :mod:`drivetrack.tracks.kernel`) or ``numpy`` (the reference; rolling-shutter cameras
             always use it).

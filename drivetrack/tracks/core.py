@@ -510,8 +510,21 @@ def _points_box(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, li
 
     ``frames``, ``rows`` int [T] the clip frames and the object's box rows there; ``poses`` its
     :func:`clip_poses`. Under the trajectory the box is taken at each return's capture time;
-    under ``velocity`` the box moves during the sweep when ``compensate_sweep_motion``.
+    under ``velocity`` the box moves during the sweep when ``compensate_sweep_motion``. In chunks
+    of ``TrackConfig.chunk_points`` returns: the per-return poses ([k, 4, 4] and the trajectory's
+    terms) stay a chunk's (each return's point is its own, so the result is the same).
     """
+    out = np.empty((lidar_rows.size, 3), dtype=np.float64)
+    step = int(plan.config.chunk_points)
+    for start in range(0, lidar_rows.size, step):
+        out[start:start + step] = _points_box_chunk(plan, frames, rows, poses, lidar_rows[start:start + step],
+                                                    source_clip[start:start + step])
+    return out
+
+
+def _points_box_chunk(plan, frames: np.ndarray, rows: np.ndarray, poses: ClipPoses, lidar_rows: np.ndarray,
+                      source_clip: np.ndarray) -> np.ndarray:
+    """:func:`_points_box` of one chunk of returns."""
     scene, config = plan.scene, plan.config
     boxes, lidar = scene.boxes, scene.lidar
     vehicle_from_box = poses.vehicle_from_box
@@ -970,6 +983,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     own_rows = (np.flatnonzero((slot[boxes.frame] >= 0) & (boxes.object_id == job.object_id))
                 if with_own else np.zeros(0, np.int64))
     own_frame: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(t_count)]
+    records: list[tuple] = []                      # the kernel path's objects, splatted lazily
     for label, object_id in enumerate(others + ([job.object_id] if own_rows.size else [])):
         is_own = label == len(others)
         obj_rows = own_rows if is_own else in_clip[boxes.object_id[in_clip] == object_id]
@@ -1013,10 +1027,22 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
         if use_kernel:
+            # splatted lazily, one image at a time (_LazySplats); here only whether some return
+            # projects validly somewhere (the first valid frame settles it)
             points_box = np.ascontiguousarray(points_box, dtype=np.float64)
-            pixels = np.empty((points_box.shape[0], 2))
-            depth = np.empty(points_box.shape[0])
-            index = np.empty(points_box.shape[0], dtype=np.int64)
+            record = len(records)
+            records.append((points_box, placed, radius_m, 0 if is_own else label))
+            if not (own_seen if is_own else seen):
+                scratch = (np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0]),
+                           np.empty(points_box.shape[0], dtype=np.int64))
+                for k in range(obj_frames.size):
+                    if project_in_window(points_box, placed[k], params, np.inf, -np.inf, np.inf, -np.inf,
+                                         *scratch)[1] > 0:
+                        if is_own:
+                            own_seen = True
+                        else:
+                            seen = True
+                        break
         else:
             points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
             pixels, valid = model.pixels_from_camera(points_camera)
@@ -1028,13 +1054,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
         for k, t in enumerate(obj_frames.tolist()):
             x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
             if use_kernel:
-                kept, valid_count = project_in_window(points_box, placed[k], params, x_lo, x_hi, y_lo, y_hi, pixels,
-                                                      depth, index)
-                if is_own:
-                    own_seen = own_seen or valid_count > 0
-                else:
-                    seen = seen or valid_count > 0
-                splats = (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]])
+                splats = (record, k, slot[t])             # splatted when the frame is asked for
             else:
                 near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
                         & (pixels[k, :, 1] <= y_hi))
@@ -1042,27 +1062,71 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                     splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
                 else:
                     splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
-            if is_own:
+            if use_kernel:
+                (own_frame if is_own else per_frame)[slot[t]].append(splats)
+                if is_own:
+                    continue
+            elif is_own:
                 own_frame[slot[t]].append(splats + (np.zeros(splats[1].shape[0], dtype=np.int32),))
                 continue
-            per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
+            else:
+                per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
             world_from_other = poses.world_from_box[k].copy()
             world_from_other[:3, 3] += poses.shift_world[k]
             frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
                                        float(poses.yaw_rate_world[k])))
-    def joined(frames_parts):
-        return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
-                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
-                for parts in frames_parts]
+    if use_kernel:
+        def joined(frames_parts):
+            return _LazySplats(frames_parts, records, params, windows)
+    else:
+        def joined(frames_parts):
+            return _joined_splats(frames_parts)
 
     return (joined(per_frame),
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
               np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
               np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
             seen, joined(own_frame) if own_seen else None, frame_ids)
+
+
+def _joined_splats(frames_parts):
+    """Per frame, the (pixels, depth, radius, object) of its parts, each concatenated."""
+    return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
+                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
+            for parts in frames_parts]
+
+
+class _LazySplats:
+    """:func:`_occluders`' per-frame splats on the kernel path, splatted when a frame is asked
+    for (``splats[tau]`` or ``splats[slice]``, a list) and not kept: a clip's images are asked
+    for one at a time, so only one image's splats are held (a near car's own returns over 54
+    full-size frames held 45 MiB, its occluders' 37 MiB). ``frames_parts`` per frame the
+    ``(record, k, slot)`` of each object there, in order; ``records`` per object ``(points_box
+    float64 [m, 3], placed float64 [K, 4, 4], radius_m float64 [m], label)``."""
+
+    def __init__(self, frames_parts, records, params, windows):
+        self.frames_parts, self.records, self.params, self.windows = frames_parts, records, params, windows
+
+    def __len__(self) -> int:
+        return len(self.frames_parts)
+
+    def __getitem__(self, at):
+        if isinstance(at, slice):
+            return [self[tau] for tau in range(len(self))[at]]
+        return _joined_splats([[self._splat(*part) for part in self.frames_parts[at]]])[0]
+
+    def _splat(self, record: int, k: int, slot: int):
+        from drivetrack.visibility.kernel import project_in_window
+
+        points_box, placed, radius_m, label = self.records[record]
+        pixels, depth = np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0])
+        index = np.empty(points_box.shape[0], dtype=np.int64)
+        kept, _ = project_in_window(points_box, placed[k], self.params, *self.windows[slot], pixels, depth, index)
+        return (pixels[:kept].copy(), depth[:kept].copy(), radius_m[index[:kept]],
+                np.full(kept, label, dtype=np.int32))
 
 
 def segment_hull(plan, object_id: str, poses):
@@ -1137,6 +1201,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 p_box, _ = points_on_surface(p_box, boxes.frame[rows][source_clip], rays_box, surfels.normal,
                                              lambda: segment_surface_cloud(plan, job.object_id, poses),
                                              surfels.reliable, float(config.surface_snap_max_m), keys=lidar_rows)
+                del rays_box
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood, precise_m=config.normal_precise_m)
@@ -1146,6 +1211,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             surfels = with_box_face_normals(surfels, p_box, np.median(boxes.size[rows], axis=0),
                                             float(config.box_face_normals_m))
         centres_box = camera_centres_box(camera_from_box, shift_camera)
+        del sensor_vehicle, sensor_box
     # The object's own box for the depth-map test (drivetrack.visibility.own_surface): with the
     # back-face test on, a depth-map surface inside it hides nothing at a point whose normal is
     # reliable (``own_points``); where it is not, the back-face test cannot decide, and the surface
@@ -1173,7 +1239,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         :func:`drivetrack.visibility.facing_mask`, computed once for all candidates below."""
         if front_facing is None:
             return None
-        return front_facing[:, start:stop] if where is None else front_facing[:, where]
+        return front_facing[:, start - held_from:stop - held_from] if where is None else front_facing[:, where - held_from]
 
     def project_global(chunk: np.ndarray, tau: int | None = None):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
@@ -1228,11 +1294,24 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     others = np.zeros((0, 0, 21))
     occluders = []
     own_splats = None
-    defer_own = False
     # the z-buffer's image, footprint and tolerance (drivetrack.visibility.zbuffer.hidden_by_others)
     zbuffer_args = (int(model.width), int(model.height), float(model.f_u), float(config.surfel_radius_m),
                     int(config.surfel_max_px), float(config.occluder_tolerance_m),
                     float(config.occluder_tolerance_rel))
+
+    # The kernel's path (below) keeps one image's results of the z-buffer at a time (row 0 of
+    # ``hidden_other`` / ``zbuffer_margin``, [1, n]): the tests write clip frame(s) ``at`` at row(s)
+    # ``stored(at)``.
+    one_row = False
+    # Under a rolling shutter (the numpy path) they hold one chunk of candidates at a time, from
+    # candidate ``held_from`` on (its columns): a candidate's column is its row - ``held_from``.
+    held_from = 0
+
+    def stored(at):
+        """The row(s) of ``hidden_other`` / ``zbuffer_margin`` holding clip frame(s) ``at`` (int or slice)."""
+        if not one_row:
+            return at
+        return slice(0, 1) if isinstance(at, slice) else 0
 
     def zbuffer_test(start: int, points_camera: np.ndarray, pixels: np.ndarray, valid: np.ndarray,
                      tau: int | None = None) -> None:
@@ -1243,7 +1322,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         at = slice(None) if tau is None else slice(tau, tau + 1)
         rescued = None if hull_test is None else np.zeros(valid.shape, dtype=bool)
         edge = None if edge_test is None else np.zeros(valid.shape, dtype=bool)
-        hidden_other[at, start:stop], zbuffer_margin[at, start:stop] = hidden_by_others(
+        cols = slice(start - held_from, stop - held_from)
+        hidden_other[stored(at), cols], zbuffer_margin[stored(at), cols] = hidden_by_others(
             points_camera, pixels, valid, occluders[at], *zbuffer_args, int(config.occluder_fill_px),
             int(config.occluder_subpixels), use_kernel=use_kernel, rescued=rescued, edge=edge)
         tests = [(band_of, test) for band_of, test in ((rescued, hull_test), (edge, edge_test)) if band_of is not None]
@@ -1262,8 +1342,8 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     rays = [(centres if centres.ndim == 1 else centres[part], points[part])
                             for centres, points in placed[1]]
                     test(frame_tau, start + band, points_camera[i, band, 0], (placed[0], rays))
-        if own_splats is not None and not defer_own:
-            sub = np.flatnonzero(in_pocket[start:stop])
+        if own_splats is not None:
+            sub = np.flatnonzero(t_pocket[start:stop])
             own_test(start + sub, sub, points_camera, pixels, valid, at)
 
     def own_test(pocket: np.ndarray, sub: np.ndarray, points_camera: np.ndarray, pixels: np.ndarray,
@@ -1279,10 +1359,57 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             return
         _, own_margin = hidden_by_others(points_camera[:, sub], pixels[:, sub], valid[:, sub], own_splats[at],
                                          *zbuffer_args, 0, int(config.occluder_subpixels), use_kernel=use_kernel)
-        own_margin += own_plane_slack(p_box[pocket], surfels.normal[pocket], surfels.reliable[pocket],
+        own_margin += own_plane_slack(t_box[pocket], t_normal[pocket], t_reliable[pocket],
                                       centres_box[at], float(config.surfel_radius_m))
-        hidden_other[at, pocket] |= own_margin < 0
-        zbuffer_margin[at, pocket] = np.minimum(zbuffer_margin[at, pocket], own_margin)
+        cols = pocket - held_from
+        hidden_other[stored(at), cols] |= own_margin < 0
+        zbuffer_margin[stored(at), cols] = np.minimum(zbuffer_margin[stored(at), cols], own_margin)
+
+    depth = ctx.depth.get(job.camera)
+    if depth is None or np.any(depth.slot[frames] < 0):
+        raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
+                         f"the segment context has no depth map for some clip frames")
+
+    slots = depth.slot[frames]
+    # A clip's frames are consecutive and all needed, so their maps are adjacent: a view, no copy.
+    clip_maps = (depth.maps[slots[0]:slots[-1] + 1] if np.all(np.diff(slots) == 1) else depth.maps[slots])
+
+    world_step = world_from_box[1:] - world_from_box[:-1]                    # affine differences [T-1]
+    duration_s = (timestamps[-1] - timestamps[0]) * 1e-6
+
+    box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
+    box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
+    speed_filter = (config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean))
+    max_deviation = float(config.max_speed_deviation_mps) if speed_filter else float("nan")
+
+    # The track kernel's path (global shutter): its screen (projection, depth-map test, speed
+    # filter; ``status`` int8 [n]) runs first, and the surface tests look at the candidates it
+    # keeps alone (``tested``, about half of them), one image at a time (below).
+    fast = use_kernel and not rolling
+    status = tested = None
+    if fast:
+        from drivetrack.tracks import kernel
+
+        status = np.empty(n, dtype=np.int8)
+        speeds = np.empty(n, dtype=np.float64)
+        p_box = np.ascontiguousarray(p_box, dtype=np.float64)
+        camera_from_box = np.ascontiguousarray(camera_from_box, dtype=np.float64)
+        shift_camera = np.ascontiguousarray(shift_camera, dtype=np.float64)
+        vehicle_from_box = np.ascontiguousarray(vehicle_from_box, dtype=np.float64)
+        clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
+        params = kernel.camera_parameters(model)
+
+    def screen() -> np.ndarray:
+        """The kernel's screen of every candidate (fills ``status`` and ``speeds``): the rows it keeps."""
+        kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
+                             params, clip_maps, float(config.occlusion_ratio), own_box, own_points, others,
+                             float(duration_s), box_speed_mean, max_deviation, status, speeds)
+        return np.flatnonzero(status == kernel.KEPT)
+
+    # the candidates the surface tests look at: their box points, normals and pocket flags
+    t_box, t_normal, t_reliable, t_pocket = p_box, None, None, None
+    if surfels is not None:
+        t_normal, t_reliable = surfels.normal, surfels.reliable
 
     hull_test = edge_test = None
     if by_surface:
@@ -1299,17 +1426,29 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             from drivetrack.visibility import other_boxes
 
             others = other_boxes(camera_from_box, shift_camera, occluder_boxes, float(config.own_surface_margin_m))
+        t_pocket = in_pocket
+        if fast:
+            tested = screen()
+            if tested.size < n:            # all kept (a near object): the candidates' own arrays
+                t_box = np.ascontiguousarray(p_box[tested])
+                if surfels is not None:
+                    t_normal, t_reliable = surfels.normal[tested], surfels.reliable[tested]
+                if in_pocket is not None:
+                    t_pocket = in_pocket[tested]
+        n_tested = t_box.shape[0]
+        # the kernel's path tests one image at a time (below): one row of results; the rolling
+        # shutter's, one chunk of candidates at a time (allocated there: none here)
+        one_row = fast
+        rows_held = 1 if fast else t_count
+        cols_held = 0 if rolling else n_tested
         if any_occluder or own_splats is not None:
-            hidden_other = np.zeros((t_count, n), dtype=bool)
-            zbuffer_margin = np.empty((t_count, n), dtype=np.float32)
+            hidden_other = np.zeros((rows_held, cols_held), dtype=bool)
+            zbuffer_margin = np.empty((rows_held, cols_held), dtype=np.float32)
         if surfels is not None:
             from drivetrack.visibility.facing import facing_test
 
-            face_margin = np.full((t_count, n), np.inf, dtype=np.float32)
-            front_facing = np.ones((t_count, n), dtype=bool)
-        # the kernel path keeps about half the candidates (screen_points, below): the own surface,
-        # a z-buffer of its own per image, is tested at the kept ones alone (own_test, below)
-        defer_own = use_kernel and not rolling
+            face_margin = np.full((rows_held, cols_held), np.inf, dtype=np.float32)
+            front_facing = np.ones((rows_held, cols_held), dtype=bool)
         if hidden_other is not None and config.occluder_hulls and poses.trajectory is not None:
             from drivetrack.visibility.zbuffer import box_points_at, hull_hidden, hull_missed
 
@@ -1332,7 +1471,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     for placed_other in occluder_boxes[tau][0]:
                         other_from_box = invert_rigid(placed_other) @ placed_self
                         rays.append((np.einsum("ij,j->i", other_from_box[:3, :3], centre) + other_from_box[:3, 3],
-                                     np.einsum("ij,nj->ni", other_from_box[:3, :3], p_box[rows]) + other_from_box[:3, 3]))
+                                     np.einsum("ij,nj->ni", other_from_box[:3, :3], t_box[rows]) + other_from_box[:3, 3]))
                 else:
                     from drivetrack.camera.rolling_shutter import pixel_times, shutter_state
 
@@ -1341,7 +1480,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                     dt = np.nan_to_num(pixel_times(shutter_meta, t, pixels) - state.pose_timestamp)
                     centres = state.pose_at(dt)[1] if state.rolling else np.broadcast_to(
                         state.world_from_camera[:3, 3], (rows.size, 3))
-                    world = (np.einsum("ij,nj->ni", poses.world_from_box[tau, :3, :3], p_box[rows])
+                    world = (np.einsum("ij,nj->ni", poses.world_from_box[tau, :3, :3], t_box[rows])
                              + poses.world_from_box[tau, :3, 3] + poses.shift_world[tau])
                     world = world + dt[:, None] * rigid_velocity_world(
                         world, poses.world_from_box[tau, :3, 3], poses.velocity_world[tau],
@@ -1359,8 +1498,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 (hull_hidden)."""
                 hit, hull_margin = hull_hidden(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                                float(config.occluder_tolerance_rel), use_kernel=use_kernel)
-                hidden_other[tau, rows[hit]] = True
-                zbuffer_margin[tau, rows[hit]] = np.minimum(zbuffer_margin[tau, rows[hit]], hull_margin[hit])
+                cols = rows[hit] - held_from
+                hidden_other[stored(tau), cols] = True
+                zbuffer_margin[stored(tau), cols] = np.minimum(zbuffer_margin[stored(tau), cols], hull_margin[hit])
 
             def edge_test(tau: int, rows: np.ndarray, depth: np.ndarray, placed) -> None:
                 """The points ``rows`` int [k] at clip frame ``tau`` (as :func:`hull_test`'s) that the
@@ -1370,30 +1510,25 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 (on the visible side, and ambiguous: a buffer pixel from an outline)."""
                 missed = hull_missed(placed[1], depth, placed[0], float(config.occluder_tolerance_m),
                                      float(config.occluder_tolerance_rel), use_kernel=use_kernel)
-                hidden_other[tau, rows[missed]] = False
-                zbuffer_margin[tau, rows[missed]] = 0.0
+                hidden_other[stored(tau), rows[missed] - held_from] = False
+                zbuffer_margin[stored(tau), rows[missed] - held_from] = 0.0
 
             if not config.occluder_hull_edges:
                 edge_test = None
-        if hidden_other is not None and not rolling:          # rolling: in the numpy path's loop, from its projection
+        if hidden_other is not None and not rolling and not fast:   # rolling: in the numpy path's loop; kernel: below
             # one image at a time over all candidates: each image's z-buffer is drawn once per clip
             # (per chunk of candidates it was drawn once per chunk over much the same window)
             for tau in range(t_count):
-                zbuffer_test(0, *(project_frame(p_box, tau) if use_kernel else project_global(p_box, tau)), tau=tau)
-        if surfels is not None and use_kernel and rolling:   # global shutter: for the candidates kept, below
-            from drivetrack.visibility import kernel as visibility_kernel
-
-            visibility_kernel.facing_test(np.ascontiguousarray(p_box), np.ascontiguousarray(surfels.normal, dtype=np.float64),
-                                          np.ascontiguousarray(surfels.reliable, dtype=bool),
-                                          np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
-                                          front_facing, face_margin)
-        for start in range(0, n if surfels is not None and not use_kernel else 0, config.chunk_points):
+                zbuffer_test(0, *(project_frame(t_box, tau) if use_kernel else project_global(t_box, tau)), tau=tau)
+        # the back-face test of every candidate here on the numpy global-shutter path (per chunk
+        # under a rolling shutter, per image on the kernel's path: below)
+        for start in range(0, n if surfels is not None and not use_kernel and not rolling else 0, config.chunk_points):
             stop = min(start + config.chunk_points, n)
             # the back-face test and its margin from one cosine per point-frame
             front_facing[:, start:stop], face_margin[:, start:stop] = facing_test(
                 p_box[start:stop], SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
                 centres_box, float(config.back_face_max_deg))
-        if not rolling:
+        if not rolling and not fast:          # the kernel path draws them below
             occluders = []
 
     def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
@@ -1402,66 +1537,64 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         faces = back_faces(start, stop, where)
         if hidden_other is None:
             return faces
-        idx = np.arange(start, stop) if where is None else where
+        idx = (np.arange(start, stop) if where is None else where) - held_from
         return ~hidden_other[:, idx] if faces is None else faces & ~hidden_other[:, idx]
 
-    depth = ctx.depth.get(job.camera)
-    if depth is None or np.any(depth.slot[frames] < 0):
-        raise ValueError(f"segment {scene.segment!r} camera {job.camera_name} object {job.object_id!r}: "
-                         f"the segment context has no depth map for some clip frames")
-
-    slots = depth.slot[frames]
-    # A clip's frames are consecutive and all needed, so their maps are adjacent: a view, no copy.
-    clip_maps = (depth.maps[slots[0]:slots[-1] + 1] if np.all(np.diff(slots) == 1) else depth.maps[slots])
-
-    world_step = world_from_box[1:] - world_from_box[:-1]                    # affine differences [T-1]
-    duration_s = (timestamps[-1] - timestamps[0]) * 1e-6
-
-    box_speed = np.linalg.norm(boxes.speed[rows], axis=-1)
-    box_speed_mean = float(np.nanmean(box_speed)) if np.isfinite(box_speed).any() else float("nan")
-    speed_filter = (config.max_speed_deviation_mps is not None and np.isfinite(box_speed_mean))
-    max_deviation = float(config.max_speed_deviation_mps) if speed_filter else float("nan")
-
-    if not rolling and use_kernel:
-        from drivetrack.tracks import kernel
-
-        status = np.empty(n, dtype=np.int8)
-        speeds = np.empty(n, dtype=np.float64)
-        p_box = np.ascontiguousarray(p_box, dtype=np.float64)
-        camera_from_box = np.ascontiguousarray(camera_from_box, dtype=np.float64)
-        shift_camera = np.ascontiguousarray(shift_camera, dtype=np.float64)
-        vehicle_from_box = np.ascontiguousarray(vehicle_from_box, dtype=np.float64)
-        clip_maps = np.ascontiguousarray(clip_maps, dtype=np.float32)
-        params = kernel.camera_parameters(model)
-        kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
-                             params, clip_maps, float(config.occlusion_ratio), own_box, own_points, others,
-                             float(duration_s),
-                             box_speed_mean, max_deviation, status, speeds)
-        keep = status == kernel.KEPT
-        kept = int(keep.sum())
-        kept_box = np.ascontiguousarray(p_box[keep])
-        kept_rows = np.flatnonzero(keep)
-        if own_splats is not None:
-            own_rows = kept_rows[in_pocket[kept_rows]]
-            for tau in range(t_count):
-                own_test(own_rows, np.arange(own_rows.size), *project_frame(p_box[own_rows], tau),
-                         slice(tau, tau + 1))
+    if fast:
+        kept_rows = tested if tested is not None else screen()
+        kept = kept_rows.size
+        kept_box = t_box if tested is not None else np.ascontiguousarray(p_box[kept_rows])
+        kept_own = np.ascontiguousarray(own_points[kept_rows])
+        # One image at a time over the kept candidates: the surface tests (z-buffer of the other
+        # objects and the own surface, back faces) and the occlusion margin (theirs and the depth
+        # map's: the kernel's ``depth_margins``, as :func:`_occlusion_margins`); only each point-frame's
+        # outcome is held, one bit each (np.packbits over the candidates, uint8 [T, ceil(K / 8)]):
+        # hidden by a surface test; ambiguous (|margin| < 1); and the margin itself in float16
+        # [K, T] when it is kept. The margins are computed for every kept candidate, also those the
+        # surface tests then hide everywhere (dropped below).
+        packed = (kept + 7) // 8
+        surface_hidden = (np.zeros((t_count, packed), dtype=np.uint8) if surfels is not None or hidden_other is not None
+                          else None)
+        ambiguous = np.empty((t_count, packed), dtype=np.uint8)
+        frame_hidden = np.empty(kept, dtype=bool)
+        margin16 = np.empty((kept, t_count), dtype=np.float16) if config.occlusion_margins else None
         if surfels is not None:
-            # the back-face test and its margin are read only at the candidates kept here (about
-            # half of them on bench_visibility_cost's segment): computed for those alone
             from drivetrack.visibility import kernel as visibility_kernel
 
-            visibility_kernel.facing_test_rows(np.ascontiguousarray(p_box),
-                                               np.ascontiguousarray(surfels.normal, dtype=np.float64),
-                                               np.ascontiguousarray(surfels.reliable, dtype=bool),
-                                               np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
-                                               kept_rows, front_facing, face_margin)
-        query_source = source_clip[keep]
+            kept_normal = np.ascontiguousarray(t_normal, dtype=np.float64)
+            kept_reliable = np.ascontiguousarray(t_reliable, dtype=bool)
+        centres_box_c = None if centres_box is None else np.ascontiguousarray(centres_box)
+        frame_margin = np.empty((kept, 1), dtype=np.float32)
+        for tau in range(t_count):
+            frame_margin.fill(np.inf)
+            frame_hidden.fill(False)
+            if hidden_other is not None:
+                zbuffer_test(0, *project_frame(kept_box, tau), tau=tau)
+                frame_hidden |= hidden_other[0]
+                np.minimum(frame_margin[:, 0], _scaled(zbuffer_margin[0], float(config.ambiguity_m)),
+                           out=frame_margin[:, 0])
+            if surfels is not None:
+                visibility_kernel.facing_test(kept_box, kept_normal, kept_reliable, centres_box_c[tau:tau + 1],
+                                              float(config.back_face_max_deg), front_facing, face_margin)
+                frame_hidden |= ~front_facing[0]
+                np.minimum(frame_margin[:, 0], _scaled(face_margin[0], float(config.ambiguity_deg)),
+                           out=frame_margin[:, 0])
+            kernel.depth_margins(kept_box, camera_from_box[tau:tau + 1], shift_camera[tau:tau + 1], params,
+                                 clip_maps[tau:tau + 1], float(config.occlusion_ratio), own_box[tau:tau + 1],
+                                 kept_own, others[tau:tau + 1], float(config.ambiguity_m), frame_margin)
+            ambiguous[tau] = np.packbits(np.abs(frame_margin[:, 0]) < 1.0)     # NaN (outside the image) compares False
+            if surface_hidden is not None:
+                surface_hidden[tau] = np.packbits(frame_hidden)
+            if margin16 is not None:
+                margin16[:, tau] = frame_margin[:, 0]
+        del frame_margin, frame_hidden
+        occluders = []
+        query_source = source_clip[kept_rows]
         visibles = np.empty((kept, t_count), dtype=bool)
         query_pixels = np.empty((kept, 2), dtype=np.float32)
         # tracks a chunk of points at a time, kept only for visibles, the query pixels and the
         # sanity counts: the writers recompute tracks and points3d without the depth maps (TrackSource)
-        step = points_per_chunk(t_count)
+        step = max(8, points_per_chunk(t_count) // 8 * 8)        # whole bytes of the packed bits
         scratch_tracks = np.empty((min(step, kept), t_count, 2), dtype=np.float32)
         no_points3d = np.empty((0, t_count, 3), dtype=np.float32)          # not needed here
         checks = np.zeros(2, dtype=np.int64)
@@ -1470,40 +1603,65 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             tracks = scratch_tracks[:stop - start]
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
-                               float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[kept_rows[start:stop]]),
+                               float(config.occlusion_ratio), own_box, kept_own[start:stop],
                                others, tracks, visibles[start:stop], no_points3d, False)
-            faces = facing(0, 0, kept_rows[start:stop])
-            if faces is not None:
-                visibles[start:stop] &= faces.T
+            if surface_hidden is not None:
+                visibles[start:stop] &= ~_unpacked(surface_hidden, start, stop).T
             checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
                                               float(model.width), float(model.height), query_pixels[start:stop])
-        del scratch_tracks
+        del scratch_tracks, surface_hidden
+        seen = np.ones(kept, dtype=bool)
         if surfels is not None or hidden_other is not None:
             # points seen only on back faces or behind other objects are not kept (as points the depth test hides everywhere)
             seen = visibles.any(axis=1)
             if not seen.all():
                 status[kept_rows[~seen]] = kernel.DROPPED_INVISIBLE
-                keep = status == kernel.KEPT
                 kept_box, query_source = np.ascontiguousarray(kept_box[seen]), query_source[seen]
                 visibles, query_pixels = visibles[seen], query_pixels[seen]
+                margin16 = None if margin16 is None else margin16[seen]
+        keep = status == kernel.KEPT
         source = TrackSource(kept_box, camera_from_box, shift_camera, vehicle_from_box, params)
-        final_rows = np.flatnonzero(status == kernel.KEPT)
-        # the kept point-frames' margins: the surface tests' (numpy), then the depth map's where
-        # smaller, in one more pass of the kernel
-        margins = _surface_margins(config, final_rows, t_count, zbuffer_margin, face_margin)
-        kernel.depth_margins(np.ascontiguousarray(p_box[final_rows]), camera_from_box, shift_camera, params, clip_maps,
-                             float(config.occlusion_ratio), own_box, np.ascontiguousarray(own_points[final_rows]),
-                             others, float(config.ambiguity_m), margins)
+        num_ambiguous = sum(int(_unpacked(ambiguous, start, min(start + step, kept))[:, seen[start:start + step]].sum())
+                            for start in range(0, kept, step))
+        del ambiguous
         dropped_invisible = int((status == kernel.DROPPED_INVISIBLE).sum())
         dropped_speed = int((status == kernel.DROPPED_SPEED).sum())
     else:
         parts: list[tuple[np.ndarray, np.ndarray]] = []
+        margin_parts: list[np.ndarray] = []
         keep = np.zeros(n, dtype=bool)
         speeds = np.zeros(n, dtype=np.float64)
         checks = np.zeros(2, dtype=np.int64)
-        dropped_invisible = dropped_speed = 0
+        dropped_invisible = dropped_speed = num_ambiguous = 0
+
+        def project(chunk: np.ndarray):
+            return projection.project(chunk, at_capture=True)
+
         for start in range(0, n, config.chunk_points):
             chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
+            stop = start + chunk.shape[0]
+            if rolling:
+                # the surface tests' results of this chunk alone (its columns)
+                held_from = start
+                if hidden_other is not None:
+                    hidden_other = np.zeros((t_count, chunk.shape[0]), dtype=bool)
+                    zbuffer_margin = np.empty((t_count, chunk.shape[0]), dtype=np.float32)
+                if surfels is not None:
+                    # the back-face test and its margin from one cosine per point-frame
+                    if use_kernel:
+                        from drivetrack.visibility import kernel as visibility_kernel
+
+                        front_facing = np.ones((t_count, chunk.shape[0]), dtype=bool)
+                        face_margin = np.full((t_count, chunk.shape[0]), np.inf, dtype=np.float32)
+                        visibility_kernel.facing_test(np.ascontiguousarray(chunk, dtype=np.float64),
+                                                      np.ascontiguousarray(surfels.normal[start:stop], dtype=np.float64),
+                                                      np.ascontiguousarray(surfels.reliable[start:stop], dtype=bool),
+                                                      np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
+                                                      front_facing, face_margin)
+                    else:
+                        front_facing, face_margin = facing_test(
+                            chunk, SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                            centres_box, float(config.back_face_max_deg))
             # under a rolling shutter the depths at the capture time (the depth maps and the
             # z-buffer are drawn there too)
             points_camera, pixels, valid = projection.project(chunk, at_capture=True)
@@ -1520,7 +1678,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             faces = facing(start, start + chunk.shape[0])
             if faces is not None:
                 visible &= faces
-            stop = start + chunk.shape[0]
             # world displacement between consecutive frames, (W B)_{tau+1} p - (W B)_tau p, in one pass
             if t_count > 1 and duration_s > 0:
                 steps = _carry(world_step, chunk)                                      # [T-1, n, 3]
@@ -1541,6 +1698,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             chunk_query, chunk_checks = _summarise_tracks(tracks, chunk_visibles, source_clip[start:stop][idx], model)
             checks += chunk_checks
             parts.append((chunk_visibles, chunk_query))
+            # the kept point-frames' occlusion margins, while the chunk's test results are held
+            margins = _occlusion_margins(config, model, clip_maps, project, p_box[held_from:], start - held_from + idx,
+                                         zbuffer_margin, face_margin, own_box, own_points[held_from:], others)
+            num_ambiguous += int((np.abs(margins) < 1.0).sum())     # NaN (outside the image) compares False
+            if config.occlusion_margins:
+                margin_parts.append(margins.astype(np.float16))
+            del margins
         if parts:
             visibles = np.concatenate([p[0] for p in parts], axis=0)
             query_pixels = np.concatenate([p[1] for p in parts], axis=0)
@@ -1548,24 +1712,23 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             visibles = np.empty((0, t_count), dtype=bool)
             query_pixels = np.empty((0, 2), dtype=np.float32)
         del parts
+        margin16 = None
+        if config.occlusion_margins:
+            margin16 = (np.concatenate(margin_parts, axis=0) if margin_parts
+                        else np.empty((0, t_count), dtype=np.float16))
+        del margin_parts
         source = TrackSource(p_box[keep], camera_from_box, shift_camera, vehicle_from_box, None,
                              numpy_path=(projection, p_box, keep, int(config.chunk_points)))
-        final_rows = np.flatnonzero(keep)
         occluders = []
-
-        def project(chunk: np.ndarray):
-            return projection.project(chunk, at_capture=True)
-
-        margins = _occlusion_margins(config, model, clip_maps, project, p_box, final_rows, zbuffer_margin, face_margin,
-                                     own_box, own_points, others)
     errors = np.abs(speeds - box_speed_mean)
-    sources = np.stack([lidar.laser[lidar_rows], lidar.return_index[lidar_rows],
-                        lidar.row[lidar_rows], lidar.col[lidar_rows]], axis=-1).astype(np.int32)
+    kept_lidar = lidar_rows[keep]
+    sources = np.stack([lidar.laser[kept_lidar], lidar.return_index[kept_lidar],
+                        lidar.row[kept_lidar], lidar.col[kept_lidar]], axis=-1).astype(np.int32)
     result = ObjectTracks(
         split=scene.split, segment=scene.segment, camera=job.camera, object_id=job.object_id,
         object_type=job.object_type, frames=frames.copy(), timestamps_micros=timestamps,
         visibles=visibles, points_box=source.points_box,
-        query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources[keep],
+        query_frames=source_clip[keep].astype(np.int32), lidar_sources=sources,
         track_speed_mps=speeds[keep], box_speed_mps=box_speed_mean, speed_error_mps=errors[keep],
         camera_model=model, camera_from_vehicle=geometry.camera_from_vehicle[frames].copy(),
         world_from_vehicle=scene.world_from_vehicle[frames].copy(),
@@ -1579,10 +1742,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         rejection=None if keep.any() else RejectionReason.NO_VISIBLE_POINTS,
         time_model=config.time_model,
         label_time=poses.trajectory.label_time if poses.trajectory is not None else "frame",
-        time_residual_m=_outside_box_m(p_box, boxes.size[rows][source_clip]),
+        time_residual_m=_outside_box_m(p_box, boxes.size[rows], source_clip),
         num_unreliable_normals=0 if surfels is None else surfels.num_unreliable,
-        num_ambiguous_occlusion=int((np.abs(margins) < 1.0).sum()),     # NaN (outside the image) compares False
-        occlusion_margin=margins.astype(np.float16) if config.occlusion_margins else None,
+        num_ambiguous_occlusion=num_ambiguous,
+        occlusion_margin=margin16,
     )
     return result
 
@@ -1594,22 +1757,10 @@ def _scaled(margin: np.ndarray, unit: float) -> np.ndarray:
     return np.where(margin == 0, np.float32(0.0), np.sign(margin) * np.float32(np.inf)).astype(np.float32)
 
 
-def _surface_margins(config, rows: np.ndarray, t_count: int, zbuffer_margin: np.ndarray | None,
-                     face_margin: np.ndarray | None) -> np.ndarray:
-    """float32 [K, T]: the smaller of the surface tests' margins of the kept candidates ``rows``
-    int [K] (+inf where neither can hide the point), in the units of the occlusion margin:
-    ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all candidates
-    (None: that test is off), as :func:`_occlusion_margins` scales them. The track kernel's
-    ``depth_margins`` adds the depth-map term."""
-    out = np.full((rows.size, t_count), np.inf, dtype=np.float32)
-    for start in range(0, rows.size, config.chunk_points):
-        idx = rows[start:start + config.chunk_points]
-        part = out[start:start + idx.size]
-        if zbuffer_margin is not None:
-            np.minimum(part, _scaled(zbuffer_margin[:, idx], float(config.ambiguity_m)).T, out=part)
-        if face_margin is not None:
-            np.minimum(part, _scaled(face_margin[:, idx], float(config.ambiguity_deg)).T, out=part)
-    return out
+def _unpacked(bits: np.ndarray, start: int, stop: int) -> np.ndarray:
+    """bool [T, stop - start]: candidates ``start:stop`` (``start`` a multiple of 8) of bits packed
+    over the candidates by ``np.packbits``, uint8 [T, ceil(K / 8)]."""
+    return np.unpackbits(bits[:, start // 8:(stop + 7) // 8], axis=1)[:, :stop - start].view(bool)
 
 
 def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
@@ -1664,11 +1815,17 @@ def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, projec
     return out
 
 
-def _outside_box_m(points_box: np.ndarray, size: np.ndarray) -> float:
-    """Mean distance (metres) of box-frame points float [n, 3] outside boxes of ``size`` [n, 3]; NaN if none."""
+def _outside_box_m(points_box: np.ndarray, size: np.ndarray, box: np.ndarray, step: int = 1 << 16) -> float:
+    """Mean distance (metres) of box-frame points float [n, 3] outside their boxes, point ``i`` of
+    the box of size ``size[box[i]]`` (``size`` float [T, 3], ``box`` int [n]); NaN if none. The
+    distances are computed ``step`` points at a time (bounded temporaries), their mean at once."""
     if points_box.shape[0] == 0:
         return float("nan")
-    return float(np.linalg.norm(np.maximum(np.abs(points_box) - size / 2.0, 0.0), axis=-1).mean())
+    distance = np.empty(points_box.shape[0], dtype=np.float64)
+    for start in range(0, points_box.shape[0], step):
+        part = slice(start, start + step)
+        distance[part] = np.linalg.norm(np.maximum(np.abs(points_box[part]) - size[box[part]] / 2.0, 0.0), axis=-1)
+    return float(distance.mean())
 
 
 def _summarise_tracks(tracks: np.ndarray, visibles: np.ndarray, source_frames: np.ndarray,

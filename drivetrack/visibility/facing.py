@@ -441,8 +441,8 @@ def points_on_surface(points_box: np.ndarray, frame: np.ndarray, rays_box: np.nd
     some = _noise_frames(frame[candidates])
     subset = candidates[np.isin(frame[candidates], some)]
     subset = subset[np.unique(np.linspace(0, subset.size - 1, min(subset.size, SNAP_NOISE_SAMPLE)).astype(np.int64))]
-    near_some = np.abs(frame[:, None] - some[None, :]).min(axis=1) <= window if some.size else \
-        np.zeros(frame.size, dtype=bool)
+    # the returns within ``window`` frames of those (frame numbers are integers)
+    near_some = np.isin(frame, (some[:, None] + np.arange(-window, window + 1)[None, :]).ravel())
     own = SurfaceCloud(*_by_frame(points_box[near_some], normal[near_some], frame[near_some]))
     step = _steps_to_surface(points_box, frame, incidence, normal, own, subset, window, radius_m, min_returns)
     ok = np.isfinite(step) & (np.abs(step) <= max_move_m)

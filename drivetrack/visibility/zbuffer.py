@@ -208,6 +208,17 @@ def _nearest_depth_kernel(pixels, depth, width, height, focal, radius_m, max_px,
         kernel.merge_spread(buffer, footprint, centres[pad:pad + height, pad:pad + width], np.int8(r))
 
 
+def crop_growth_px(max_px: int, fill_px: int) -> int:
+    """Buffer pixels the z-buffer's crop reaches beyond its points' pixels: a point's window
+    (at most ``max_px``), the closing's reach (``2 fill_px``: :func:`close_holes` spreads, then
+    takes back) and the edge band's one pixel more. Within it the crop's buffer equals the
+    whole image's at every pixel a point looks at, so a point's decision and margin do not
+    depend on the other points tested with it (a chunk, the kept candidates); with the footprint
+    alone as before (2026-12-02), a closing cut at the crop's edge moved a few deeply hidden
+    point-frames' margins by up to 10 units."""
+    return int(max_px) + 2 * int(fill_px) + 1
+
+
 def occluder_buffer(pixels: np.ndarray, depth: np.ndarray, radius_m, objects: np.ndarray | None, width: int,
                     height: int, focal: float, max_px: int, fill_px: int,
                     use_kernel: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -340,11 +351,13 @@ def hidden_by_others(points_camera: np.ndarray, pixels: np.ndarray, valid: np.nd
         inside = valid[tau] & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         if not inside.any():
             continue
-        # Only the window the tracked points fall in matters (grown by the footprint the test
-        # looks over): splat into that crop of the image; a return's own footprint reaches at
-        # most max_px beyond its pixel.
-        c0, c1 = max(0, int(col[inside].min()) - max_px), min(width, int(col[inside].max()) + 1 + max_px)
-        r0, r1 = max(0, int(row[inside].min()) - max_px), min(height, int(row[inside].max()) + 1 + max_px)
+        # Only the window the tracked points fall in matters: splat into that crop of the image,
+        # grown by what reaches a point's footprint (crop_growth_px: the closing included), so
+        # each point's buffer is the whole image's; a return's own footprint reaches at most
+        # max_px beyond its pixel.
+        grow = crop_growth_px(max_px, fill_px)
+        c0, c1 = max(0, int(col[inside].min()) - grow), min(width, int(col[inside].max()) + 1 + grow)
+        r0, r1 = max(0, int(row[inside].min()) - grow), min(height, int(row[inside].max()) + 1 + grow)
         occ_col, occ_row = np.floor(occ_pixels[:, 0]), np.floor(occ_pixels[:, 1])
         near = ((occ_col >= c0 - max_px) & (occ_col < c1 + max_px) & (occ_row >= r0 - max_px)
                 & (occ_row < r1 + max_px))
@@ -871,8 +884,9 @@ def _hidden_by_others_kernel(points_camera, pixels, valid, occluders, width, hei
                                                        width, height, col, row, inside)
         if c_hi < 0:
             continue
-        c0, c1 = max(0, c_lo - max_px), min(width, c_hi + 1 + max_px)
-        r0, r1 = max(0, r_lo - max_px), min(height, r_hi + 1 + max_px)
+        grow = crop_growth_px(max_px, fill_px)
+        c0, c1 = max(0, c_lo - grow), min(width, c_hi + 1 + grow)
+        r0, r1 = max(0, r_lo - grow), min(height, r_hi + 1 + grow)
         near_pixels = np.empty((occ_depth.size, 2))
         near = kernel.zbuffer_near(np.ascontiguousarray(occ_pixels, dtype=np.float64), float(scale), c0, c1, r0, r1,
                                    max_px, near_pixels)
