@@ -1062,26 +1062,18 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                     splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
                 else:
                     splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
-            if use_kernel:
-                (own_frame if is_own else per_frame)[slot[t]].append(splats)
-                if is_own:
-                    continue
-            elif is_own:
-                own_frame[slot[t]].append(splats + (np.zeros(splats[1].shape[0], dtype=np.int32),))
+            if not use_kernel:                            # each return's object (the own one's: 0)
+                splats += (np.full(splats[1].shape[0], 0 if is_own else label, dtype=np.int32),)
+            (own_frame if is_own else per_frame)[slot[t]].append(splats)
+            if is_own:
                 continue
-            else:
-                per_frame[slot[t]].append(splats + (np.full(splats[1].shape[0], label, dtype=np.int32),))
             frame_boxes[slot[t]].append((placed[k], boxes.size[obj_rows[k]], solid[k]))
             world_from_other = poses.world_from_box[k].copy()
             world_from_other[:3, 3] += poses.shift_world[k]
             frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
                                        float(poses.yaw_rate_world[k])))
-    if use_kernel:
-        def joined(frames_parts):
-            return _LazySplats(frames_parts, records, params, windows)
-    else:
-        def joined(frames_parts):
-            return _joined_splats(frames_parts)
+    def joined(frames_parts):
+        return _LazySplats(frames_parts, records, params, windows) if use_kernel else _joined_splats(frames_parts)
 
     return (joined(per_frame),
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
@@ -1093,9 +1085,9 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
 def _joined_splats(frames_parts):
     """Per frame, the (pixels, depth, radius, object) of its parts, each concatenated."""
     return [(np.concatenate([p[0] for p in parts]) if parts else np.empty((0, 2)),
-                 np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
-                 np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
+             np.concatenate([p[1] for p in parts]) if parts else np.empty(0),
+             np.concatenate([p[2] for p in parts]) if parts else np.empty(0),
+             np.concatenate([p[3] for p in parts]) if parts else np.empty(0, dtype=np.int32))
             for parts in frames_parts]
 
 
