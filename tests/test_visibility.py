@@ -2082,6 +2082,6 @@ def test_segment_margin_takes_the_returns_just_outside_a_tight_box(hard_scene):
 
 
 def test_segment_margin_m_is_validated():
-    for bad in (-0.01, 1.5):
+    for bad in (-0.01, 1.5, True, "0.01"):
         with pytest.raises(ValueError, match="segment_margin_m"):
             TrackConfig(segment_margin_m=bad)

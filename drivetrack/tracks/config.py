@@ -430,7 +430,9 @@ class TrackConfig:
         if not self.surface_snap_margin_m >= 0:
             raise ValueError(f"TrackConfig.surface_snap_margin_m must be >= 0 metres, got "
                              f"{self.surface_snap_margin_m!r}")
-        if self.segment_margin_m is not None and not (0 <= self.segment_margin_m <= 1):
+        if self.segment_margin_m is not None and not (
+                isinstance(self.segment_margin_m, (int, float)) and not isinstance(self.segment_margin_m, bool)
+                and 0 <= self.segment_margin_m <= 1):
             raise ValueError(f"TrackConfig.segment_margin_m must be None or metres in [0, 1], got "
                              f"{self.segment_margin_m!r}")
         if not isinstance(self.depth_defers_to_zbuffer, bool):
