@@ -1626,9 +1626,6 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         checks = np.zeros(2, dtype=np.int64)
         dropped_invisible = dropped_speed = num_ambiguous = 0
 
-        def project(chunk: np.ndarray):
-            return projection.project(chunk, at_capture=True)
-
         for start in range(0, n, config.chunk_points):
             chunk = p_box[start:start + config.chunk_points]                          # [n, 3]
             stop = start + chunk.shape[0]
@@ -1690,9 +1687,13 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             chunk_query, chunk_checks = _summarise_tracks(tracks, chunk_visibles, source_clip[start:stop][idx], model)
             checks += chunk_checks
             parts.append((chunk_visibles, chunk_query))
-            # the kept point-frames' occlusion margins, while the chunk's test results are held
-            margins = _occlusion_margins(config, model, clip_maps, project, p_box[held_from:], start - held_from + idx,
-                                         zbuffer_margin, face_margin, own_box, own_points[held_from:], others)
+            # the kept point-frames' occlusion margins, while the chunk's test results, projection
+            # and depth lookups are held (its columns)
+            cols = slice(start - held_from, stop - held_from)
+            margins = _occlusion_margins(
+                config, model, t_count, lambda at: (points_camera[:, at], pixels[:, at], valid[:, at], surface[:, at]),
+                chunk, idx, None if zbuffer_margin is None else zbuffer_margin[:, cols],
+                None if face_margin is None else face_margin[:, cols], own_box, own_points[start:stop], others)
             num_ambiguous += int((np.abs(margins) < 1.0).sum())     # NaN (outside the image) compares False
             if config.occlusion_margins:
                 margin_parts.append(margins.astype(np.float16))
@@ -1755,30 +1756,29 @@ def _unpacked(bits: np.ndarray, start: int, stop: int) -> np.ndarray:
     return np.unpackbits(bits[:, start // 8:(stop + 7) // 8], axis=1)[:, :stop - start].view(bool)
 
 
-def _occlusion_margins(config, model: CameraModel, clip_maps: np.ndarray, project, p_box: np.ndarray,
+def _occlusion_margins(config, model: CameraModel, t_count: int, project, p_box: np.ndarray,
                        rows: np.ndarray, zbuffer_margin: np.ndarray | None,
                        face_margin: np.ndarray | None, own_box: np.ndarray, own_points: np.ndarray,
                        others: np.ndarray | None = None) -> np.ndarray:
     """float32 [K, T]: the occlusion margin of the kept candidates ``rows`` int [K] of ``p_box``
     (see :class:`ObjectTracks`' ``occlusion_margin``).
 
-    ``clip_maps`` float32 [T, H, W] the clip's depth maps; ``project(points_box [k, 3])`` returns
-    ``(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k])`` as the track path projected
-    them; ``zbuffer_margin`` (metres) and ``face_margin`` (degrees) float32 [T, n] over all
-    candidates, None when that test is off; ``own_box`` float64 [T, 13] or [0, 13] (off) and
+    ``t_count`` the clip's frames T; ``project(rows int [k])`` returns ``(points_camera [T, k, 3],
+    pixels [T, k, 2], valid [T, k], surface float32 [T, k])`` of those rows of ``p_box`` float
+    [n, 3] as the track path projected them and looked them up in the clip's depth maps
+    (``lookup_max4``: the numpy path passes its chunk's, computed once); ``zbuffer_margin``
+    (metres) and ``face_margin`` (degrees) float32 [T, n] over ``p_box``'s rows, None when that
+    test is off; ``own_box`` float64 [T, 13] or [0, 13] (off) and
     ``own_points`` bool [n]: where the depth map's surface is the object's own
     (:func:`drivetrack.visibility.own_surface`) at a point it applies to, or another labelled
     object's spread beyond its outline (``others`` float64 [T, K, 21],
     :func:`drivetrack.visibility.other_surface`), the depth-map test cannot hide the point (+inf).
     """
-    from drivetrack.depth import lookup_max4
-
-    out = np.empty((rows.size, clip_maps.shape[0]), dtype=np.float32)
+    out = np.empty((rows.size, t_count), dtype=np.float32)
     for start in range(0, rows.size, config.chunk_points):
         idx = rows[start:start + config.chunk_points]
-        points_camera, pixels, valid = project(p_box[idx])
+        points_camera, pixels, valid, surface = project(idx)
         inside = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
-        surface = lookup_max4(clip_maps, pixels)                                          # [T, k]
         margin = np.where(surface > 0, surface - float(config.occlusion_ratio) * points_camera[..., 0],
                           np.inf).astype(np.float32)
         margin = _scaled(margin, float(config.ambiguity_m))
