@@ -1226,12 +1226,12 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                                      config.own_surface_max_gap_m, solid_extents(own_cloud, boxes.size[rows]))
         own_points = np.ascontiguousarray(surfels.reliable, dtype=bool)
 
-    def back_faces(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
-        """bool [T, k] back-face test of candidates ``start:stop`` (``where``: a subset of them):
-        :func:`drivetrack.visibility.facing_mask`, computed once for all candidates below."""
+    def back_faces(start: int, stop: int) -> np.ndarray | None:
+        """bool [T, k] back-face test of candidates ``start:stop`` (the numpy path's):
+        :func:`drivetrack.visibility.facing_mask`, held for them (from ``held_from``)."""
         if front_facing is None:
             return None
-        return front_facing[:, start - held_from:stop - held_from] if where is None else front_facing[:, where - held_from]
+        return front_facing[:, start - held_from:stop - held_from]
 
     def project_global(chunk: np.ndarray, tau: int | None = None):
         """(points_camera [T, k, 3], pixels [T, k, 2], valid [T, k]) of box-frame points ``chunk``
@@ -1523,14 +1523,14 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         if not rolling and not fast:          # the kernel path draws them below
             occluders = []
 
-    def facing(start: int, stop: int, where: np.ndarray | None = None) -> np.ndarray | None:
+    def facing(start: int, stop: int) -> np.ndarray | None:
         """bool [T, k]: not hidden by the surface tests (back faces, other objects) for candidates
-        ``start:stop`` (``where``: a subset of them); None when both are off."""
-        faces = back_faces(start, stop, where)
+        ``start:stop`` (the numpy path's); None when both are off."""
+        faces = back_faces(start, stop)
         if hidden_other is None:
             return faces
-        idx = (np.arange(start, stop) if where is None else where) - held_from
-        return ~hidden_other[:, idx] if faces is None else faces & ~hidden_other[:, idx]
+        hidden = hidden_other[:, start - held_from:stop - held_from]
+        return ~hidden if faces is None else faces & ~hidden
 
     if fast:
         kept_rows = tested if tested is not None else screen()
