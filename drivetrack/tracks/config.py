@@ -102,7 +102,12 @@ class TrackConfig:
             which straddles the edge (before 2026-11-27, twelfth session;
             :func:`drivetrack.visibility.cloud_normals`, docs/visibility.md "Shifted neighbourhoods").
         normal_transfer: how a tracked point takes a normal from the segment cloud's:
-            ``plane`` (default since 2026-11-28, twenty-third session) that of the cloud point,
+            ``ray`` (default since 2026-12-03, thirty-seventh session): where the object's
+            returns carry range noise (its normals refitted on coarser cubes,
+            ``normal_noise_cubes``), the face its lidar ray enters by among those cloud points'
+            (:meth:`drivetrack.visibility.CloudNormals.on_ray`: range noise moves a return along
+            its ray, which is exact; docs/visibility.md "Normals from the face the ray enters
+            by"), elsewhere ``plane``'s; ``plane`` (default 2026-11-28 to 2026-12-03) that of the cloud point,
             among the 12 nearest its nearest cloud point, whose plane passes nearest it, so a
             point a centimetre from an edge keeps its own face's
             (:meth:`drivetrack.visibility.CloudNormals.on_plane`); ``nearest`` its nearest
@@ -306,7 +311,7 @@ class TrackConfig:
     normals_from: str = "segment"
     normal_neighbours: int = 30
     normal_neighbourhood: str = "shifted"
-    normal_transfer: str = "plane"
+    normal_transfer: str = "ray"
     normal_noise_cubes: float | None = 12.0
     normal_precise_m: float = 0.0005
     box_face_normals_m: float | None = 0.1
@@ -399,7 +404,7 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.normal_neighbourhood must be 'shifted' or 'centred', "
                              f"got {self.normal_neighbourhood!r}")
         if self.normal_transfer not in NORMAL_TRANSFERS:
-            raise ValueError(f"TrackConfig.normal_transfer must be 'plane' or 'nearest', got {self.normal_transfer!r}")
+            raise ValueError(f"TrackConfig.normal_transfer must be one of {NORMAL_TRANSFERS}, got {self.normal_transfer!r}")
         if not (isinstance(self.normal_precise_m, (int, float)) and not isinstance(self.normal_precise_m, bool)
                 and 0 <= self.normal_precise_m <= 0.05):
             raise ValueError(f"TrackConfig.normal_precise_m must be metres in [0, 0.05], got {self.normal_precise_m!r}")
