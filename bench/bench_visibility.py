@@ -40,7 +40,10 @@ are drawn by hand around their returns) and the block ``bench_visibility_noise``
 written; with ``--box-slack M`` every written box is drawn M metres wider than its object on each
 side (``SynthConfig(box_slack_m=M)``: hand-drawn labels are) and the block
 ``bench_visibility_slack`` is written; ``--label-noise`` with ``--box-slack`` (labels both loose
-and noisy, as hand-drawn ones are) writes ``bench_visibility_loose``. A variant's
+and noisy, as hand-drawn ones are) writes ``bench_visibility_loose``; ``--real-log`` puts every
+real-log effect in one world (rolling shutter, cabin cars, body pedestrians, 5 cm / 1 deg label
+noise, 2 cm range noise, unless ``--label-noise`` / ``--range-noise`` say otherwise) and writes
+``bench_visibility_reallog``. A variant's
 ``refine_options`` entry sets ``RefineConfig`` fields (the pose refinement's). Each
 block counts the wrong calls by kind (truly visible called hidden, back faces called visible,
 hidden by another object called visible).
@@ -68,6 +71,8 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --label-noise 0.05 --variants "depth-ratio (paper),\
 registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
 + normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by (default)"   # ~8 min
+    .venv/bin/python bench/bench_visibility.py --real-log --variants "depth-ratio (paper),\
++ footprints of 2 cm,+ normals from the face the ray enters by (default)"   # ~6 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -304,6 +309,10 @@ _BEFORE_RAY = {"normal_transfer": "plane"}
 VARIANTS = {name: {**_BEFORE_RAY, **overrides} for name, overrides in VARIANTS.items()}
 # under range noise the face its lidar ray enters by (exact ranges: the variant above, bit for bit)
 VARIANTS["+ normals from the face the ray enters by (default)"] = {}
+#: ``--real-log``'s label noise (metres, sigma per axis; 1 deg of heading per 5 cm) and range
+#: noise (metres, sigma), unless given.
+REAL_LOG_LABEL_NOISE_M = 0.05
+REAL_LOG_RANGE_NOISE_M = 0.02
 #: Variants run only when named in ``--variants``: the default with one rule switched off.
 EXTRA_VARIANTS = {
     "own-box rule without a gap limit (before)": {"own_surface_max_gap_m": None},
@@ -321,6 +330,7 @@ RANGE_START, RANGE_END = "<!-- bench_visibility_range:start -->", "<!-- bench_vi
 SLACK_START, SLACK_END = "<!-- bench_visibility_slack:start -->", "<!-- bench_visibility_slack:end -->"
 LOOSE_START, LOOSE_END = "<!-- bench_visibility_loose:start -->", "<!-- bench_visibility_loose:end -->"
 BODY_START, BODY_END = "<!-- bench_visibility_body:start -->", "<!-- bench_visibility_body:end -->"
+REALLOG_START, REALLOG_END = "<!-- bench_visibility_reallog:start -->", "<!-- bench_visibility_reallog:end -->"
 
 
 def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str:
@@ -332,6 +342,17 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
     noise = float(setup.get("label_noise_m", 0.0))
     range_noise = float(setup.get("range_noise_m", 0.0))
     slack = float(setup.get("box_slack_m", 0.0))
+    if setup.get("real_log"):
+        return _markdown(results, setup, machine, names,
+                         "## Visibility on the hard world with every real-log effect at once",
+                         "the hard world of the block above with rolling-shutter cameras, cabin-shaped cars, "
+                         "pedestrians with legs and arms, written boxes' centres moved by "
+                         f"{noise * 100:g} cm (sigma, per axis) and their headings by {noise / 0.05:g} deg, and "
+                         f"{range_noise * 100:g} cm of noise on every lidar range (`SynthConfig(world=\"hard\", "
+                         "rolling_shutter=True, car_shape=\"cabin\", pedestrian_shape=\"body\", "
+                         f"box_noise_m={noise:g}, range_noise_m={range_noise:g})`), same scoring: preset ",
+                         " --real-log" + (f" --label-noise {noise:g}" if noise != REAL_LOG_LABEL_NOISE_M else "")
+                         + (f" --range-noise {range_noise:g}" if range_noise != REAL_LOG_RANGE_NOISE_M else ""))
     title = ("## Visibility on the hard world with labels {:g} cm wide of their objects and {:g} cm label noise"
              .format(slack * 100, noise * 100) if slack and noise
              else "## Visibility on the hard world read out by a rolling shutter" if rolling
@@ -366,6 +387,13 @@ def compare_markdown(results: dict[str, dict], setup: dict, machine: str) -> str
                + (" --pedestrian-shape body" if body else "")
                + (f" --label-noise {noise:g}" if noise else "") + (f" --range-noise {range_noise:g}" if range_noise else "")
                + (f" --box-slack {slack:g}" if slack else ""))
+    return _markdown(results, setup, machine, names, title, world, options)
+
+
+def _markdown(results: dict[str, dict], setup: dict, machine: str, names: list[str], title: str, world: str,
+              options: str) -> str:
+    """:func:`compare_markdown`'s block under ``title``, the world described by ``world`` and made by
+    the command line ``options``."""
     lines = [title, "",
              f"`bench/bench_visibility.py{options}` ({world}"
              f"`{setup['preset']}`, {setup['frames']} frames, seed {setup['seed']}, five cameras, every object "
@@ -438,12 +466,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--box-slack", type=float, default=0.0, metavar="M",
                     help="every written box drawn this much (metres) wider than its object on each side "
                          "(SynthConfig.box_slack_m; writes the bench_visibility_slack block)")
+    ap.add_argument("--real-log", action="store_true",
+                    help="every real-log effect at once: rolling shutter, cabin cars, body pedestrians, "
+                         f"{REAL_LOG_LABEL_NOISE_M * 100:g} cm label noise and {REAL_LOG_RANGE_NOISE_M * 100:g} cm "
+                         "range noise (--label-noise / --range-noise change those; writes the "
+                         "bench_visibility_reallog block)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated names of VARIANTS (or EXTRA_VARIANTS) to run (default: VARIANTS)")
     args = ap.parse_args(argv if argv is not None else [])
+    real_log = args.real_log
+    if real_log:
+        if args.rolling_shutter or args.car_shape != "box" or args.pedestrian_shape != "box" or args.box_slack:
+            ap.error("--real-log sets --rolling-shutter, --car-shape cabin and --pedestrian-shape body itself "
+                     "and takes no --box-slack; only --label-noise and --range-noise change it")
+        args.rolling_shutter, args.car_shape, args.pedestrian_shape = True, "cabin", "body"
+        args.label_noise = args.label_noise or REAL_LOG_LABEL_NOISE_M
+        args.range_noise = args.range_noise or REAL_LOG_RANGE_NOISE_M
     loose = args.label_noise > 0 and args.box_slack > 0      # the one pair allowed: its own block
     if sum((args.rolling_shutter, args.car_shape == "cabin", args.pedestrian_shape == "body", args.label_noise > 0,
-            args.range_noise > 0, args.box_slack > 0)) > 1 + loose:
+            args.range_noise > 0, args.box_slack > 0)) > 1 + loose and not real_log:
         ap.error("--rolling-shutter, --car-shape cabin, --pedestrian-shape body, --label-noise, --range-noise and "
                  "--box-slack: one at a time "
                  "(one block each), or --label-noise with --box-slack (the bench_visibility_loose block)")
@@ -497,13 +538,13 @@ def main(argv: list[str] | None = None) -> int:
     setup = {"preset": args.preset, "frames": args.frames, "seed": args.seed, "generate_s": generate_s,
              "annotate_s": annotate_s, "stage_s": stage_s, "rolling_shutter": args.rolling_shutter,
              "car_shape": args.car_shape, "pedestrian_shape": args.pedestrian_shape, "label_noise_m": args.label_noise, "range_noise_m": args.range_noise,
-             "box_slack_m": args.box_slack}
+             "box_slack_m": args.box_slack, "real_log": real_log}
     if args.json:
         Path(args.json).write_text(json.dumps({"setup": setup, "results": results}, indent=1))
     markdown = compare_markdown(results, setup, machine_description())
     print(markdown)
     if not args.no_docs:
-        start, end = ((LOOSE_START, LOOSE_END) if loose else (ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
+        start, end = ((REALLOG_START, REALLOG_END) if real_log else (LOOSE_START, LOOSE_END) if loose else (ROLLING_START, ROLLING_END) if args.rolling_shutter else (CABIN_START, CABIN_END)
                       if args.car_shape == "cabin" else (BODY_START, BODY_END) if args.pedestrian_shape == "body"
                       else (NOISE_START, NOISE_END) if args.label_noise
                       else (RANGE_START, RANGE_END) if args.range_noise
