@@ -125,8 +125,8 @@ RAY_MAX_STEP_M = 0.1
 #: not the last) where the other face's points lie beyond this (metres) towards the outside of
 #: the face entered last, by ``(c_other - c_last) . (n_last - n_other)`` (:meth:`CloudNormals.on_ray`).
 RAY_CONCAVE_M = 0.005
-#: Points per block of :meth:`CloudNormals.on_ray`'s [b, k, k] arrays.
-RAY_BLOCK = 8192
+#: Points per block of :meth:`CloudNormals.on_ray`'s [b, k, k] arrays (2,048: a few MiB each).
+RAY_BLOCK = 2048
 
 
 @dataclass
