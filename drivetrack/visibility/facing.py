@@ -175,7 +175,8 @@ class CloudNormals:
             self._tree = cKDTree(self.cloud)
         return np.asarray(self._tree.query(points, k=1)[1], dtype=np.int64).reshape(-1)
 
-    def on_plane(self, points: np.ndarray, candidates: int = PLANE_CANDIDATES) -> np.ndarray:
+    def on_plane(self, points: np.ndarray, candidates: int = PLANE_CANDIDATES,
+                 nearest: np.ndarray | None = None) -> np.ndarray:
         """int64 [n]: for each of ``points`` float [n, 3] (finite; box frame, metres), the cloud
         point whose plane (through it, with its normal) passes nearest the point, among the
         ``candidates`` nearest cloud points of its own nearest cloud point (:meth:`nearest`; itself
@@ -189,7 +190,7 @@ class CloudNormals:
         (docs/visibility.md, "Normals near an edge"). Its own face's cloud points' planes pass
         through it; the other face's miss it by its distance from the edge."""
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        nearest = self.nearest(points)
+        nearest = self.nearest(points) if nearest is None else np.array(nearest, dtype=np.int64)
         k = 0 if self.neighbours is None else min(int(candidates), self.neighbours.shape[1])
         if k <= 1 or points.shape[0] == 0:
             return nearest
@@ -228,7 +229,7 @@ class CloudNormals:
         points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         sensors = np.broadcast_to(np.asarray(sensors, dtype=np.float64), points.shape)
         nearest = self.nearest(points)
-        at = nearest.copy()
+        at = self.on_plane(points, candidates, nearest=nearest)       # kept where the ray cannot say
         k = 0 if self.neighbours is None else min(int(candidates), self.neighbours.shape[1])
         if k <= 1 or points.shape[0] == 0:
             return at
@@ -238,14 +239,9 @@ class CloudNormals:
         if redo.size:
             # all candidates on one face (within RAY_FACE_DEG of the first, signs aside): no edge to
             # enter by, on_plane's choice (the plane passing nearest)
-            index = self.neighbours[nearest[redo], :k]
-            normal = self.normal[index]
-            one_face = (np.abs(np.einsum("rkj,rj->rk", normal, normal[:, 0])) >= same_cos).all(axis=1)
-            single = redo[one_face]
-            gaps = np.abs(np.einsum("rkj,rkj->rk", normal[one_face], points[single, None, :] - self.cloud[index[one_face]]))
-            at[single] = index[one_face][np.arange(single.size), np.argmin(gaps, axis=1)]
-            redo = redo[~one_face]
-            del index, normal, gaps
+            normal = self.normal[self.neighbours[nearest[redo], :k]]
+            redo = redo[~(np.abs(np.einsum("rkj,rj->rk", normal, normal[:, 0])) >= same_cos).all(axis=1)]
+            del normal
         origin = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
         for start in range(0, redo.size, RAY_BLOCK):
             rows = redo[start:start + RAY_BLOCK]
@@ -253,8 +249,6 @@ class CloudNormals:
             index = self.neighbours[nearest[rows], :k]                                       # [b, k]
             cloud = self.cloud[index]                                                         # [b, k, 3]
             normal = self.normal[index]
-            # on_plane's choice, where the ray finds no candidate
-            plane = np.argmin(np.abs(np.einsum("bkj,bkj->bk", normal, points[rows, None, :] - cloud)), axis=1)
             # outward, by the more decisive of the sensor and the centre (orient_outward)
             flip = orient_outward(normal.reshape(-1, 3), (cloud - origin).reshape(-1, 3),
                                   np.repeat(sensors[rows] - origin, k, axis=0)).reshape(b, k)
@@ -280,8 +274,8 @@ class CloudNormals:
             concave = np.zeros(b, dtype=bool)
             if some.size:
                 concave[some] = _masked_median(opening[some], other[some]) > RAY_CONCAVE_M
-            chosen = np.where(ok.any(axis=1), np.where(concave, first, last), plane)
-            at[rows] = index[line, chosen]
+            found = ok.any(axis=1)
+            at[rows[found]] = index[line[found], np.where(concave, first, last)[found]]
         return at
 
 
