@@ -1031,7 +1031,7 @@ def test_under_range_noise_a_point_beside_an_edge_takes_the_face_its_ray_enters_
         assert wrong["ray"][to_edge > 0.12].mean() == 0.0
 
 
-def test_the_ray_enters_a_concave_edge_by_its_first_plane():
+def test_the_ray_enters_a_concave_edge_by_its_first_plane(monkeypatch):
     """A car body with a cabin on it: where the bonnet meets the windscreen the edge is concave
     (the solid is the union of the two faces' half-spaces) and the ray enters by the plane it meets
     *first*; taking the last there, as at a convex edge, gave the wrong face's normal to most of
@@ -1074,12 +1074,8 @@ def test_the_ray_enters_a_concave_edge_by_its_first_plane():
     plane, ray = wrong("plane"), wrong("ray")
     assert ray[junction].mean() <= plane[junction].mean() + 0.02
     assert ray[convex].mean() < plane[convex].mean()
-    concave_m = facing.RAY_CONCAVE_M
-    try:
-        facing.RAY_CONCAVE_M = np.inf                    # every edge taken for convex
-        always_last = wrong("ray")
-    finally:
-        facing.RAY_CONCAVE_M = concave_m
+    monkeypatch.setattr(facing, "RAY_CONCAVE_M", np.inf)          # every edge taken for convex
+    always_last = wrong("ray")
     assert always_last[junction].mean() > ray[junction].mean() + 0.1
 
 
