@@ -170,9 +170,10 @@ class TrackConfig:
             noise moved them inwards, and their mean lies inside the true surface.
         surface_snap_segment: with ``surface_snap_max_m``, also move the returns each object's
             surface over the segment is drawn from (its z-buffer splats as another object's
-            occluder and its own, the part of its box it fills, its hull and roof fill) onto
-            that surface the same way, where the object's normals saw range noise
-            (:func:`drivetrack.tracks.core.segment_surface`): seen from many places over a
+            occluder and its own, its hull and roof fill) onto that surface the same way, where
+            the object's normals saw range noise (:func:`drivetrack.tracks.core.segment_surface`),
+            and take the part of its box it fills from the returns so moved
+            (:func:`drivetrack.tracks.core.segment_solid_bounds`): seen from many places over a
             segment, the returns' noise along their rays thickens the measured shell by
             centimetres all round, and every outline drawn from it grows by as much (False: the
             returns as measured, as before 2026-12-03). docs/visibility.md "Occluder surfaces
