@@ -168,6 +168,16 @@ class TrackConfig:
         surface_snap_margin_m: that surface is drawn from the returns inside the label boxes grown
             by this much (metres): where a box is tight, the returns inside it are those whose
             noise moved them inwards, and their mean lies inside the true surface.
+        surface_snap_segment: with ``surface_snap_max_m``, also move the returns each object's
+            surface over the segment is drawn from (its z-buffer splats as another object's
+            occluder and its own, its hull and roof fill) onto that surface the same way, where
+            the object's normals saw range noise (:func:`drivetrack.tracks.core.segment_surface`),
+            and take the part of its box it fills from the returns so moved
+            (:func:`drivetrack.tracks.core.segment_solid_bounds`): seen from many places over a
+            segment, the returns' noise along their rays thickens the measured shell by
+            centimetres all round, and every outline drawn from it grows by as much (False: the
+            returns as measured, as before 2026-12-03). docs/visibility.md "Occluder surfaces
+            under range noise".
         segment_margin_m: under ``time_model="trajectory"``, make each object's surface over the
             segment (the returns its z-buffer splats are drawn from, its convex hull, roof fill
             and solid part, and the cloud its back-face normals are fitted on) of its returns
@@ -324,6 +334,7 @@ class TrackConfig:
     surfel_cube_m: float = 0.025
     surface_snap_max_m: float | None = 0.1
     surface_snap_margin_m: float = 0.1
+    surface_snap_segment: bool = True
     segment_margin_m: float | None = None
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
@@ -451,6 +462,8 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.occluder_hulls must be true or false, got {self.occluder_hulls!r}")
         if not isinstance(self.occluder_hull_edges, bool):
             raise ValueError(f"TrackConfig.occluder_hull_edges must be true or false, got {self.occluder_hull_edges!r}")
+        if not isinstance(self.surface_snap_segment, bool):
+            raise ValueError(f"TrackConfig.surface_snap_segment must be true or false, got {self.surface_snap_segment!r}")
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")

@@ -574,10 +574,12 @@ def _object_rows(boxes, object_id: str) -> np.ndarray:
     return rows[np.argsort(boxes.frame[rows], kind="stable")]
 
 
-def _segment_points(plan, object_id: str, poses) -> np.ndarray:
+def _segment_points(plan, object_id: str, poses, with_rows: bool = False):
     """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame (on the
     trajectory of ``poses``): those inside its boxes grown by ``segment_margin_m``
-    (:func:`_segment_selection`), or with None the tracked points' selection."""
+    (:func:`_segment_selection`), or with None the tracked points' selection. ``with_rows``:
+    ``(points, lidar_rows int [m], source int [m])``, each return's lidar row and its place in the
+    object's box rows (:func:`_object_rows`)."""
     boxes = plan.scene.boxes
     all_rows = _object_rows(boxes, object_id)
     if plan.config.segment_margin_m is None:
@@ -586,7 +588,8 @@ def _segment_points(plan, object_id: str, poses) -> np.ndarray:
         from drivetrack.tracks.plan import box_members
 
         lidar_rows, source = box_members(*_segment_selection(plan), all_rows)
-    return _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+    points = _points_box(plan, boxes.frame[all_rows].astype(np.int64), all_rows, poses, lidar_rows, source)
+    return (points, lidar_rows, source) if with_rows else points
 
 
 def _segment_selection(plan) -> tuple[np.ndarray, np.ndarray]:
@@ -621,17 +624,19 @@ def _cached_selection(plan, key: str, margin_m: float, rows_of) -> tuple[np.ndar
     return grown
 
 
-def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
-    """``(surface, normals_cloud)`` of :func:`segment_surface` and :func:`segment_normals_cloud`,
-    both from one pass over the object's returns, cached in ``plan.occluder_cache``."""
+def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, ...]:
+    """``(surface, normals_cloud, lidar_rows, source)``: the returns of :func:`segment_surface`
+    as they were measured (before any snap) and :func:`segment_normals_cloud`, both from one pass
+    over the object's returns, and the surface returns' lidar rows and places in the object's box
+    rows (:func:`_segment_points`), cached in ``plan.occluder_cache``."""
     from drivetrack.visibility.zbuffer import surfel_first_and_means
 
     clouds = plan.occluder_cache.get(object_id)
     if clouds is None:
-        points_box = _segment_points(plan, object_id, poses)
+        points_box, lidar_rows, source = _segment_points(plan, object_id, poses, with_rows=True)
         cube_m = _surfel_cube_m(plan.config)
         first, means = surfel_first_and_means(points_box, cube_m)
-        clouds = (points_box[first], means)
+        clouds = (points_box[first], means, lidar_rows[first], source[first])
         plan.occluder_cache[object_id] = clouds
     return clouds
 
@@ -639,10 +644,91 @@ def _segment_clouds(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray
 def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     """float64 [m, 3]: all of ``object_id``'s returns over the segment in its box frame, thinned
     to one per cube of ``surfel_cube_m`` (the first, a return itself: the z-buffer's
-    surface); computed once per object and segment (``plan.occluder_cache``). ``poses``: any
-    :func:`clip_poses` of the object on the segment's trajectory (the returns' box-frame
-    positions do not depend on the camera or the clip)."""
-    return _segment_clouds(plan, object_id, poses)[0]
+    surface, its hull and roof fill; the part of its box it fills, :func:`segment_solid_bounds`);
+    computed once per object and segment
+    (``plan.occluder_cache``). ``poses``: any :func:`clip_poses` of the object on the segment's
+    trajectory (the returns' box-frame positions do not depend on the camera or the clip).
+
+    Where the returns carry range noise (the object's normals were refitted for it,
+    ``CloudNormals.noise_cube_m``) and ``TrackConfig.surface_snap_segment``, each of these returns
+    moves along its own lidar ray onto the object's surface, as the tracked points do
+    (:func:`_snapped_surface`): over a segment the ego sees an object from many directions, and a
+    return's range noise along one sweep's ray lies across the view of another image, so the
+    measured cloud is a shell centimetres thicker than the object all round, and every outline
+    drawn from it (another object's splats, the part of its box it fills) grew by as much
+    (docs/visibility.md, "Occluder surfaces under range noise"). Exact ranges: the returns as
+    measured, bit for bit."""
+    return _segment_snapped(plan, object_id, poses)[0]
+
+
+def segment_solid_bounds(plan, object_id: str, poses) -> np.ndarray:
+    """float64 [2, 3]: the low and high corners (box frame, metres) of :func:`segment_surface`'s
+    returns the part of the object's box its returns fill is taken from
+    (:func:`drivetrack.visibility.solid_extents` reads no more of them). Where the surface was
+    snapped, each face is at the outermost return the snap *moved* when that lies within
+    ``surface_snap_max_m`` of the outermost of all: a return it could not move (no surface round
+    it, its ray grazing) keeps its noise, and the extremes are such returns (on a 30 cm pole 3-6
+    cm beyond it); farther in, the snap did not reach that face, which keeps the outermost return.
+    Elsewhere the outermost returns, as measured."""
+    surface, moved = _segment_snapped(plan, object_id, poses)
+    if not surface.shape[0]:
+        return np.zeros((0, 3))
+    lo, hi = surface.min(axis=0), surface.max(axis=0)
+    if moved is not None and moved.any():
+        reach = float(plan.config.surface_snap_max_m)
+        moved_lo, moved_hi = surface[moved].min(axis=0), surface[moved].max(axis=0)
+        lo = np.where(moved_lo - lo <= reach, moved_lo, lo)
+        hi = np.where(hi - moved_hi <= reach, moved_hi, hi)
+    return np.stack([lo, hi])
+
+
+def _segment_snapped(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(surface, moved bool [m] or None)``: :func:`segment_surface` and which of its returns
+    the snap moved (None: not snapped), cached per object and segment."""
+    raw = _segment_clouds(plan, object_id, poses)[0]
+    config = plan.config
+    if not config.surface_snap_segment or config.surface_snap_max_m is None or poses.trajectory is None:
+        return raw, None
+    key = f"{object_id}#surface"
+    if key not in plan.occluder_cache:
+        plan.occluder_cache[key] = _snapped_surface(plan, object_id, poses)
+    return plan.occluder_cache[key]
+
+
+#: :func:`_snapped_surface`: the frames either side of a return's whose returns make the surface
+#: it is moved onto (the tracked points take :data:`drivetrack.visibility.facing.SNAP_WINDOW_FRAMES`)
+SEGMENT_SNAP_WINDOW_FRAMES = 2
+
+
+def _snapped_surface(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(surface, moved)``: :func:`segment_surface` with its returns moved along their rays onto
+    the object's surface (:func:`drivetrack.visibility.points_on_surface`, with the normals and
+    the surface the tracked points take: :func:`segment_cloud_normals`,
+    :func:`segment_surface_cloud`) and which of them moved; the returns as measured and None where
+    the normals saw no range noise (or there are none) or nothing moved."""
+    from drivetrack.visibility import points_on_surface, sensor_positions, surfel_normals
+
+    raw, _, lidar_rows, source = _segment_clouds(plan, object_id, poses)
+    fitted = segment_cloud_normals(plan, object_id, poses)
+    if fitted is None or getattr(fitted, "noise_cube_m", None) is None or not raw.shape[0]:
+        return raw, None
+    scene, config = plan.scene, plan.config
+    boxes, lidar = scene.boxes, scene.lidar
+    all_rows = _object_rows(boxes, object_id)
+    frames = boxes.frame[all_rows].astype(np.int64)
+    trajectory = poses.trajectory
+    # each return's sensor and ray in its box frame at its frame time (directions: the box's
+    # motion between frame and capture time turns them by a fraction of a degree)
+    box_from_vehicle = (invert_rigid(trajectory.world_from_box(all_rows, trajectory.frame_time_s[all_rows]))
+                        @ scene.world_from_vehicle[frames])[source]                             # [m, 4, 4]
+    sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)            # [m, 3]
+    sensor_box = np.einsum("nij,nj->ni", box_from_vehicle[:, :3, :3], sensor_vehicle) + box_from_vehicle[:, :3, 3]
+    rays_box = np.einsum("nij,nj->ni", box_from_vehicle[:, :3, :3], lidar.points_vehicle[lidar_rows] - sensor_vehicle)
+    surfels = surfel_normals(raw, sensor_box, fitted=fitted, transfer=config.normal_transfer)
+    moved, was_moved = points_on_surface(raw, frames[source], rays_box, surfels.normal,
+                                         lambda: segment_surface_cloud(plan, object_id, poses), surfels.reliable,
+                                         float(config.surface_snap_max_m), window=SEGMENT_SNAP_WINDOW_FRAMES)
+    return moved, (was_moved if was_moved.any() else None)
 
 
 def segment_roof_fill(plan, object_id: str, poses) -> np.ndarray:
@@ -1015,7 +1101,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             # depend on the returns only through it)
             key = f"{object_id}#extent"
             if key not in plan.occluder_cache:
-                plan.occluder_cache[key] = np.stack([points_box.min(axis=0), points_box.max(axis=0)])
+                plan.occluder_cache[key] = segment_solid_bounds(plan, object_id, poses)
             solid = solid_extents(plan.occluder_cache[key], boxes.size[obj_rows])
         else:
             solid = solid_extents(points_box, boxes.size[obj_rows])
@@ -1221,7 +1307,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     if surfels is not None and config.own_surface_margin_m is not None:
         from drivetrack.visibility import own_box_parameters, solid_extents
 
-        own_cloud = segment_surface(plan, job.object_id, poses) if poses.trajectory is not None else p_box
+        own_cloud = segment_solid_bounds(plan, job.object_id, poses) if poses.trajectory is not None else p_box
         own_box = own_box_parameters(centres_box, boxes.size[rows], float(config.own_surface_margin_m),
                                      config.own_surface_max_gap_m, solid_extents(own_cloud, boxes.size[rows]))
         own_points = np.ascontiguousarray(surfels.reliable, dtype=bool)
