@@ -700,20 +700,33 @@ def _segment_snapped(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarra
 SEGMENT_SNAP_WINDOW_FRAMES = 2
 
 
+def _lidar_rays_box(scene, lidar_rows: np.ndarray, box_from_vehicle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(sensor_box, rays_box)`` float64 [n, 3]: the lidar that measured each return ``lidar_rows``
+    (int [n]) and the ray from it to the return (any length), in the box frame given per return by
+    ``box_from_vehicle`` float [n, 4, 4]."""
+    from drivetrack.visibility import sensor_positions
+
+    sensor_vehicle = sensor_positions(scene.lidar.laser[lidar_rows], scene.lidar_origins)          # [n, 3]
+    rotation = box_from_vehicle[:, :3, :3]
+    sensor_box = np.einsum("nij,nj->ni", rotation, sensor_vehicle) + box_from_vehicle[:, :3, 3]
+    rays_box = np.einsum("nij,nj->ni", rotation, scene.lidar.points_vehicle[lidar_rows] - sensor_vehicle)
+    return sensor_box, rays_box
+
+
 def _snapped_surface(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray | None]:
     """``(surface, moved)``: :func:`segment_surface` with its returns moved along their rays onto
     the object's surface (:func:`drivetrack.visibility.points_on_surface`, with the normals and
     the surface the tracked points take: :func:`segment_cloud_normals`,
     :func:`segment_surface_cloud`) and which of them moved; the returns as measured and None where
     the normals saw no range noise (or there are none) or nothing moved."""
-    from drivetrack.visibility import points_on_surface, sensor_positions, surfel_normals
+    from drivetrack.visibility import points_on_surface, surfel_normals
 
     raw, _, lidar_rows, source = _segment_clouds(plan, object_id, poses)
     fitted = segment_cloud_normals(plan, object_id, poses)
     if fitted is None or getattr(fitted, "noise_cube_m", None) is None or not raw.shape[0]:
         return raw, None
     scene, config = plan.scene, plan.config
-    boxes, lidar = scene.boxes, scene.lidar
+    boxes = scene.boxes
     all_rows = _object_rows(boxes, object_id)
     frames = boxes.frame[all_rows].astype(np.int64)
     trajectory = poses.trajectory
@@ -721,9 +734,7 @@ def _snapped_surface(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarra
     # motion between frame and capture time turns them by a fraction of a degree)
     box_from_vehicle = (invert_rigid(trajectory.world_from_box(all_rows, trajectory.frame_time_s[all_rows]))
                         @ scene.world_from_vehicle[frames])[source]                             # [m, 4, 4]
-    sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)            # [m, 3]
-    sensor_box = np.einsum("nij,nj->ni", box_from_vehicle[:, :3, :3], sensor_vehicle) + box_from_vehicle[:, :3, 3]
-    rays_box = np.einsum("nij,nj->ni", box_from_vehicle[:, :3, :3], lidar.points_vehicle[lidar_rows] - sensor_vehicle)
+    sensor_box, rays_box = _lidar_rays_box(scene, lidar_rows, box_from_vehicle)
     surfels = surfel_normals(raw, sensor_box, fitted=fitted, transfer=config.normal_transfer)
     moved, was_moved = points_on_surface(raw, frames[source], rays_box, surfels.normal,
                                          lambda: segment_surface_cloud(plan, object_id, poses), surfels.reliable,
@@ -1259,12 +1270,10 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
     by_surface = config.occlusion == "surface"
     surfels = centres_box = None
     if by_surface and config.back_face_max_deg is not None:
-        from drivetrack.visibility import (SurfelNormals, camera_centres_box, points_on_surface, sensor_positions,
-                                           surfel_normals, with_box_face_normals)
+        from drivetrack.visibility import (SurfelNormals, camera_centres_box, points_on_surface, surfel_normals,
+                                           with_box_face_normals)
 
-        sensor_vehicle = sensor_positions(lidar.laser[lidar_rows], scene.lidar_origins)        # [n,3]
-        sensor_box = (np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3], sensor_vehicle)
-                      + box_from_vehicle[source_clip, :3, 3])
+        sensor_box, rays_box = _lidar_rays_box(scene, lidar_rows, box_from_vehicle[source_clip])
         # neighbourhoods among all the object's returns over the segment (on the trajectory): denser
         # than the clip's, so far objects' normals are fixed more often (the clip's otherwise)
         if poses.trajectory is not None and config.normals_from == "segment":
@@ -1274,12 +1283,9 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                        else SurfelNormals(np.zeros((n, 3)), np.zeros(n, dtype=bool)))
             # range noise: each return moved along its ray onto its sweep's surface (exact ranges stay)
             if fitted is not None and config.surface_snap_max_m is not None:
-                rays_box = np.einsum("nij,nj->ni", box_from_vehicle[source_clip, :3, :3],
-                                     lidar.points_vehicle[lidar_rows] - sensor_vehicle)
                 p_box, _ = points_on_surface(p_box, boxes.frame[rows][source_clip], rays_box, surfels.normal,
                                              lambda: segment_surface_cloud(plan, job.object_id, poses),
                                              surfels.reliable, float(config.surface_snap_max_m), keys=lidar_rows)
-                del rays_box
         else:
             surfels = surfel_normals(p_box, sensor_box, neighbours=config.normal_neighbours,
                                      neighbourhood=config.normal_neighbourhood, precise_m=config.normal_precise_m)
@@ -1289,7 +1295,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             surfels = with_box_face_normals(surfels, p_box, np.median(boxes.size[rows], axis=0),
                                             float(config.box_face_normals_m))
         centres_box = camera_centres_box(camera_from_box, shift_camera)
-        del sensor_vehicle, sensor_box
+        del sensor_box, rays_box
     # The object's own box for the depth-map test (drivetrack.visibility.own_surface): with the
     # back-face test on, a depth-map surface inside it hides nothing at a point whose normal is
     # reliable (``own_points``); where it is not, the back-face test cannot decide, and the surface
