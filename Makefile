@@ -12,7 +12,8 @@ export DASK_LOGGING__DISTRIBUTED := warning
 .PHONY: help venv system-deps test bench release serve demo clean
 
 help:
-	@echo "make test                      run the test suite (creates .venv)"
+	@echo "make test [TEST_WORKERS=n]     run the test suite (creates .venv) in n processes (default: one"
+	@echo "                               per core, at most 4; 0: in this process)"
 	@echo "make release VERSION=x.y.z     build and publish a release on embedded defaults"
 	@echo "        [SOURCE=url] [STORE=url] [SEGMENTS='id ...'] [SPLITS=training] [NPZ=1: also publish npz clips]"
 	@echo "make serve                     serve the scheduled regeneration deployment"
@@ -47,8 +48,12 @@ system-deps:
 	  else echo "note: chromium not installed; the browser test will be skipped"; fi; \
 	fi
 
+# The test files are shared among TEST_WORKERS processes (pytest-xdist; "auto": one per core, at
+# most 4, each holding its own session fixtures); a file's tests stay together in one process, in
+# their order, so a module's fixtures are built once. TEST_WORKERS=0 runs them all in this process.
+TEST_WORKERS ?= auto
 test: $(STAMP) system-deps
-	$(PY) -m pytest -q -rs -p no:cacheprovider
+	$(PY) -m pytest -q -rs -p no:cacheprovider -n $(TEST_WORKERS) --maxprocesses=4 --dist loadfile
 
 bench: $(STAMP)
 	$(PY) -m bench.run $(BENCH)

@@ -1,8 +1,10 @@
 """Session-wide fixtures shared by the test modules.
 
-Generating a synthetic segment costs tens of CPU-seconds, so the suite makes ONE small source
-(two segments, 30 frames) and ONE annotation of it, and every module that only reads them uses
-these fixtures instead of generating its own. Modules that need a special scene (box noise, a
+Generating a synthetic segment costs tens of CPU-seconds, so each test process makes ONE small
+source (two segments, 30 frames) and ONE annotation of it, and every module that only reads them
+uses these fixtures instead of generating its own (``make test`` shares the test files among a few
+processes, pytest-xdist's ``--dist loadfile``: each builds these once, and a module's own fixtures
+are built once, in the one process that runs the whole file). Modules that need a special scene (box noise, a
 corrupted file) still make their own, as small as they can.
 """
 from __future__ import annotations

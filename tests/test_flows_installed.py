@@ -126,9 +126,9 @@ def test_wheel_install_runs_the_release_on_dask_scheduler_and_workers(installed,
                              if w}
             assert depth_workers and depth_workers <= workers, (depth_workers, workers)
     finally:
-        for p in procs:
+        for p in reversed(procs):       # the workers first: with their scheduler gone they wait to close
             p.terminate()
-        for p in procs:
+        for p in reversed(procs):
             try:
                 p.wait(timeout=20)
             except subprocess.TimeoutExpired:
