@@ -191,6 +191,10 @@ def test_world_options_are_checked():
         SynthConfig(label_time="camera")
     with pytest.raises(ValueError, match=r"SynthConfig.camera_trigger"):
         SynthConfig(camera_trigger="lidar")
+    # no camera, an unknown one, or a bare name (not a tuple): refused by name before any work
+    for cameras in ((), ("FRONT", "REAR"), "FRONT"):
+        with pytest.raises(ValueError, match=r"SynthConfig.cameras: .*found"):
+            SynthConfig(cameras=cameras)
     assert SynthConfig().trigger == "frame" and SynthConfig(world="hard").trigger == "sweep"
     assert SynthConfig(world="hard", camera_trigger="frame").trigger == "frame"
 

@@ -89,6 +89,12 @@ class SynthConfig:
                                      ("pedestrian_shape", self.pedestrian_shape, PEDESTRIAN_SHAPES)):
             if value not in allowed:
                 raise ValueError(f"SynthConfig.{name}: expected one of {allowed}, found {value!r}")
+        from drivetrack.synth.sensors import _CAMERAS
+
+        unknown = [c for c in self.cameras if c not in _CAMERAS]
+        if isinstance(self.cameras, str) or not self.cameras or unknown:
+            raise ValueError(f"SynthConfig.cameras: expected a non-empty tuple of camera names from "
+                             f"{', '.join(_CAMERAS)}, found {self.cameras!r}")
         if not (isinstance(self.range_noise_m, (int, float)) and 0 <= self.range_noise_m <= 0.5):
             raise ValueError(f"SynthConfig.range_noise_m: expected a sigma in metres in [0, 0.5], "
                              f"found {self.range_noise_m!r}")
