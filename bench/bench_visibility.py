@@ -52,27 +52,35 @@ hidden by another object called visible).
     .venv/bin/python bench/bench_visibility.py --preset small --frames 30 --no-docs   # ~1.5 min
     .venv/bin/python bench/bench_visibility.py --rolling-shutter \
         --variants "depth-ratio (paper),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~12 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --car-shape cabin --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~12 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --pedestrian-shape body --variants "depth-ratio (paper),\
 + normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~10 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~10 min
     .venv/bin/python bench/bench_visibility.py --label-noise 0.05 --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~12 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~12 min
     .venv/bin/python bench/bench_visibility.py --range-noise 0.02 --variants "depth-ratio (paper),\
 + normals among 30 neighbours,+ shifted neighbourhoods,+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~15 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~15 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --variants "depth-ratio (paper),\
 + normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~6 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~6 min
     .venv/bin/python bench/bench_visibility.py --box-slack 0.15 --label-noise 0.05 --variants "depth-ratio (paper),\
 registration takes the road and neighbours (before),+ normals from the plane through the point,+ the object's own surface,+ roofs the lidar did not sample,+ outlines from the occluders' hulls,\
-+ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~8 min
++ normals on cubes sized to the range noise,+ both sides of the outline band,+ planes through their points,+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~8 min
     .venv/bin/python bench/bench_visibility.py --real-log --variants "depth-ratio (paper),\
-+ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays (default)"   # ~6 min
++ footprints of 2 cm,+ normals from the face the ray enters by,+ surfaces snapped along their rays,\
++ pedestrians hide with their recent returns (default)"   # ~6 min
     .venv/bin/python -m bench.run visibility
 """
 from __future__ import annotations
@@ -313,7 +321,12 @@ VARIANTS["+ normals from the face the ray enters by"] = {}
 _BEFORE_SNAP = {"surface_snap_segment": False}
 VARIANTS = {name: {**_BEFORE_SNAP, **overrides} for name, overrides in VARIANTS.items()}
 # under range noise those returns moved along their rays onto the surface (exact ranges: bit for bit)
-VARIANTS["+ surfaces snapped along their rays (default)"] = {}
+VARIANTS["+ surfaces snapped along their rays"] = {}
+# the variants above draw a pedestrian in every image from its whole segment's surface
+_BEFORE_RECENT = {"occluder_recent_types": ()}
+VARIANTS = {name: {**_BEFORE_RECENT, **overrides} for name, overrides in VARIANTS.items()}
+# a noisy pedestrian within 15 m hides with its returns of the 3 frames either side of the image
+VARIANTS["+ pedestrians hide with their recent returns (default)"] = {}
 #: ``--real-log``'s label noise (metres, sigma per axis; 1 deg of heading per 5 cm) and range
 #: noise (metres, sigma), unless given.
 REAL_LOG_LABEL_NOISE_M = 0.05

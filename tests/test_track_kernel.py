@@ -336,3 +336,71 @@ def test_kernel_own_and_other_boxes_equal_the_numpy_rules(max_gap_m):
                        np.empty((len(p), t_count, 3), np.float32))
     np.testing.assert_array_equal(visibles, expected)
     assert not np.array_equal(visibles, vis_plain)
+
+
+def _walker_before_car(jitter_m: float):
+    """A pedestrian (type 2) walking across 7 m ahead of a car 14 m ahead, its labels jittering by
+    ``jitter_m`` frame by frame (sideways, and half as much in depth) while its returns are where
+    it is."""
+    from test_tracks import face_points, transform_points
+
+    b = SceneBuilder(t=12)
+    b.add_object("car", world_center(b, 14.0), size=(4.0, 3.0, 1.6), spacing=0.05)
+    true = world_center(b, 7.0, y=-0.6)[None] + np.outer(1.0 * np.arange(b.t) * DT, [0, 1, 0])
+    jitter = np.where(np.arange(b.t) % 2 == 0, jitter_m, -jitter_m)
+    b.add_object("walker", true + np.outer(jitter, [0.5, 1, 0]), size=(0.4, 0.6, 1.6), type_=2, with_points=False)
+    b.hollow.add("walker")                        # its returns are given as they are
+    for f in range(b.t):
+        centre = transform_points(np.linalg.inv(b.world_from_vehicle[f]), true[f][None])[0]
+        b.points[f].append(face_points(centre, (0.3, 0.6, 1.6), 0.0, spacing=0.05))   # inside its box
+    return b.build()
+
+
+def _splat_counts(scene, config):
+    """int [T]: the other objects' returns splatted in each of the car's images (numpy path)."""
+    from drivetrack.tracks.core import _occluders, clip_poses
+
+    ctx = prepare_segment(scene, replace(config, kernel="numpy"))
+    job = next(j for j in object_jobs(ctx) if j.object_id == "car")
+    rows = np.flatnonzero(scene.boxes.object_id == "car")
+    frames = np.sort(scene.boxes.frame[rows]).astype(np.int64)
+    poses = clip_poses(ctx.plan, job.camera, frames, rows[np.argsort(scene.boxes.frame[rows])])
+    target = poses.camera_from_box[:, :3, 3] + poses.shift_camera
+    return np.array([splats[1].size for splats in _occluders(ctx.plan, job, frames, target,
+                                                                np.full(frames.size, 3.0))[0]])
+
+
+def test_recent_returns_occluder_same_with_either_kernel_and_drawn_from_its_near_frames():
+    # The walker's labels jitter 8 cm: its segment surface, carried through the other frames'
+    # labels, is smeared across 16 cm, while an image's own sweep lies where that image's label
+    # puts it (TrackConfig.occluder_recent_types).
+    from drivetrack.tracks.core import _recent
+
+    scene = _walker_before_car(0.08)
+    # pedestrians hide with their recent returns by default; here each image's own sweep alone
+    recent = TrackConfig(rolling_shutter=False, max_camera_distance_m=30, min_frames=4, occluder_recent_frames=0,
+                         depth_completer_options={"max_reach_px": 3.0})
+    base = replace(recent, occluder_recent_types=())          # every type from its segment's surface
+    # each image is drawn from the walker's returns of its own frame, the segment's surface from all
+    own, whole = _splat_counts(scene, recent), _splat_counts(scene, base)
+    assert (own > 0).all() and (own < whole).all()
+    reference, fused = _both(scene, recent)
+    _assert_same_tracks(reference["car"], fused["car"])
+    segment, _ = _both(scene, base)
+    # the smeared walker hides more of the car than its own sweeps do
+    assert segment["car"].visibles.sum() < reference["car"].visibles.sum()
+    # too far (occluder_recent_max_m), or returns that agree over the segment: the segment's surface
+    np.testing.assert_array_equal(_splat_counts(scene, replace(recent, occluder_recent_max_m=5.0)), whole)
+    exact = _walker_before_car(0.0)
+    np.testing.assert_array_equal(_splat_counts(exact, recent), _splat_counts(exact, base))
+    assert _recent(np.array([0, 3, 5, np.iinfo(np.int64).min]), 4, 1).tolist() == [False, True, True, True]
+
+
+def test_recent_returns_options_are_checked_by_name():
+    with pytest.raises(ValueError, match="TrackConfig.occluder_recent_types: unknown BoxType 'WALKER'"):
+        TrackConfig(occluder_recent_types=("WALKER",))
+    with pytest.raises(ValueError, match="TrackConfig.occluder_recent_frames.*-1"):
+        TrackConfig(occluder_recent_frames=-1)
+    with pytest.raises(ValueError, match="TrackConfig.occluder_recent_max_m.*0"):
+        TrackConfig(occluder_recent_max_m=0.0)
+    assert TrackConfig().occluder_recent_types == ("PEDESTRIAN",)

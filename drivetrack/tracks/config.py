@@ -212,6 +212,20 @@ class TrackConfig:
             thinned to, one return each (the z-buffer's surface), and whose means the back-face
             normals are fitted on (:func:`drivetrack.tracks.core.segment_surface`). Default 0.025
             (half the footprint of 0.05 m it was tied to before 2026-12-02).
+        occluder_recent_types, occluder_recent_frames, occluder_recent_max_m: ``BoxType`` names
+            whose objects hide others in an image with their returns of the frames within
+            ``occluder_recent_frames`` of that image (every return, not thinned) instead of their
+            whole segment's surface, where they are within ``occluder_recent_max_m`` of the
+            camera (the median over the clip's images; None: at any distance) and their returns
+            over the segment are noisy (their back-face normals were refitted for it, the test
+            the segment snap takes; returns that agree keep the segment's surface, bit for bit).
+            Default pedestrians, 3 frames either side, 15 m (2026-12-03, fortieth session). A
+            walking pedestrian is no rigid body and its few returns register it to its box only
+            to centimetres a frame: the segment's returns, carried to one image through the other
+            frames' poses, draw it centimetres too wide and hide what passes beside it, while an
+            image's near sweeps share that moment's pose. A few sweeps leave open what the lidar
+            did not see lately, more so far away. ``()``: every type hides with its segment's
+            surface. docs/visibility.md "Pedestrians hide with their recent returns".
         occluder_fill_px: the z-buffer is closed by this many pixels (a grey-level closing,
             nearest depth spread then the farthest taken back: holes up to twice as wide between an
             occluder's splats are filled at its depth, its outlines and depth steps stay where
@@ -338,6 +352,9 @@ class TrackConfig:
     segment_margin_m: float | None = None
     surfel_max_px: int = 8
     occluder_fill_px: int = 4
+    occluder_recent_types: tuple[str, ...] = ("PEDESTRIAN",)
+    occluder_recent_frames: int = 3
+    occluder_recent_max_m: float | None = 15.0
     occluder_subpixels: int = 2
     self_occlusion: bool = True
     roof_fill: bool = True
@@ -370,7 +387,8 @@ class TrackConfig:
     kernel: str = "numba"
 
     def __post_init__(self):
-        for name, enum_type in (("object_types", BoxType), ("occluder_types", BoxType), ("cameras", CameraName),
+        for name, enum_type in (("object_types", BoxType), ("occluder_types", BoxType),
+                                ("occluder_recent_types", BoxType), ("cameras", CameraName),
                                 ("lasers", LaserName)):
             values = getattr(self, name)
             if isinstance(values, str):
@@ -467,6 +485,12 @@ class TrackConfig:
         if not (isinstance(self.occluder_subpixels, int) and 1 <= self.occluder_subpixels <= 4):
             raise ValueError(f"TrackConfig.occluder_subpixels must be an integer in [1, 4], got "
                              f"{self.occluder_subpixels!r}")
+        if not (isinstance(self.occluder_recent_frames, int) and self.occluder_recent_frames >= 0):
+            raise ValueError(f"TrackConfig.occluder_recent_frames must be an integer number of frames >= 0, got "
+                             f"{self.occluder_recent_frames!r}")
+        if self.occluder_recent_max_m is not None and not self.occluder_recent_max_m > 0:
+            raise ValueError(f"TrackConfig.occluder_recent_max_m must be > 0 metres or None, got "
+                             f"{self.occluder_recent_max_m!r}")
         if not (isinstance(self.occluder_fill_px, int) and 0 <= self.occluder_fill_px <= 64):
             raise ValueError(f"TrackConfig.occluder_fill_px must be an integer number of pixels in [0, 64], got "
                              f"{self.occluder_fill_px!r}")

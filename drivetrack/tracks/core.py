@@ -661,6 +661,37 @@ def segment_surface(plan, object_id: str, poses) -> np.ndarray:
     return _segment_snapped(plan, object_id, poses)[0]
 
 
+def segment_returns_by_frame(plan, object_id: str, poses) -> tuple[np.ndarray, np.ndarray]:
+    """``(points_box float64 [m, 3], frame int64 [m])``: every one of ``object_id``'s returns over
+    the segment in its box frame (not thinned, not snapped; :func:`_segment_points`) and the frame
+    each was measured in, once per object and segment (``plan.occluder_cache``): the surface an
+    object of ``TrackConfig.occluder_recent_types`` hides others with, an image's near frames'
+    returns at a time (:func:`_occluders`)."""
+    key = f"{object_id}#by-frame"
+    if key not in plan.occluder_cache:
+        points_box, _, source = _segment_points(plan, object_id, poses, with_rows=True)
+        frame = plan.scene.boxes.frame[_object_rows(plan.scene.boxes, object_id)][source].astype(np.int64)
+        plan.occluder_cache[key] = (np.ascontiguousarray(points_box, dtype=np.float64), frame)
+    return plan.occluder_cache[key]
+
+
+def _hides_with_recent(plan, object_id: str, box_type: int, poses) -> bool:
+    """Whether ``object_id``, of ``box_type`` and posed by ``poses`` (its :func:`clip_poses` in the
+    clip's images), hides with its recent returns rather than its segment's surface: it is of
+    ``TrackConfig.occluder_recent_types``, within ``occluder_recent_max_m`` of the camera by the
+    median over the images, and its segment's returns are noisy (its back-face normals were
+    fitted on coarser cubes for it, ``CloudNormals.noise_cube_m``, the test the segment snap
+    takes): returns that agree over the segment draw it as it is, from every frame."""
+    config = plan.config
+    if poses.trajectory is None or box_type not in {int(BoxType[name]) for name in config.occluder_recent_types}:
+        return False
+    if config.occluder_recent_max_m is not None:
+        distance = np.linalg.norm(poses.camera_from_box[:, :3, 3] + poses.shift_camera, axis=1)
+        if np.median(distance) > float(config.occluder_recent_max_m):
+            return False
+    return getattr(segment_cloud_normals(plan, object_id, poses), "noise_cube_m", None) is not None
+
+
 def segment_solid_bounds(plan, object_id: str, poses) -> np.ndarray:
     """float64 [2, 3]: the low and high corners (box frame, metres) of :func:`segment_surface`'s
     returns the part of the object's box its returns fill is taken from
@@ -1081,13 +1112,19 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                 if with_own else np.zeros(0, np.int64))
     own_frame: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(t_count)]
     records: list[tuple] = []                      # the kernel path's objects, splatted lazily
+    recent_frames = int(plan.config.occluder_recent_frames)
     for label, object_id in enumerate(others + ([job.object_id] if own_rows.size else [])):
         is_own = label == len(others)
         obj_rows = own_rows if is_own else in_clip[boxes.object_id[in_clip] == object_id]
         obj_rows = obj_rows[np.argsort(boxes.frame[obj_rows], kind="stable")]
         obj_frames = boxes.frame[obj_rows].astype(np.int64)
         poses = _occluder_poses(plan, job.camera, object_id, obj_frames, obj_rows)
-        if poses.trajectory is not None:
+        measured = None                            # int [m]: each return's frame, for a recent-returns occluder
+        if not is_own and _hides_with_recent(plan, object_id, int(boxes.type[obj_rows[0]]), poses):
+            # it hides with its returns of the frames near each image (selected per image below)
+            points_box, measured = segment_returns_by_frame(plan, object_id, poses)
+            radius_m = None
+        elif poses.trajectory is not None:
             # On the segment's trajectory an object's returns in its box frame do not depend on the
             # camera or the clip: all its returns over the segment, thinned to the first of each
             # surfel cube, computed once per object and segment.
@@ -1121,6 +1158,8 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             fill = segment_roof_fill(plan, object_id, poses)
             points_box = np.concatenate([points_box, fill])
             radius_m = np.concatenate([radius_m, np.full(fill.shape[0], float(plan.config.surfel_radius_m))])
+            if measured is not None:                # the fill is the segment's: in every image
+                measured = np.concatenate([measured, np.full(fill.shape[0], _ANY_FRAME, dtype=np.int64)])
         placed = poses.camera_from_box.copy()
         placed[:, :3, 3] += poses.shift_camera
         if use_kernel:
@@ -1128,7 +1167,7 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             # projects validly somewhere (the first valid frame settles it)
             points_box = np.ascontiguousarray(points_box, dtype=np.float64)
             record = len(records)
-            records.append((points_box, placed, radius_m, 0 if is_own else label))
+            records.append((points_box, placed, radius_m, 0 if is_own else label, measured))
             if not (own_seen if is_own else seen):
                 scratch = (np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0]),
                            np.empty(points_box.shape[0], dtype=np.int64))
@@ -1141,24 +1180,35 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
                             seen = True
                         break
         else:
-            points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
-            pixels, valid = model.pixels_from_camera(points_camera)
-            valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
-            if is_own:
-                own_seen = own_seen or bool(valid.any())
+            # per image k the returns it is drawn from: all, or a recent-returns occluder's near
+            # frames' (each image's own few: never [t, every return] of a long clip)
+            chosen = ([slice(None)] * obj_frames.size if measured is None else
+                      [np.flatnonzero(_recent(measured, t, recent_frames)) for t in obj_frames.tolist()])
+            if measured is None:
+                points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
+                pixels, valid = model.pixels_from_camera(points_camera)
             else:
-                seen = seen or bool(valid.any())
+                points_camera = [_carry(poses.camera_from_box[k:k + 1], points_box[c])[0] + poses.shift_camera[k]
+                                 for k, c in enumerate(chosen)]
+                projected = [model.pixels_from_camera(p) for p in points_camera]
+                pixels, valid = [p[0] for p in projected], [p[1] for p in projected]
+            for k in range(obj_frames.size):
+                valid[k] &= (points_camera[k][..., 0] > 0) & np.isfinite(pixels[k]).all(axis=-1)
+                if is_own:
+                    own_seen = own_seen or bool(valid[k].any())
+                else:
+                    seen = seen or bool(valid[k].any())
         for k, t in enumerate(obj_frames.tolist()):
             x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
             if use_kernel:
                 splats = (record, k, slot[t])             # splatted when the frame is asked for
             else:
-                near = (valid[k] & (pixels[k, :, 0] >= x_lo) & (pixels[k, :, 0] <= x_hi) & (pixels[k, :, 1] >= y_lo)
-                        & (pixels[k, :, 1] <= y_hi))
+                near = (valid[k] & (pixels[k][:, 0] >= x_lo) & (pixels[k][:, 0] <= x_hi) & (pixels[k][:, 1] >= y_lo)
+                        & (pixels[k][:, 1] <= y_hi))
                 if shutter is None:
-                    splats = (pixels[k][near], points_camera[k, near, 0], radius_m[near])
+                    splats = (pixels[k][near], points_camera[k][near, 0], radius_m[chosen[k]][near])
                 else:
-                    splats = _captured_splats(shutter, t, poses, k, points_box, radius_m, near)
+                    splats = _captured_splats(shutter, t, poses, k, points_box[chosen[k]], radius_m[chosen[k]], near)
             if not use_kernel:                            # each return's object (the own one's: 0)
                 splats += (np.full(splats[1].shape[0], 0 if is_own else label, dtype=np.int32),)
             (own_frame if is_own else per_frame)[slot[t]].append(splats)
@@ -1170,13 +1220,24 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             frame_ids[slot[t]].append((object_id, world_from_other, poses.velocity_world[k],
                                        float(poses.yaw_rate_world[k])))
     def joined(frames_parts):
-        return _LazySplats(frames_parts, records, params, windows) if use_kernel else _joined_splats(frames_parts)
+        return (_LazySplats(frames_parts, records, params, windows, frames, recent_frames) if use_kernel
+                else _joined_splats(frames_parts))
 
     return (joined(per_frame),
             [(np.stack([b[0] for b in parts]) if parts else np.empty((0, 4, 4)),
               np.stack([b[1] for b in parts]) if parts else np.empty((0, 3)),
               np.stack([b[2] for b in parts]) if parts else np.empty((0, 2, 3))) for parts in frame_boxes],
             seen, joined(own_frame) if own_seen else None, frame_ids)
+
+
+#: :func:`_occluders`: the "frame" of a recent-returns occluder's roof fill, kept in every image
+_ANY_FRAME = np.iinfo(np.int64).min
+
+
+def _recent(measured: np.ndarray, frame: int, within: int) -> np.ndarray:
+    """bool [m]: the returns measured (``measured`` int64 [m], frame indices; :data:`_ANY_FRAME`
+    for any) within ``within`` frames of ``frame``."""
+    return (np.abs(measured - frame) <= within) | (measured == _ANY_FRAME)
 
 
 def _joined_splats(frames_parts):
@@ -1194,10 +1255,14 @@ class _LazySplats:
     for one at a time, so only one image's splats are held (a near car's own returns over 54
     full-size frames held 45 MiB, its occluders' 37 MiB). ``frames_parts`` per frame the
     ``(record, k, slot)`` of each object there, in order; ``records`` per object ``(points_box
-    float64 [m, 3], placed float64 [K, 4, 4], radius_m float64 [m], label)``."""
+    float64 [m, 3], placed float64 [K, 4, 4], radius_m float64 [m], label, measured)``, with
+    ``measured`` int64 [m] the frame of each return of an object that hides with its recent
+    returns (``TrackConfig.occluder_recent_types``: those within ``recent_frames`` of the
+    image's frame ``frames[slot]`` are splatted) or None."""
 
-    def __init__(self, frames_parts, records, params, windows):
+    def __init__(self, frames_parts, records, params, windows, frames=None, recent_frames=0):
         self.frames_parts, self.records, self.params, self.windows = frames_parts, records, params, windows
+        self.frames, self.recent_frames = frames, recent_frames
 
     def __len__(self) -> int:
         return len(self.frames_parts)
@@ -1210,7 +1275,10 @@ class _LazySplats:
     def _splat(self, record: int, k: int, slot: int):
         from drivetrack.visibility.kernel import project_in_window
 
-        points_box, placed, radius_m, label = self.records[record]
+        points_box, placed, radius_m, label, measured = self.records[record]
+        if measured is not None:
+            chosen = np.flatnonzero(_recent(measured, int(self.frames[slot]), self.recent_frames))
+            points_box, radius_m = np.ascontiguousarray(points_box[chosen]), radius_m[chosen]
         pixels, depth = np.empty((points_box.shape[0], 2)), np.empty(points_box.shape[0])
         index = np.empty(points_box.shape[0], dtype=np.int64)
         kept, _ = project_in_window(points_box, placed[k], self.params, *self.windows[slot], pixels, depth, index)
