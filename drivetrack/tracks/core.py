@@ -1054,7 +1054,10 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
     under the trajectory all its returns over the segment, computed once per object
     (``plan.occluder_cache``); under ``time_model="velocity"`` those of the clip frames. Both are
     thinned to one return per cube of ``surfel_cube_m``
-    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). With ``roof_fill`` (on the
+    (:func:`drivetrack.visibility.zbuffer.surfel_subsample`). An object of
+    ``TrackConfig.occluder_recent_types`` near the camera whose returns over the segment are noisy
+    (:func:`_hides_with_recent`) is drawn in each image from its returns of the frames within
+    ``occluder_recent_frames`` of it instead (:func:`segment_returns_by_frame`, not thinned). With ``roof_fill`` (on the
     trajectory), each other object's surface also holds the part of its roof its returns leave
     unsampled (:func:`segment_roof_fill`; splats only: the boxes' ``solid`` parts stay its
     returns'). The tracked object is the sphere of
