@@ -521,6 +521,10 @@ class TrackConfig:
         return tuple(int(BoxType[name]) for name in self.object_types)
 
     @property
+    def occluder_recent_type_values(self) -> tuple[int, ...]:
+        return tuple(int(BoxType[name]) for name in self.occluder_recent_types)
+
+    @property
     def returns_type_values(self) -> tuple[int, ...]:
         """The ``BoxType`` values whose objects' returns are selected: annotated (``object_types``)
         or occluding (``occluder_types``, under ``occlusion="surface"``)."""

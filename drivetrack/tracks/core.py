@@ -683,7 +683,7 @@ def _hides_with_recent(plan, object_id: str, box_type: int, poses) -> bool:
     fitted on coarser cubes for it, ``CloudNormals.noise_cube_m``, the test the segment snap
     takes): returns that agree over the segment draw it as it is, from every frame."""
     config = plan.config
-    if poses.trajectory is None or box_type not in {int(BoxType[name]) for name in config.occluder_recent_types}:
+    if poses.trajectory is None or box_type not in config.occluder_recent_type_values:
         return False
     if config.occluder_recent_max_m is not None:
         distance = np.linalg.norm(poses.camera_from_box[:, :3, 3] + poses.shift_camera, axis=1)
@@ -1190,17 +1190,19 @@ def _occluders(plan, job, frames: np.ndarray, target_camera: np.ndarray, target_
             if measured is None:
                 points_camera = _carry(poses.camera_from_box, points_box) + poses.shift_camera[:, None]   # [t, m, 3]
                 pixels, valid = model.pixels_from_camera(points_camera)
+                valid &= (points_camera[..., 0] > 0) & np.isfinite(pixels).all(axis=-1)
             else:
                 points_camera = [_carry(poses.camera_from_box[k:k + 1], points_box[c])[0] + poses.shift_camera[k]
                                  for k, c in enumerate(chosen)]
                 projected = [model.pixels_from_camera(p) for p in points_camera]
-                pixels, valid = [p[0] for p in projected], [p[1] for p in projected]
-            for k in range(obj_frames.size):
-                valid[k] &= (points_camera[k][..., 0] > 0) & np.isfinite(pixels[k]).all(axis=-1)
-                if is_own:
-                    own_seen = own_seen or bool(valid[k].any())
-                else:
-                    seen = seen or bool(valid[k].any())
+                pixels = [p[0] for p in projected]
+                valid = [ok & (p[:, 0] > 0) & np.isfinite(px).all(axis=-1)
+                         for (px, ok), p in zip(projected, points_camera)]
+            any_valid = any(bool(v.any()) for v in valid)
+            if is_own:
+                own_seen = own_seen or any_valid
+            else:
+                seen = seen or any_valid
         for k, t in enumerate(obj_frames.tolist()):
             x_lo, x_hi, y_lo, y_hi = windows[slot[t]]
             if use_kernel:
