@@ -208,34 +208,64 @@ class _NumpyProjection:
         self.world_from_box, self.shift_world, self.velocity_world = world_from_box, shift_world, velocity_world
         self.yaw_rate_world = yaw_rate_world
 
-    def project(self, chunk: np.ndarray, at_capture: bool = False):
+    def project(self, chunk: np.ndarray, at_capture: bool = False, towards: bool = False):
         """``at_capture``: under rolling shutter the camera-frame points (their depth) are taken at
         each point's capture time in its row (the z-buffer compares depths there), else at the
-        image pose like the global path; the pixels are the same either way."""
+        image pose like the global path; the pixels are the same either way. ``towards`` (with
+        ``at_capture``) adds a fourth result, float64 [T, n, 3]: the direction (not unit) from each
+        point to the camera centre in the object's box frame at the point's capture time (the
+        back-face test's; at the image pose where the point has none)."""
         points_camera = _carry(self.camera_from_box, chunk) + self.shift_camera[:, None]   # [T, n, 3]
+        # from the point to the camera at the image pose, in the box frame: R^T (-p_camera)
+        to_camera = -np.einsum("tji,tnj->tni", self.camera_from_box[:, :3, :3], points_camera) if towards else None
         if not self.rolling:
             pixels, valid = self.model.pixels_from_camera(points_camera)
         else:
             pixels = np.empty(points_camera.shape[:2] + (2,), dtype=np.float64)
             valid = np.zeros(points_camera.shape[:2], dtype=bool)
             if at_capture:
-                from drivetrack.camera.rolling_shutter import project_world
+                from drivetrack.camera.rolling_shutter import project_world, shutter_state
 
                 captured = np.full(points_camera.shape, np.nan)
             for tau, t in enumerate(self.frames.tolist()):
                 world = _carry(self.world_from_box[tau:tau + 1], chunk)[0] + self.shift_world[tau]
+                yaw_rate = 0.0 if self.yaw_rate_world is None else float(self.yaw_rate_world[tau])
                 velocity = rigid_velocity_world(world, self.world_from_box[tau, :3, 3], self.velocity_world[tau],
-                                                0.0 if self.yaw_rate_world is None else self.yaw_rate_world[tau])
+                                                yaw_rate)
                 if at_capture:
                     found = project_world(self.frames_meta, t, world, velocity)
                     pixels[tau], valid[tau], captured[tau] = found.pixels, found.valid, found.points_camera
+                    if towards:
+                        to_camera[tau] = _towards_camera_box(shutter_state(self.frames_meta, t), found, world, velocity,
+                                                             self.world_from_box[tau], yaw_rate, to_camera[tau])
                 else:
                     px, ok, _ = self.projector(self.frames_meta, t, world, velocity)
                     pixels[tau], valid[tau] = px, ok
             valid &= points_camera[..., 0] > 0
             if at_capture:
                 points_camera = np.where(valid[..., None], captured, points_camera)
+        if towards:
+            return points_camera, pixels, valid, to_camera
         return points_camera, pixels, valid
+
+
+def _towards_camera_box(state, found, world: np.ndarray, velocity: np.ndarray, world_from_box: np.ndarray,
+                        yaw_rate: float, fallback: np.ndarray) -> np.ndarray:
+    """float64 [n, 3]: from each point (``world`` float [n, 3] at the image pose, moving with
+    ``velocity`` float [n, 3] m/s) to the camera centre at its capture time (``found``, a
+    :class:`drivetrack.camera.rolling_shutter.Projection`; ``state`` the image's shutter state),
+    in the box frame of the object then (``world_from_box`` float [4, 4] at the image pose,
+    turning at ``yaw_rate`` rad/s about the world z): ``R0^T Rz(-w dt) (c(dt) - p - v dt)``;
+    ``fallback`` float [n, 3] where the point has no capture time (not seen)."""
+    if not state.rolling:
+        return fallback
+    dt = found.capture_time - state.pose_timestamp
+    seen = np.isfinite(dt)
+    dt = np.where(seen, dt, 0.0)
+    d = state.pose_at(dt)[1] - world - dt[:, None] * velocity                        # world frame [n, 3]
+    cos, sin = np.cos(-yaw_rate * dt), np.sin(-yaw_rate * dt)
+    turned = np.column_stack([cos * d[:, 0] - sin * d[:, 1], sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
+    return np.where(seen[:, None], np.einsum("ji,nj->ni", world_from_box[:3, :3], turned), fallback)
 
 
 class TrackSource:
@@ -1800,25 +1830,20 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                 if hidden_other is not None:
                     hidden_other = np.zeros((t_count, chunk.shape[0]), dtype=bool)
                     zbuffer_margin = np.empty((t_count, chunk.shape[0]), dtype=np.float32)
-                if surfels is not None:
-                    # the back-face test and its margin from one cosine per point-frame
-                    if use_kernel:
-                        from drivetrack.visibility import kernel as visibility_kernel
-
-                        front_facing = np.ones((t_count, chunk.shape[0]), dtype=bool)
-                        face_margin = np.full((t_count, chunk.shape[0]), np.inf, dtype=np.float32)
-                        visibility_kernel.facing_test(np.ascontiguousarray(chunk, dtype=np.float64),
-                                                      np.ascontiguousarray(surfels.normal[start:stop], dtype=np.float64),
-                                                      np.ascontiguousarray(surfels.reliable[start:stop], dtype=bool),
-                                                      np.ascontiguousarray(centres_box), float(config.back_face_max_deg),
-                                                      front_facing, face_margin)
-                    else:
-                        front_facing, face_margin = facing_test(
-                            chunk, SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
-                            centres_box, float(config.back_face_max_deg))
             # under a rolling shutter the depths at the capture time (the depth maps and the
             # z-buffer are drawn there too)
-            points_camera, pixels, valid = projection.project(chunk, at_capture=True)
+            if rolling and surfels is not None:
+                points_camera, pixels, valid, to_camera = projection.project(chunk, at_capture=True, towards=True)
+                # the back-face test and its margin from one cosine per point-frame, the camera
+                # where it was when its row saw the point
+                from drivetrack.visibility.facing import facing_test_towards
+
+                front_facing, face_margin = facing_test_towards(
+                    to_camera, SurfelNormals(surfels.normal[start:stop], surfels.reliable[start:stop]),
+                    float(config.back_face_max_deg))
+                del to_camera
+            else:
+                points_camera, pixels, valid = projection.project(chunk, at_capture=True)
             if rolling and hidden_other is not None:
                 zbuffer_test(start, points_camera, pixels, valid)
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)

@@ -52,6 +52,7 @@ __all__ = ["NEIGHBOURHOODS", "OWN_BOX_DEPTH_M", "SENSOR_VEHICLE_M", "SHIFT_MAX_T
            "SHIFT_TIGHT_M", "SHIFT_TOLERANCE_M", "SOLID_FACE_MAX_M", "CloudNormals", "SurfaceCloud", "SurfelNormals",
            "box_face_normals",
            "camera_centres_box", "cloud_normals", "facing_cosine", "facing_mask", "facing_test", "orient_outward",
+           "facing_test_towards",
            "other_boxes", "other_surface", "solid_extents", "own_box_parameters", "own_surface", "points_on_surface",
            "points_on_sweep_surface", "range_noise_m", "sensor_positions", "surface_cloud", "surfel_normals",
            "with_box_face_normals"]
@@ -980,7 +981,24 @@ def facing_test(points_box: np.ndarray, surfels: SurfelNormals, centres_box: np.
     """``(facing bool [T, n], margin_deg float32 [T, n])`` from one :func:`facing_cosine`: the
     decision of :func:`facing_mask` and how far (degrees) the angle to the camera lies below
     ``max_angle_deg`` (negative: turned away; +inf at an unreliable normal)."""
-    cosine = facing_cosine(points_box, surfels.normal, centres_box)
+    return _facing_from_cosine(facing_cosine(points_box, surfels.normal, centres_box), surfels, max_angle_deg)
+
+
+def facing_test_towards(to_camera_box: np.ndarray, surfels: SurfelNormals,
+                        max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`facing_test` from each point-frame's own direction to the camera, ``to_camera_box``
+    float [T, n, 3] (box frame, any length > 0): under a rolling shutter the camera centre at the
+    point's capture time in its row, as the object is then (``TrackSource``'s numpy projection
+    with ``towards=True``). A car beside a moving ego is seen from up to decimetres apart between
+    the image pose and a row's time: degrees at a few metres, where its faces turn."""
+    cosine = (np.einsum("tni,ni->tn", to_camera_box, surfels.normal)
+              / np.maximum(np.linalg.norm(to_camera_box, axis=-1), 1e-9))
+    return _facing_from_cosine(cosine, surfels, max_angle_deg)
+
+
+def _facing_from_cosine(cosine: np.ndarray, surfels: SurfelNormals,
+                        max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`facing_test`'s decision and margin from the cosines float [T, n]."""
     unreliable = ~surfels.reliable[None]
     facing = (cosine > np.cos(np.radians(max_angle_deg))) | unreliable
     angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
