@@ -119,6 +119,7 @@ SEGMENT_COLUMNS = (
     "num_object_clips_considered", "num_object_clips_annotated", "num_tracks",
     *(f"rejected_{r}" for r in REJECTION_REASONS),
     "label_time", "label_time_residual_frame_m", "label_time_residual_sweep_m", "num_synced_samples",
+    "label_jitter_m", "depth_lookup_px",
 )
 #: ``stats/rejections.parquet``: one row per rejected clip.
 REJECTION_COLUMNS = ("split", "segment", "camera", "object_id", "object_type", "reason", "detail")

@@ -290,6 +290,30 @@ def test_lookup_shapes_and_batch():
     assert np.all(lookup_max4(depth[0], pixels[0, :, 0]) >= depth[0][y0, x0])
 
 
+def test_lookup_grown_is_the_max_of_4_of_the_map_dilated_by_as_many_pixels():
+    # grow_px g: the max over the four pixels and every pixel within g of them, i.e. the max-of-4
+    # of the map whose every pixel took the farthest depth within g (outside the image unknown)
+    from scipy.ndimage import maximum_filter
+
+    from drivetrack.tracks import kernel
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(1, 50, (2, 9, 11)).astype(np.float32)
+    depth[rng.uniform(size=depth.shape) < 0.3] = 0.0          # unknown pixels never win
+    pixels = np.concatenate([rng.uniform(-0.5, 11.5, (2, 60, 1)), rng.uniform(-0.5, 9.5, (2, 60, 1))], axis=-1)
+    pixels[:, :5] = np.floor(pixels[:, :5]) + 0.5               # on pixel centres: one column and row
+    for grow in (1, 2):
+        dilated = maximum_filter(depth, size=(1, 2 * grow + 1, 2 * grow + 1), mode="constant", cval=0.0)
+        want = lookup_max4(dilated, pixels)
+        np.testing.assert_array_equal(lookup_max4(depth, pixels, grow_px=grow), want)
+        # the track kernel's look-up is the same (-1 outside the image: 0 here)
+        got = np.array([[kernel._max4(depth, b, 9, 11, x, y, grow) for x, y in pixels[b]] for b in range(2)])
+        np.testing.assert_array_equal(np.maximum(got, 0), want)
+    np.testing.assert_array_equal(lookup_max4(depth, pixels, grow_px=0), lookup_max4(depth, pixels))
+    with pytest.raises(ValueError, match="grow_px: expected an integer >= 0, found -1"):
+        lookup_max4(depth, pixels, grow_px=-1)
+
+
 def test_lookup_errors():
     with pytest.raises(ValueError, match=r"expected float \[\.\.\., 2\].*found shape \(4, 3\)"):
         lookup_max4(np.zeros((3, 3), np.float32), np.zeros((4, 3)))

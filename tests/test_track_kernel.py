@@ -163,8 +163,8 @@ def _both(scene, config):
     return numpy_results, numba_results
 
 
-@pytest.mark.parametrize("rolling_shutter", [False, True])
-def test_run_object_job_same_with_either_kernel(rolling_shutter):
+@pytest.mark.parametrize("rolling_shutter,grown", [(False, False), (True, False), (False, True)])
+def test_run_object_job_same_with_either_kernel(rolling_shutter, grown):
     # distortion, a moving ego, an occluder crossing in front, a partly hidden car, a speed filter
     b = SceneBuilder(ego_speed=3.0, k1=-0.05)
     # behind its face towards the camera, a wall in a frame 1.5 m deeper: the wall's returns lie
@@ -184,10 +184,27 @@ def test_run_object_job_same_with_either_kernel(rolling_shutter):
     start = world_center(b, 6.0, y=-3.0)
     b.add_object("front", start[None] + np.outer(2.0 * np.arange(b.t) * DT, [0, 1, 0]), size=(1.0, 0.8, 0.8),
                  spacing=0.05, extra_local=[[-0.5, 3.0, 0.0], [0.4, 0.0, 0.0]])
+    # grown: the depth look-up grown by a pixel whatever the labels (exact here: the gate keeps
+    # the max-of-4 by default)
     config = TrackConfig(rolling_shutter=rolling_shutter, max_camera_distance_m=30,
                          max_speed_deviation_mps=2.1, chunk_points=700, occlusion_margins=True,
-                         depth_completer_options={"max_reach_px": 3.0})
-    reference, fused = _both(b.build(), config)
+                         depth_completer_options={"max_reach_px": 3.0},
+                         depth_lookup_min_jitter_m=None if grown else 0.01)
+    if grown:
+        # an unlabelled post 7 m ahead in front of the wall's car: its outline in the completed
+        # map is where the grown look-up differs
+        from test_tracks import face_points, transform_points
+
+        post = world_center(b, 7.0, y=0.3)
+        for f in range(b.t):
+            centre = transform_points(np.linalg.inv(b.world_from_vehicle[f]), post[None])[0]
+            b.points[f].append(face_points(centre, (0.3, 0.3, 2.0), 0.0, spacing=0.05))
+    scene = b.build()
+    reference, fused = _both(scene, config)
+    if grown:       # it hides fewer point-frames than the max-of-4 (the post's outline)
+        ctx = prepare_segment(scene, replace(config, kernel="numpy", depth_lookup_px=0))
+        max4 = {job.object_id: run_object_job(ctx, job) for job in object_jobs(ctx)}
+        assert reference["back"].visibles.sum() > max4["back"].visibles.sum()
     assert reference["back"].num_tracks > 1000 and reference["edge"].num_dropped_invisible > 0
     assert not reference["back"].visibles.all()
     assert reference["spinner"].num_dropped_speed > 0 and reference["spinner"].num_tracks > 0
@@ -404,3 +421,40 @@ def test_recent_returns_options_are_checked_by_name():
     with pytest.raises(ValueError, match="TrackConfig.occluder_recent_max_m.*0"):
         TrackConfig(occluder_recent_max_m=0.0)
     assert TrackConfig().occluder_recent_types == ("PEDESTRIAN",)
+
+
+def test_label_jitter_measured_on_still_objects_gates_the_grown_depth_lookup():
+    # TrackConfig.depth_lookup_px grows the depth map's look-up only where the labels jitter
+    # (drivetrack.tracks.plan.label_jitter_m: still objects' label centres, frame to frame)
+    from drivetrack.tracks.core import depth_lookup_grow_px
+    from drivetrack.tracks.plan import label_jitter_m, plan_segment
+
+    def built(sigma_m: float, moving: bool = False):
+        b = SceneBuilder(t=30, ego_speed=5.0)
+        rng = np.random.default_rng(4)
+        for k in range(4):
+            centre = world_center(b, 10.0 + 4.0 * k, y=-3.0 + 2.0 * k)
+            path = centre[None] + (np.outer(3.0 * np.arange(b.t) * DT, [1, 0, 0]) if moving else 0.0)
+            noise = np.column_stack([rng.normal(0.0, sigma_m, (b.t, 2)), np.zeros(b.t)])
+            b.add_object(f"car{k}", path + noise, spacing=0.25)
+        return b.build()
+
+    exact, jittered, moving = built(0.0), built(0.03), built(0.03, moving=True)
+    assert label_jitter_m(exact) == 0.0
+    assert 0.02 < label_jitter_m(jittered) < 0.045          # 3 cm per axis
+    assert np.isnan(label_jitter_m(moving))                  # nothing still to measure it on
+    # refined boxes (a still object held to one pose) keep the labels as delivered: those count
+    refined = replace(exact, box_labels=jittered.boxes)
+    assert label_jitter_m(refined) == label_jitter_m(jittered)
+    assert depth_lookup_grow_px(plan_segment(refined, TrackConfig())) == 1
+    config = TrackConfig()
+    assert depth_lookup_grow_px(plan_segment(exact, config)) == 0
+    assert depth_lookup_grow_px(plan_segment(jittered, config)) == 1
+    assert depth_lookup_grow_px(plan_segment(moving, config)) == 0
+    assert depth_lookup_grow_px(plan_segment(jittered, replace(config, occlusion="depth-ratio"))) == 0
+    assert depth_lookup_grow_px(plan_segment(jittered, replace(config, depth_lookup_px=0))) == 0
+    assert depth_lookup_grow_px(plan_segment(exact, replace(config, depth_lookup_min_jitter_m=None, depth_lookup_px=2))) == 2
+    with pytest.raises(ValueError, match="depth_lookup_px must be an integer number of pixels in \\[0, 8\\], got -1"):
+        TrackConfig(depth_lookup_px=-1)
+    with pytest.raises(ValueError, match="depth_lookup_min_jitter_m must be >= 0 metres or None, got -0.1"):
+        TrackConfig(depth_lookup_min_jitter_m=-0.1)

@@ -6,7 +6,7 @@ import numpy as np
 __all__ = ["lookup_max4"]
 
 
-def lookup_max4(depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+def lookup_max4(depth: np.ndarray, pixels: np.ndarray, grow_px: int = 0) -> np.ndarray:
     """Depth at sub-pixel positions, the maximum over the pixels whose centres surround them.
 
     DriveTrack's choice (paper section 3.4): max pooling over the four corner pixels of the
@@ -21,6 +21,10 @@ def lookup_max4(depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         depth: float32 [H, W] (one map) or [B, H, W] (a batch), metres, ``0`` = unknown.
         pixels: float [..., 2] pixel (x, y). For a batch of maps, the leading dimension of
             ``pixels`` is the batch: [B, ..., 2] (position ``pixels[b]`` reads ``depth[b]``).
+        grow_px: also every pixel within ``grow_px`` (rows and columns) of those (0: the four
+            alone). The track stage's surface test grows it where the labels jitter
+            (``TrackConfig.depth_lookup_px``): an outline the completion spread past by a pixel
+            or two no longer hides what lies beside it.
     Returns:
         float32 [...] (``pixels.shape[:-1]``), metres. ``0`` (unknown) for positions outside
         ``[0, W) x [0, H)``, NaN positions, or where every surrounding pixel is unknown.
@@ -52,10 +56,15 @@ def lookup_max4(depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         flat = flat.reshape(-1)
     else:
         batch_offset = 0
+    if grow_px < 0:
+        raise ValueError(f"grow_px: expected an integer >= 0, found {grow_px}")
     best = np.zeros(x.shape, dtype=np.float32)
-    for col in (np.floor(x), np.ceil(x)):
+    low_x, low_y = np.floor(x), np.floor(y)
+    cols = [low_x + d for d in range(-grow_px, 0)] + [low_x, np.ceil(x)] + [np.ceil(x) + d for d in range(1, grow_px + 1)]
+    rows = [low_y + d for d in range(-grow_px, 0)] + [low_y, np.ceil(y)] + [np.ceil(y) + d for d in range(1, grow_px + 1)]
+    for col in cols:
         col_ok = (col >= 0) & (col < width)
-        for row in (np.floor(y), np.ceil(y)):
+        for row in rows:
             ok = col_ok & (row >= 0) & (row < height) & inside
             index = (np.where(ok, row, 0) * width + np.where(ok, col, 0)).astype(np.int64)
             values = flat[index + batch_offset]

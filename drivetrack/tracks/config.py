@@ -60,6 +60,17 @@ class TrackConfig:
         occlusion_ratio: a point is occluded at a frame when the depth map there is known and
             ``depth < occlusion_ratio * z`` (z = the point's z-depth from the camera). 0.95 is the
             released code's factor; 1.0 is a strict test.
+        depth_lookup_px, depth_lookup_min_jitter_m: with ``occlusion: surface``, where the labels
+            of the segment jitter by at least ``depth_lookup_min_jitter_m`` (metres, per axis:
+            the still objects' label centres frame to frame, as delivered,
+            :func:`drivetrack.tracks.plan.label_jitter_m`;
+            None: always), the depth map's surface at a point is the farthest over its max-of-4
+            pixels and every pixel within ``depth_lookup_px`` of them (0: the max-of-4 alone,
+            the paper's). The completed map spreads each outline a pixel or two past it, which
+            the other-object and own-box rules take back from the labels' boxes: with jittering
+            labels those boxes miss by centimetres, and what lies beside an outline was called
+            hidden. Default 1 px from 1 cm (2026-12-03, forty-first session; docs/visibility.md
+            "The depth map's outlines under label noise"); with exact labels the max-of-4 stays.
         back_face_max_deg: a point is also occluded at a frame when its surface normal (from the
             object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
             with the direction to the camera: its face turns away and its own object hides it.
@@ -328,6 +339,8 @@ class TrackConfig:
     box_margin_m: float = 0.0
     ground_clearance_m: float = 0.2
     occlusion_ratio: float = 0.95
+    depth_lookup_px: int = 1
+    depth_lookup_min_jitter_m: float | None = 0.01
     back_face_max_deg: float | None = 90.0
     own_surface_margin_m: float | None = 0.2
     own_surface_max_gap_m: float | None = 1.0
@@ -412,6 +425,12 @@ class TrackConfig:
             raise ValueError(f"TrackConfig.fov_samples_per_axis must be >= 2, got {self.fov_samples_per_axis}")
         if not self.occlusion_ratio > 0:
             raise ValueError(f"TrackConfig.occlusion_ratio must be > 0, got {self.occlusion_ratio}")
+        if not (isinstance(self.depth_lookup_px, int) and 0 <= self.depth_lookup_px <= 8):
+            raise ValueError(f"TrackConfig.depth_lookup_px must be an integer number of pixels in [0, 8], got "
+                             f"{self.depth_lookup_px!r}")
+        if self.depth_lookup_min_jitter_m is not None and not self.depth_lookup_min_jitter_m >= 0:
+            raise ValueError(f"TrackConfig.depth_lookup_min_jitter_m must be >= 0 metres or None, got "
+                             f"{self.depth_lookup_min_jitter_m!r}")
         if self.back_face_max_deg is not None and not 0 < self.back_face_max_deg <= 180:
             raise ValueError(f"TrackConfig.back_face_max_deg must be None or in (0, 180], got "
                              f"{self.back_face_max_deg!r}")

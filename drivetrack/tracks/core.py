@@ -598,6 +598,24 @@ def _surfel_cube_m(config) -> float:
     return float(config.surfel_cube_m)
 
 
+def depth_lookup_grow_px(plan) -> int:
+    """The depth map look-up's growth in pixels for every clip of the segment (``lookup_max4``'s
+    ``grow_px``): ``TrackConfig.depth_lookup_px`` under ``occlusion: surface`` where the labels
+    jitter by ``depth_lookup_min_jitter_m`` or more (:func:`drivetrack.tracks.plan.label_jitter_m`
+    of the boxes the tracks use, measured once per segment), else 0 (the max-of-4)."""
+    config = plan.config
+    if config.occlusion != "surface" or config.depth_lookup_px == 0:
+        return 0
+    if config.depth_lookup_min_jitter_m is None:
+        return int(config.depth_lookup_px)
+    jitter = plan.occluder_cache.get("label_jitter_m")
+    if jitter is None:
+        from drivetrack.tracks.plan import label_jitter_m
+
+        jitter = plan.occluder_cache.setdefault("label_jitter_m", label_jitter_m(plan.scene))
+    return int(config.depth_lookup_px) if jitter >= float(config.depth_lookup_min_jitter_m) else 0
+
+
 def _object_rows(boxes, object_id: str) -> np.ndarray:
     """int64 [R]: the box rows of ``object_id``, in frame order."""
     rows = np.flatnonzero(boxes.object_id == object_id)
@@ -1558,6 +1576,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                          f"the segment context has no depth map for some clip frames")
 
     slots = depth.slot[frames]
+    grow_px = depth_lookup_grow_px(plan)
     # A clip's frames are consecutive and all needed, so their maps are adjacent: a view, no copy.
     clip_maps = (depth.maps[slots[0]:slots[-1] + 1] if np.all(np.diff(slots) == 1) else depth.maps[slots])
 
@@ -1590,7 +1609,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
         """The kernel's screen of every candidate (fills ``status`` and ``speeds``): the rows it keeps."""
         kernel.screen_points(p_box, camera_from_box, shift_camera, np.ascontiguousarray(world_step),
                              params, clip_maps, float(config.occlusion_ratio), own_box, own_points, others,
-                             float(duration_s), box_speed_mean, max_deviation, status, speeds)
+                             float(duration_s), box_speed_mean, max_deviation, status, speeds, grow_px)
         return np.flatnonzero(status == kernel.KEPT)
 
     # the candidates the surface tests look at: their box points, normals and pocket flags
@@ -1768,7 +1787,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
                            out=frame_margin[:, 0])
             kernel.depth_margins(kept_box, camera_from_box[tau:tau + 1], shift_camera[tau:tau + 1], params,
                                  clip_maps[tau:tau + 1], float(config.occlusion_ratio), own_box[tau:tau + 1],
-                                 kept_own, others[tau:tau + 1], float(config.ambiguity_m), frame_margin)
+                                 kept_own, others[tau:tau + 1], float(config.ambiguity_m), frame_margin, grow_px)
             ambiguous[tau] = np.packbits(np.abs(frame_margin[:, 0]) < 1.0)     # NaN (outside the image) compares False
             if surface_hidden is not None:
                 surface_hidden[tau] = np.packbits(frame_hidden)
@@ -1791,7 +1810,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             kernel.fill_tracks(kept_box[start:stop], np.arange(stop - start, dtype=np.int64),
                                camera_from_box, shift_camera, vehicle_from_box, params, clip_maps,
                                float(config.occlusion_ratio), own_box, kept_own[start:stop],
-                               others, tracks, visibles[start:stop], no_points3d, False)
+                               others, tracks, visibles[start:stop], no_points3d, False, grow_px)
             if surface_hidden is not None:
                 visibles[start:stop] &= ~_unpacked(surface_hidden, start, stop).T
             checks += kernel.summarise_tracks(tracks, visibles[start:stop], query_source[start:stop],
@@ -1847,7 +1866,7 @@ def run_object_job(ctx: SegmentContext, job: ObjectJob) -> ObjectTracks:
             if rolling and hidden_other is not None:
                 zbuffer_test(start, points_camera, pixels, valid)
             ok = valid & model.inside_image(pixels) & np.isfinite(pixels).all(axis=-1)
-            surface = lookup_max4(clip_maps, pixels)                                  # [T, n] float32
+            surface = lookup_max4(clip_maps, pixels, grow_px)                         # [T, n] float32
             occluded = (surface > 0) & (surface < config.occlusion_ratio * points_camera[..., 0])
             if own_box.shape[0]:
                 occluded &= ~own_surface(chunk, surface / points_camera[..., 0], own_box, where=occluded,

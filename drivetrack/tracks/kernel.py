@@ -43,7 +43,7 @@ KEPT, DROPPED_INVISIBLE, DROPPED_SPEED = 0, 1, 2
 
 @njit(cache=True, nogil=True, inline="always")
 def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own, own_point, others,
-             px, py, pz):
+             px, py, pz, grow_px):
     """Inside the image and not behind the max-of-4 surface of ``depth_maps[tau]`` (float32 [T, H, W]).
 
     ``own`` float64 [T, 13] (or [0, 13]: off): per frame the camera centre in the box frame, the
@@ -63,7 +63,7 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
     the map, and the z-buffer decides instead (:func:`drivetrack.visibility.other_surface`)."""
     if not valid:
         return False
-    best = _max4(depth_maps, tau, height, width, pix_x, pix_y)
+    best = _max4(depth_maps, tau, height, width, pix_x, pix_y, grow_px)
     if best < 0:
         return False
     if not (best > 0 and best < occlusion_ratio * x):
@@ -72,9 +72,10 @@ def _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_r
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _max4(depth_maps, tau, height, width, pix_x, pix_y):
+def _max4(depth_maps, tau, height, width, pix_x, pix_y, grow_px=0):
     """The max-of-4 surface (float32, metres; 0: unknown) of ``depth_maps[tau]`` at pixel (pix_x,
-    pix_y), ``drivetrack.depth.lookup_max4``; -1 outside the image."""
+    pix_y), ``drivetrack.depth.lookup_max4``; -1 outside the image. ``grow_px`` > 0: the maximum
+    over those pixels and every pixel within ``grow_px`` of them (``lookup_max4(grow_px=...)``)."""
     if not (pix_x >= 0.0 and pix_x < width and pix_y >= 0.0 and pix_y < height):
         return np.float32(-1.0)
     # columns floor(x - 0.5) and ceil(x - 0.5), rows likewise; neighbours outside count as unknown
@@ -84,9 +85,14 @@ def _max4(depth_maps, tau, height, width, pix_x, pix_y):
     r0 = int(np.floor(cy))
     c1 = c0 + 1 if cx > c0 else c0
     r1 = r0 + 1 if cy > r0 else r0
+    best = np.float32(0.0)
+    if grow_px > 0:
+        for r in range(max(r0 - grow_px, 0), min(r1 + grow_px, height - 1) + 1):
+            for c in range(max(c0 - grow_px, 0), min(c1 + grow_px, width - 1) + 1):
+                best = max(best, depth_maps[tau, r, c])
+        return best
     c0_ok = c0 >= 0
     c1_ok = c1 < width
-    best = np.float32(0.0)
     if r0 >= 0:
         if c0_ok:
             best = max(best, depth_maps[tau, r0, c0])
@@ -194,7 +200,7 @@ def path_speeds(points_box, world_step, duration_s, speeds):
 @njit(cache=True, nogil=True)
 def screen_points(points_box, camera_from_box, shift_camera, world_step, camera, depth_maps,
                   occlusion_ratio, own, own_points, others, duration_s, box_speed_mps, max_speed_deviation_mps,
-                  status, speeds):
+                  status, speeds, grow_px=0):
     """Which candidates survive, and their speeds; returns the number kept.
 
     Args:
@@ -214,6 +220,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
             ``|speed - box_speed_mps|`` is not <= the deviation; a NaN of either disables it.
         status: int8 [N] output, ``KEPT``, ``DROPPED_INVISIBLE`` or ``DROPPED_SPEED``.
         speeds: float64 [N] output, m/s, mean world-frame speed over the clip.
+        grow_px: the depth look-up's growth (pixels; 0: the max-of-4, :func:`_max4`).
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
@@ -236,7 +243,7 @@ def screen_points(points_box, camera_from_box, shift_camera, world_step, camera,
             z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
             pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
             if _visible(depth_maps, tau, height, width, pix_x, pix_y, x, valid, occlusion_ratio, own,
-                        own.shape[0] > 0 and own_points[i], others, px, py, pz):
+                        own.shape[0] > 0 and own_points[i], others, px, py, pz, grow_px):
                 seen = True
                 break
         if not seen:
@@ -256,7 +263,7 @@ _BLOCK = 256
 
 @njit(cache=True, nogil=True)
 def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_box, camera, depth_maps,
-                occlusion_ratio, own, own_points, others, tracks, visibles, points3d, with_points3d=True):
+                occlusion_ratio, own, own_points, others, tracks, visibles, points3d, with_points3d=True, grow_px=0):
     """Tracks of the points ``points_box`` float64 [K, 3] (box frame), written in [K, T] order.
 
     Outputs (filled in place): ``tracks`` float32 [K, T, 2] pixels (invalid projections hold the
@@ -266,8 +273,8 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
     ``range(K)``; output rows stay those of ``points_box``): points close in the image in turn
     read the depth maps' memory in turn. LiDAR order is already coherent (measured: sorting by
     image strips gained ~2% and cost more than that), so the track stage passes ``arange(K)``.
-    Other arguments as :func:`screen_points`. ``with_points3d=False`` leaves ``points3d`` untouched
-    (the job needs only ``visibles``; the writers recompute ``points3d``).
+    Other arguments as :func:`screen_points` (``grow_px`` too). ``with_points3d=False`` leaves
+    ``points3d`` untouched (the job needs only ``visibles``; the writers recompute ``points3d``).
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
@@ -307,7 +314,7 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
                 visibles[i, tau] = _visible(depth_maps, tau, height, width, scratch[j - block, 0],
                                             scratch[j - block, 1], x, not np.isnan(x), occlusion_ratio, own,
                                             own.shape[0] > 0 and own_points[i], others,
-                                            points_box[i, 0], points_box[i, 1], points_box[i, 2])
+                                            points_box[i, 0], points_box[i, 1], points_box[i, 2], grow_px)
         for j in range(block, stop):
             _hold_nearest_valid(tracks[order[j]], valid_at[j - block], before)
     # points3d in point order: streaming writes (scattered ones cost more than the arithmetic)
@@ -322,7 +329,7 @@ def fill_tracks(points_box, order, camera_from_box, shift_camera, vehicle_from_b
 
 @njit(cache=True, nogil=True)
 def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps, occlusion_ratio, own, own_points,
-                  others, unit_m, margins):
+                  others, unit_m, margins, grow_px=0):
     """The occlusion margin of each point-frame: the depth-map test's, unless ``margins`` holds a
     smaller one.
 
@@ -334,7 +341,7 @@ def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps,
     margin is the smaller: it cannot hide the point); NaN where the projection is invalid or
     outside the image. With ``unit_m`` 0 only the sign is left (+-inf, 0 stays 0). Other arguments
     as :func:`screen_points` (``points_box`` float64 [K, 3] and ``own_points`` bool [K] of these
-    points). ``core._occlusion_margins`` computes the same in numpy.
+    points; ``grow_px`` too). ``core._occlusion_margins`` computes the same in numpy.
     """
     n = points_box.shape[0]
     t_count = camera_from_box.shape[0]
@@ -351,7 +358,7 @@ def depth_margins(points_box, camera_from_box, shift_camera, camera, depth_maps,
             y = m[1, 0] * px + m[1, 1] * py + m[1, 2] * pz + m[1, 3] + shift_camera[tau, 1]
             z = m[2, 0] * px + m[2, 1] * py + m[2, 2] * pz + m[2, 3] + shift_camera[tau, 2]
             pix_x, pix_y, valid = _pixel(x, y, z, f_u, f_v, c_u, c_v, k1, k2, k3, p1, p2)
-            best = _max4(depth_maps, tau, height, width, pix_x, pix_y) if valid else np.float32(-1.0)
+            best = _max4(depth_maps, tau, height, width, pix_x, pix_y, grow_px) if valid else np.float32(-1.0)
             if best < 0:
                 margins[i, tau] = np.nan
                 continue

@@ -86,7 +86,22 @@ def segment_stats(split: str, segment: str, plan: SegmentPlan | None = None,
             counts[table_row.reason] += 1
     row.update({f"rejected_{r}": int(c) for r, c in counts.items()})
     row.update(_label_time_row(plan))
+    row.update(_depth_lookup_row(plan))
     return pd.DataFrame([row], columns=list(SEGMENT_COLUMNS))
+
+
+def _depth_lookup_row(plan: SegmentPlan | None) -> dict:
+    """The labels' jitter the segment measured (``label_jitter_m``, metres; NaN without a plan or
+    a still object) and the depth map look-up's growth its clips used (``depth_lookup_px``;
+    :func:`drivetrack.tracks.core.depth_lookup_grow_px`)."""
+    if plan is None:
+        return {"label_jitter_m": float("nan"), "depth_lookup_px": 0}
+    from drivetrack.tracks.core import depth_lookup_grow_px
+    from drivetrack.tracks.plan import label_jitter_m
+
+    grow = depth_lookup_grow_px(plan)
+    jitter = plan.occluder_cache.get("label_jitter_m")
+    return {"label_jitter_m": float(label_jitter_m(plan.scene) if jitter is None else jitter), "depth_lookup_px": grow}
 
 
 def _label_time_row(plan: SegmentPlan | None) -> dict:
