@@ -330,7 +330,7 @@ VARIANTS["+ pedestrians hide with their recent returns"] = {}
 # the variants above look the depth map up at the max-of-4 pixels alone
 _BEFORE_LOOKUP = {"depth_lookup_px": 0}
 VARIANTS = {name: {**_BEFORE_LOOKUP, **overrides} for name, overrides in VARIANTS.items()}
-# where the labels jitter (1 cm or more, still objects frame to frame), a pixel round them too:
+# where the labels jitter (1 cm or more, their centres frame to frame), a pixel round them too:
 # exact labels keep the max-of-4 (every exact-label block's default column is unchanged)
 VARIANTS["+ depth look-up grown where the labels jitter (default)"] = {}
 #: ``--real-log``'s label noise (metres, sigma per axis; 1 deg of heading per 5 cm) and range

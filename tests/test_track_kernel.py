@@ -423,34 +423,39 @@ def test_recent_returns_options_are_checked_by_name():
     assert TrackConfig().occluder_recent_types == ("PEDESTRIAN",)
 
 
-def test_label_jitter_measured_on_still_objects_gates_the_grown_depth_lookup():
+def test_label_jitter_measured_on_the_labels_gates_the_grown_depth_lookup():
     # TrackConfig.depth_lookup_px grows the depth map's look-up only where the labels jitter
-    # (drivetrack.tracks.plan.label_jitter_m: still objects' label centres, frame to frame)
+    # (drivetrack.tracks.plan.label_jitter_m: second differences of the label centres)
     from drivetrack.tracks.core import depth_lookup_grow_px
     from drivetrack.tracks.plan import label_jitter_m, plan_segment
 
-    def built(sigma_m: float, moving: bool = False):
+    def built(sigma_m: float, moving: bool = False, frames=None):
         b = SceneBuilder(t=30, ego_speed=5.0)
         rng = np.random.default_rng(4)
         for k in range(4):
             centre = world_center(b, 10.0 + 4.0 * k, y=-3.0 + 2.0 * k)
-            path = centre[None] + (np.outer(3.0 * np.arange(b.t) * DT, [1, 0, 0]) if moving else 0.0)
+            # steady motion, or braking at 1 m/s^2 for the last car (a dt^2: 1 cm, no jitter)
+            speed = 3.0 * np.arange(b.t) * DT - (0.5 * (np.arange(b.t) * DT) ** 2 if k == 3 else 0.0)
+            path = centre[None] + (np.outer(speed, [1, 0, 0]) if moving else 0.0)
             noise = np.column_stack([rng.normal(0.0, sigma_m, (b.t, 2)), np.zeros(b.t)])
-            b.add_object(f"car{k}", path + noise, spacing=0.25)
+            b.add_object(f"car{k}", path + noise, spacing=0.25, frames=frames)
         return b.build()
 
-    exact, jittered, moving = built(0.0), built(0.03), built(0.03, moving=True)
-    assert label_jitter_m(exact) == 0.0
+    exact, jittered = built(0.0), built(0.03)
+    moving_exact, moving = built(0.0, moving=True), built(0.03, moving=True)
+    assert label_jitter_m(exact) == 0.0 and label_jitter_m(moving_exact) < 0.002
     assert 0.02 < label_jitter_m(jittered) < 0.045          # 3 cm per axis
-    assert np.isnan(label_jitter_m(moving))                  # nothing still to measure it on
-    # refined boxes (a still object held to one pose) keep the labels as delivered: those count
+    assert 0.02 < label_jitter_m(moving) < 0.045
+    assert np.isnan(label_jitter_m(built(0.03, frames=range(0, 30, 2))))   # no three frames in a row
+    # refined boxes (smoothed) keep the labels as delivered: those count
     refined = replace(exact, box_labels=jittered.boxes)
     assert label_jitter_m(refined) == label_jitter_m(jittered)
-    assert depth_lookup_grow_px(plan_segment(refined, TrackConfig())) == 1
     config = TrackConfig()
     assert depth_lookup_grow_px(plan_segment(exact, config)) == 0
+    assert depth_lookup_grow_px(plan_segment(moving_exact, config)) == 0
     assert depth_lookup_grow_px(plan_segment(jittered, config)) == 1
-    assert depth_lookup_grow_px(plan_segment(moving, config)) == 0
+    assert depth_lookup_grow_px(plan_segment(moving, config)) == 1
+    assert depth_lookup_grow_px(plan_segment(refined, config)) == 1
     assert depth_lookup_grow_px(plan_segment(jittered, replace(config, occlusion="depth-ratio"))) == 0
     assert depth_lookup_grow_px(plan_segment(jittered, replace(config, depth_lookup_px=0))) == 0
     assert depth_lookup_grow_px(plan_segment(exact, replace(config, depth_lookup_min_jitter_m=None, depth_lookup_px=2))) == 2

@@ -62,7 +62,7 @@ class TrackConfig:
             released code's factor; 1.0 is a strict test.
         depth_lookup_px, depth_lookup_min_jitter_m: with ``occlusion: surface``, where the labels
             of the segment jitter by at least ``depth_lookup_min_jitter_m`` (metres, per axis:
-            the still objects' label centres frame to frame, as delivered,
+            the label centres' second differences over three frames, as delivered,
             :func:`drivetrack.tracks.plan.label_jitter_m`;
             None: always), the depth map's surface at a point is the farthest over its max-of-4
             pixels and every pixel within ``depth_lookup_px`` of them (0: the max-of-4 alone,
