@@ -59,9 +59,9 @@ def lookup_max4(depth: np.ndarray, pixels: np.ndarray, grow_px: int = 0) -> np.n
     if grow_px < 0:
         raise ValueError(f"grow_px: expected an integer >= 0, found {grow_px}")
     best = np.zeros(x.shape, dtype=np.float32)
-    low_x, low_y = np.floor(x), np.floor(y)
-    cols = [low_x + d for d in range(-grow_px, 0)] + [low_x, np.ceil(x)] + [np.ceil(x) + d for d in range(1, grow_px + 1)]
-    rows = [low_y + d for d in range(-grow_px, 0)] + [low_y, np.ceil(y)] + [np.ceil(y) + d for d in range(1, grow_px + 1)]
+    # floor - grow .. floor and ceil .. ceil + grow (a pixel twice on a centre: the same maximum)
+    cols = [np.floor(x) - d for d in range(grow_px + 1)] + [np.ceil(x) + d for d in range(grow_px + 1)]
+    rows = [np.floor(y) - d for d in range(grow_px + 1)] + [np.ceil(y) + d for d in range(grow_px + 1)]
     for col in cols:
         col_ok = (col >= 0) & (col < width)
         for row in rows:

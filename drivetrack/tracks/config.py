@@ -66,11 +66,12 @@ class TrackConfig:
             :func:`drivetrack.tracks.plan.label_jitter_m`;
             None: always), the depth map's surface at a point is the farthest over its max-of-4
             pixels and every pixel within ``depth_lookup_px`` of them (0: the max-of-4 alone,
-            the paper's). The completed map spreads each outline a pixel or two past it, which
-            the other-object and own-box rules take back from the labels' boxes: with jittering
-            labels those boxes miss by centimetres, and what lies beside an outline was called
-            hidden. Default 1 px from 1 cm (2026-12-03, forty-first session; docs/visibility.md
-            "The depth map's outlines under label noise"); with exact labels the max-of-4 stays.
+            the paper's). The completed map spreads each outline a pixel or two past it: with
+            exact labels the own-box and other-object rules take that back (a grown look-up only
+            loses true occlusions there), with jittering labels much of it hid what lies beside
+            the outline (measured; why is not settled). Default 1 px from 1 cm (2026-12-03,
+            forty-first session; docs/visibility.md "The depth map's outlines under label
+            noise"); with exact labels the max-of-4 stays.
         back_face_max_deg: a point is also occluded at a frame when its surface normal (from the
             object's own returns, :mod:`drivetrack.visibility.facing`) makes this angle or more
             with the direction to the camera: its face turns away and its own object hides it.
