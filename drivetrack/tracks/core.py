@@ -608,12 +608,17 @@ def depth_lookup_grow_px(plan) -> int:
         return 0
     if config.depth_lookup_min_jitter_m is None:
         return int(config.depth_lookup_px)
+    return int(config.depth_lookup_px) if segment_label_jitter_m(plan) >= float(config.depth_lookup_min_jitter_m) else 0
+
+
+def segment_label_jitter_m(plan) -> float:
+    """:func:`drivetrack.tracks.plan.label_jitter_m` of the plan's scene, measured once per segment."""
     jitter = plan.occluder_cache.get("label_jitter_m")
     if jitter is None:
         from drivetrack.tracks.plan import label_jitter_m
 
         jitter = plan.occluder_cache.setdefault("label_jitter_m", label_jitter_m(plan.scene))
-    return int(config.depth_lookup_px) if jitter >= float(config.depth_lookup_min_jitter_m) else 0
+    return jitter
 
 
 def _object_rows(boxes, object_id: str) -> np.ndarray:

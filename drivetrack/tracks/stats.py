@@ -96,12 +96,9 @@ def _depth_lookup_row(plan: SegmentPlan | None) -> dict:
     :func:`drivetrack.tracks.core.depth_lookup_grow_px`)."""
     if plan is None:
         return {"label_jitter_m": float("nan"), "depth_lookup_px": 0}
-    from drivetrack.tracks.core import depth_lookup_grow_px
-    from drivetrack.tracks.plan import label_jitter_m
+    from drivetrack.tracks.core import depth_lookup_grow_px, segment_label_jitter_m
 
-    grow = depth_lookup_grow_px(plan)
-    jitter = plan.occluder_cache.get("label_jitter_m")
-    return {"label_jitter_m": float(label_jitter_m(plan.scene) if jitter is None else jitter), "depth_lookup_px": grow}
+    return {"label_jitter_m": float(segment_label_jitter_m(plan)), "depth_lookup_px": depth_lookup_grow_px(plan)}
 
 
 def _label_time_row(plan: SegmentPlan | None) -> dict:
