@@ -51,20 +51,23 @@ METHODS = {"depth-ratio (paper)": {"occlusion": "depth-ratio", "depth_object_mot
            "surface (default)": {}}
 #: The issue's bound on surface / paper, depth + track stages.
 BOUND = 1.5
+#: The track options every method and the baseline annotate with (``bench_visibility``'s clips).
+TRACK_OPTIONS = {"cameras": tuple(CAMERAS), "object_types": ("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"),
+                 "min_frames": 8, "max_camera_distance_m": 75.0}
 #: The last commit before issue 15's work began (2026-11-23): its defaults were the paper's test.
 BASELINE_COMMIT = "7169900f02feffa14ec15ff16c7a2b8c7e2e4057"
 #: The baseline's column name.
 BASELINE = "paper's test, code of 2026-11-23"
-#: Run in the baseline's tree (argv: src, segment, out, repeats): one warm-up, then one JSON line
-#: of depth and track wall seconds per timed run. Only what that code has: ``annotate_segment``.
+#: Run in the baseline's tree (argv: src, segment, out, repeats, :data:`TRACK_OPTIONS` as JSON, its
+#: tuples as lists): one warm-up, then one JSON line of depth and track wall seconds per timed run.
+#: Only what that code has: ``annotate_segment``.
 _BASELINE_SCRIPT = """
 import json, sys
 from drivetrack.annotate import AnnotateConfig, annotate_segment
 from drivetrack.tracks import TrackConfig
 src, segment, out, repeats = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
-cameras = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
-config = AnnotateConfig(track=TrackConfig(cameras=cameras, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"),
-                                          min_frames=8, max_camera_distance_m=75.0))
+options = {key: tuple(v) if isinstance(v, list) else v for key, v in json.loads(sys.argv[5]).items()}
+config = AnnotateConfig(track=TrackConfig(**options))
 for k in range(repeats + 1):
     result = annotate_segment(src, "training", segment, f"{out}/run{k}", config)
     if result.status != "done":
@@ -80,8 +83,7 @@ def annotate_once(src: str, segment: str, out: str, overrides: dict) -> dict[str
     from drivetrack.annotate import AnnotateConfig, run_segment_stages
     from drivetrack.tracks import TrackConfig
 
-    config = AnnotateConfig(track=TrackConfig(cameras=CAMERAS, object_types=("VEHICLE", "PEDESTRIAN", "CYCLIST", "SIGN"),
-                                              min_frames=8, max_camera_distance_m=75.0, **overrides))
+    config = AnnotateConfig(track=TrackConfig(**TRACK_OPTIONS, **overrides))
     started, cpu = {}, {}
 
     def on_stage(stage, state, info):
@@ -109,7 +111,8 @@ def baseline_runs(commit: str, src: str, segment: str, out: str, repeats: int) -
     if add.returncode:
         raise RuntimeError(f"baseline commit {commit}: git worktree add failed: {add.stderr.strip()}")
     try:
-        run = subprocess.run([sys.executable, "-c", _BASELINE_SCRIPT, src, segment, f"{out}/baseline-out", str(repeats)],
+        run = subprocess.run([sys.executable, "-c", _BASELINE_SCRIPT, src, segment, f"{out}/baseline-out", str(repeats),
+                              json.dumps(TRACK_OPTIONS)],
                              cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)},
                              capture_output=True, text=True)
         if run.returncode:
