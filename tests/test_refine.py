@@ -310,6 +310,9 @@ def test_bad_config_raises():
         RefineConfig(sample_normals="yes")
     with pytest.raises(ValueError, match="sweep_surface_max_m"):
         RefineConfig(sweep_surface_max_m=0.0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="sample_normals_screen"):
+            RefineConfig(sample_normals_screen=bad)
     with pytest.raises(ValueError, match="unknown keys"):
         RefineConfig.from_dict({"nope": 1})
     assert RefineConfig.from_dict(RefineConfig().to_dict()) == RefineConfig()
@@ -848,6 +851,42 @@ def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
         np.testing.assert_array_equal(normal_priority(points[order], frame[order], uniform[order], heading, 3 * cap,
                                                       use_kernel=True), normals[order])
 
+
+def test_normal_space_screen_is_the_configured_multiple_of_the_cap(monkeypatch):
+    """``RefineConfig.sample_normals_screen``: the normal-space sampling looks at that many times
+    ``max_points_per_frame`` returns of each frame (3 by default). A screen that holds a frame's
+    every return gives a grazing end face (100 returns beside a side face's 2,000, the test above's
+    car) its key's share of a cap of 120 (60 here: two keys hold returns), where the default
+    screen (360) holds only a sixth of them (13 in the cap)."""
+    import drivetrack.refine.poses as poses
+    from drivetrack.refine.select import normal_priority, point_priority
+
+    seen = []
+
+    def spy(points, frame, priority, heading, screen, **kwargs):
+        seen.append(screen)
+        return normal_priority(points, frame, priority, heading, screen, **kwargs)
+
+    monkeypatch.setattr(poses, "normal_priority", spy)
+    exact, labels, wfv, pts, frame, ts = make_object(t_count=4, noise_m=0.02, seed=3)
+    for screen in (None, 12):
+        options = {} if screen is None else {"sample_normals_screen": screen}
+        refine_object_poses(labels, SIZE, wfv, pts, frame, ts,
+                            RefineConfig(max_points_per_frame=50, **options))
+    assert seen == [150, 600]
+
+    rng = np.random.default_rng(5)
+    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 0.9), rng.uniform(0.2, 1.4, 2000)], -1)
+    end = np.stack([np.full(100, 2.2), rng.uniform(-0.8, 0.8, 100), rng.uniform(0.2, 1.4, 100)], -1)
+    points = np.concatenate([side, end]) + rng.normal(0.0, 0.005, (2100, 3))
+    is_end = np.arange(2100) >= 2000
+    frame0 = np.zeros(2100, np.int64)
+    uniform = point_priority(points)
+    cap = 120
+    first = {screen: np.argsort(normal_priority(points, frame0, uniform, np.zeros(1), screen))[:cap]
+             for screen in (3 * cap, 2100)}
+    assert is_end[first[3 * cap]].sum() <= 25
+    assert is_end[first[2100]].sum() >= cap / 2 - 5
 
 def test_points_measured_decide_whether_the_labels_are_kept():
     """``points_measured``: the poses are solved on moved copies of the returns, but whether they

@@ -63,6 +63,11 @@ class RefineConfig:
             them. True (default): a car seen side-on keeps the returns of its front or rear face,
             seen at a grazing angle, which alone fix it along the road and which a uniform subset
             mostly leaves out (docs/refinement.md, "Normal-space sampling"). False: uniform.
+        sample_normals_screen: how many of each frame's returns the normal-space sampling
+            looks at, in multiples of ``max_points_per_frame`` (the first by the fixed hash); each
+            gets its normal from its neighbours among them. 3 (default); 12 (every candidate of a
+            near car) was measured better on cabin-shaped cars and worse on box-shaped ones
+            (docs/refinement.md, "Normal-space sampling").
         sample_voxel_m: instead, that subset spread evenly over the object's surface: one return
             per cube of this side (metres) before a second from any
             (``drivetrack.refine.select.spread_priority``); takes precedence over
@@ -178,6 +183,7 @@ class RefineConfig:
     association_neighbours: int = 12
     max_points_per_frame: int = 400
     sample_normals: bool = True
+    sample_normals_screen: int = 3
     sample_voxel_m: float | None = None
     label_sigma_m: float = 0.05
     label_sigma_deg: float = 1.0
@@ -221,7 +227,7 @@ class RefineConfig:
                     "max_residual_m", "max_correction_m",
                     "max_correction_deg", "max_points_per_frame", "tolerance_m", "tolerance_deg", "static_speed_mps",
                     "static_fit_speed_mps", "static_max_drift_m")
-        for name in ("motion_passes", "motion_window"):
+        for name in ("motion_passes", "motion_window", "sample_normals_screen"):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
                 raise ValueError(f"RefineConfig.{name} must be an integer >= 1, got {value!r}")

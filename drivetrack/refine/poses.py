@@ -246,9 +246,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         # the cap spread evenly over the surface, not in proportion to the returns (select.spread_priority)
         priority = spread_priority(points, frame, priority, float(config.sample_voxel_m))
     elif config.sample_normals:
-        # the cap shared among the directions the surfaces face (select.normal_priority): screened
-        # as the selection screens, the first 3 x cap of each frame by hash
-        priority = normal_priority(points, frame, priority, label_heading, 3 * config.max_points_per_frame,
+        # the cap shared among the directions the surfaces face (select.normal_priority): the first
+        # sample_normals_screen x cap of each frame by hash
+        priority = normal_priority(points, frame, priority, label_heading,
+                                   config.sample_normals_screen * config.max_points_per_frame,
                                    use_kernel=use_kernel)
 
     # Selection at the labels decides whether there is enough to register at all.
