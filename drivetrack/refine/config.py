@@ -66,8 +66,8 @@ class RefineConfig:
         sample_normals_screen: how many of each frame's returns the normal-space sampling
             looks at, in multiples of ``max_points_per_frame`` (the first by the fixed hash); each
             gets its normal from its neighbours among them. 3 (default); 12 (every candidate of a
-            near car) was measured better on cabin-shaped cars and worse on box-shaped ones
-            (docs/refinement.md, "Normal-space sampling").
+            near car) measured better on one real-log world and on the small worlds' mean, worse
+            on the medium box-car worlds (docs/refinement.md, "Normal-space sampling").
         sample_voxel_m: instead, that subset spread evenly over the object's surface: one return
             per cube of this side (metres) before a second from any
             (``drivetrack.refine.select.spread_priority``); takes precedence over
