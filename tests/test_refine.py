@@ -807,6 +807,15 @@ def test_first_per_frame_takes_the_lowest_priorities_of_each_frame_ties_to_the_e
     assert first_per_frame(np.zeros(0, np.int64), np.zeros(0), 5).size == 0
 
 
+def _side_and_end_face(rng: np.random.Generator, end_returns: int) -> np.ndarray:
+    """float64 [2000 + end_returns, 3]: a car's returns in its body frame (metres), 2,000 on its
+    side face (y = 0.9) then ``end_returns`` on its end face (x = 2.2), 5 mm of noise."""
+    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 0.9), rng.uniform(0.2, 1.4, 2000)], -1)
+    end = np.stack([np.full(end_returns, 2.2), rng.uniform(-0.8, 0.8, end_returns),
+                    rng.uniform(0.2, 1.4, end_returns)], -1)
+    return np.concatenate([side, end]) + rng.normal(0.0, 0.005, (2000 + end_returns, 3))
+
+
 def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
     """``sample_normals`` (select.normal_priority, the default): a car's frame with 2,000 returns
     on its side face seen square-on and 200 on its end face seen at a grazing angle, in the
@@ -818,9 +827,7 @@ def test_normal_space_sampling_gives_a_grazing_end_face_its_share():
     from drivetrack.refine.select import normal_priority, point_priority
 
     rng = np.random.default_rng(5)
-    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 0.9), rng.uniform(0.2, 1.4, 2000)], -1)
-    end = np.stack([np.full(200, 2.2), rng.uniform(-0.8, 0.8, 200), rng.uniform(0.2, 1.4, 200)], -1)
-    body = np.concatenate([side, end]) + rng.normal(0.0, 0.005, (2200, 3))
+    body = _side_and_end_face(rng, 200)
     heading = np.array([0.6, 0.6])
     c, s = np.cos(0.6), np.sin(0.6)
     rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -875,10 +882,7 @@ def test_normal_space_screen_is_the_configured_multiple_of_the_cap(monkeypatch):
                             RefineConfig(max_points_per_frame=50, **options))
     assert seen == [150, 600]
 
-    rng = np.random.default_rng(5)
-    side = np.stack([rng.uniform(-2.0, 2.0, 2000), np.full(2000, 0.9), rng.uniform(0.2, 1.4, 2000)], -1)
-    end = np.stack([np.full(100, 2.2), rng.uniform(-0.8, 0.8, 100), rng.uniform(0.2, 1.4, 100)], -1)
-    points = np.concatenate([side, end]) + rng.normal(0.0, 0.005, (2100, 3))
+    points = _side_and_end_face(np.random.default_rng(5), 100)
     is_end = np.arange(2100) >= 2000
     frame0 = np.zeros(2100, np.int64)
     uniform = point_priority(points)
@@ -887,6 +891,7 @@ def test_normal_space_screen_is_the_configured_multiple_of_the_cap(monkeypatch):
              for screen in (3 * cap, 2100)}
     assert is_end[first[3 * cap]].sum() <= 25
     assert is_end[first[2100]].sum() >= cap / 2 - 5
+
 
 def test_points_measured_decide_whether_the_labels_are_kept():
     """``points_measured``: the poses are solved on moved copies of the returns, but whether they
