@@ -86,7 +86,8 @@ class RefineConfig:
             body and a cabin, on 4 s ones; on 1 s box-car segments it lost on one world and
             gained on another (docs/refinement.md, "Jerk"). None: off. Exact labels are kept
             either way. With ``jerk_sigma_choices_mps3`` this is the loosest choice.
-        jerk_sigma_choices_mps3, jerk_evidence_nats: stiffer jerk terms (m/s^3) an object gets
+        jerk_sigma_choices_mps3, jerk_evidence_nats: stiffer jerk terms (m/s^3) a wheeled object
+            (a vehicle or a cyclist; a pedestrian's centre sways with its steps) gets
             when its labels do not speak against them: the stiffest of these and
             ``jerk_sigma_mps3`` whose evidence (the marginal likelihood of the labels' horizontal
             world centres under the motion model) is within ``jerk_evidence_nats`` of the best

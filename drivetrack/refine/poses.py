@@ -199,7 +199,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             would be replaced).
         wheeled: the object drives on wheels (a vehicle or a cyclist): with
             ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
-            a pedestrian steps sideways, so not to it); with ``config.extent_sigma_m`` the
+            a pedestrian steps sideways, so not to it); with ``config.jerk_sigma_choices_mps3``
+            its jerk term's stiffness is chosen from its labels (``jerk_sigma_mps3`` otherwise); with ``config.extent_sigma_m`` the
             extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
             given (returns with range noise).
     Returns:
@@ -276,8 +277,10 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{config.min_points_per_frame} (need {config.min_frames_with_points})",
                       num_points=per_frame)
 
-    if config.jerk_sigma_mps3 is not None and config.jerk_sigma_choices_mps3:
-        # the jerk term as stiff as the labels' own course allows (motion.jerk_sigma_from_labels)
+    if wheeled and config.jerk_sigma_mps3 is not None and config.jerk_sigma_choices_mps3:
+        # the jerk term as stiff as the labels' own course allows (motion.jerk_sigma_from_labels);
+        # not a pedestrian's: its centre sways with each step (centimetres at 1-2 Hz: jerks of
+        # several m/s^3) where a wheeled body runs smooth
         jerk, _ = jerk_sigma_from_labels((world_from_vehicle @ vehicle_from_box)[:, :2, 3], timestamps_s,
                                          (config.jerk_sigma_mps3,) + config.jerk_sigma_choices_mps3,
                                          config.jerk_evidence_nats)
