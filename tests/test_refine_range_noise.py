@@ -77,9 +77,13 @@ def test_registration_of_noisy_ranges_from_each_sweeps_surface(tmp_path):
     (range noise found) but would to the ``off`` run: without the moves it
     took four movers' jitter up (0.84 -> 1.35, 0.83 -> 1.38, 1.46 -> 2.66, 1.47 -> 2.98 cm) and
     two down (4.60 -> 3.07, 1.76 -> 1.12), range noise scattering a side's first and last returns
-    along it: why it is off under range noise (docs/refinement.md, "Extent")."""
+    along it: why it is off under range noise (docs/refinement.md, "Extent"). All at the fixed
+    jerk stiffness of before (``jerk_sigma_choices_mps3`` off): with the stiffness chosen from the
+    labels (the default since 2026-12-03) the moves help two movers (1.64 -> 0.69, 2.67 -> 0.49 cm)
+    and hurt one (1.96 -> 2.48 cm) on these six frames."""
     world = _world(tmp_path, "medium", 6, 0.02)
-    fixed = {"max_points_per_frame": 120, "slip_sigma_mps": None, "sample_normals": False, "extent_sigma_m": None}
+    fixed = {"max_points_per_frame": 120, "slip_sigma_mps": None, "sample_normals": False, "extent_sigma_m": None,
+             "jerk_sigma_choices_mps3": ()}
     off = _refined(world, None, **fixed)
     on = _refined(world, 0.1, **fixed)
     truth = world[2]

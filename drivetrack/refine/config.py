@@ -85,7 +85,19 @@ class RefineConfig:
             that away); with 5 cm labels it gains on 2 s segments and, with cars shaped as a
             body and a cabin, on 4 s ones; on 1 s box-car segments it lost on one world and
             gained on another (docs/refinement.md, "Jerk"). None: off. Exact labels are kept
-            either way.
+            either way. With ``jerk_sigma_choices_mps3`` this is the loosest choice.
+        jerk_sigma_choices_mps3, jerk_evidence_nats: stiffer jerk terms (m/s^3) a wheeled object
+            (a vehicle or a cyclist; a pedestrian's centre sways with its steps) gets
+            when its labels do not speak against them: the stiffest of these and
+            ``jerk_sigma_mps3`` whose evidence (the marginal likelihood of the labels' horizontal
+            world centres under the motion model) is within ``jerk_evidence_nats`` of the best
+            (:func:`drivetrack.refine.motion.jerk_sigma_from_labels`; the choice is
+            ``refine_jerk_sigma_mps3`` in ``stats/objects.parquet``). A car that keeps its speed
+            or brakes steadily gets the stiff term, which steadies what its returns do not
+            observe (along a car seen side-on); one that starts or stops braking keeps
+            ``jerk_sigma_mps3``. Default (1, 2) and 3 nats (since 2026-12-03, forty-fourth
+            session; docs/refinement.md "The jerk term's stiffness from the labels"); ``()``:
+            ``jerk_sigma_mps3`` for every object (before).
         extent_sigma_m: the extent term of wheeled objects (:mod:`drivetrack.refine.extent`):
             in each frame that sees a side, the first and last returns along the body's x axis
             are the object's ends; each frame's ends against the median ends over the frames
@@ -191,6 +203,8 @@ class RefineConfig:
     vertical_accel_sigma_mps2: float = 0.3
     yaw_accel_sigma_radps2: float = 1.0
     jerk_sigma_mps3: float | None = 5.0
+    jerk_sigma_choices_mps3: tuple[float, ...] = (1.0, 2.0)
+    jerk_evidence_nats: float = 3.0
     slip_sigma_mps: float | None = 0.02
     extent_sigma_m: float | None = None
     pitch_roll_sigma_deg: float | None = 1.0
@@ -251,6 +265,15 @@ class RefineConfig:
         if self.jerk_sigma_mps3 is not None and not (isinstance(self.jerk_sigma_mps3, (int, float))
                                                      and np.isfinite(self.jerk_sigma_mps3) and self.jerk_sigma_mps3 > 0):
             raise ValueError(f"RefineConfig.jerk_sigma_mps3 must be None or a positive number, got {self.jerk_sigma_mps3!r}")
+        choices = self.jerk_sigma_choices_mps3
+        if not isinstance(choices, (tuple, list)) or not all(
+                isinstance(c, (int, float)) and not isinstance(c, bool) and np.isfinite(c) and c > 0 for c in choices):
+            raise ValueError(f"RefineConfig.jerk_sigma_choices_mps3 must be a list of positive numbers (m/s^3), got "
+                             f"{choices!r}")
+        object.__setattr__(self, "jerk_sigma_choices_mps3", tuple(float(c) for c in choices))
+        if not (isinstance(self.jerk_evidence_nats, (int, float)) and not isinstance(self.jerk_evidence_nats, bool)
+                and np.isfinite(self.jerk_evidence_nats) and self.jerk_evidence_nats >= 0):
+            raise ValueError(f"RefineConfig.jerk_evidence_nats must be a number >= 0, got {self.jerk_evidence_nats!r}")
         for name in ("extent_margin_m", "max_extent_growth_m", "candidate_margin_m", "inlier_margin_m", "min_points_total", "min_points_per_frame",
                      "min_improvement", "early_stop_iteration"):
             value = getattr(self, name)

@@ -109,6 +109,96 @@ def _jerk_operator(rotation: np.ndarray, offset: np.ndarray, timestamps_s: np.nd
     return S, e0
 
 
+#: :func:`jerk_sigma_from_labels`: the acceleration stiffnesses (m/s^2) and label noises (metres)
+#: each candidate jerk stiffness's evidence is maximised over (nuisance parameters: a car that
+#: brakes steadily needs a loose acceleration term, labels drawn to a centimetre a tight noise)
+EVIDENCE_ACCEL_SIGMAS_MPS2 = (0.5, 2.0, 8.0)
+EVIDENCE_LABEL_SIGMAS_M = (0.01, 0.02, 0.05, 0.1)
+
+
+def _difference_gram(timestamps_s: np.ndarray, order: int, bands: int) -> np.ndarray:
+    """float64 [bands + 1, T]: ``D' D`` in the upper banded form of ``scipy.linalg.cholesky_banded``
+    (``bands`` >= ``order``), D [T - order, T] the rows of ``order``! x the ``order``-th divided
+    difference over every ``order + 1`` consecutive samples at ``timestamps_s`` [T] (seconds,
+    increasing): exact for a polynomial of that degree at any spacing (2: the acceleration rows
+    of :func:`_motion_operator`, 3: the jerk rows of :func:`_jerk_operator`)."""
+    t_count = timestamps_s.shape[0]
+    first = np.arange(t_count - order)
+    frames = first[:, None] + np.arange(order + 1)[None, :]                            # [R, order + 1]
+    times = timestamps_s[frames]
+    diff = times[:, :, None] - times[:, None, :]
+    diff[:, np.arange(order + 1), np.arange(order + 1)] = 1.0
+    coef = float(np.prod(np.arange(1, order + 1))) / diff.prod(axis=2)                # [R, order + 1]
+    gram = np.zeros((bands + 1, t_count))
+    for a in range(order + 1):
+        for b in range(a, order + 1):
+            np.add.at(gram[bands - (b - a)], first + b, coef[:, a] * coef[:, b])
+    return gram
+
+
+def _log_evidence(values: np.ndarray, accel_gram: np.ndarray, jerk_gram: np.ndarray, accel_sigma: float,
+                  jerk_sigma: float, label_sigmas: tuple[float, ...]) -> float:
+    """The largest over ``label_sigmas`` of the log marginal likelihood of ``values`` float [T, D]
+    (D independent axes, metres) under the motion prior ``exp(-x' P x / 2)``, ``P = accel_gram /
+    accel_sigma^2 + jerk_gram / jerk_sigma^2`` (banded grams, :func:`_difference_gram`; improper
+    along the straight lines at constant speed, which it leaves free) and white label noise of
+    that sigma, up to a constant shared by every (accel_sigma, jerk_sigma, label sigma):
+    ``-1/2 (lam |y|^2 - lam^2 y' M^-1 y) - 1/2 log det M + T/2 log lam + 1/2 log pdet P`` per axis,
+    ``M = P + lam I``, ``lam = label_sigma^-2``. ``log pdet P`` is ``log det`` of P without its
+    first two rows and columns (the lines are fixed by two samples) plus a constant of the
+    timestamps alone. All factorisations banded: O(T)."""
+    import scipy.linalg
+
+    t_count, dims = values.shape
+    bands = accel_gram.shape[0] - 1
+    prior = accel_gram / accel_sigma ** 2 + jerk_gram / jerk_sigma ** 2                  # [bands + 1, T]
+    log_pdet = 2.0 * np.sum(np.log(scipy.linalg.cholesky_banded(prior[:, 2:], check_finite=False)[bands]))
+    best = -np.inf
+    for label_sigma in label_sigmas:
+        lam = 1.0 / label_sigma ** 2
+        banded = prior.copy()
+        banded[bands] += lam
+        factor = scipy.linalg.cholesky_banded(banded, check_finite=False)
+        log_det = 2.0 * np.sum(np.log(factor[bands]))
+        solved = scipy.linalg.cho_solve_banded((factor, False), values, check_finite=False)
+        quadratic = lam * np.sum(values * values) - lam ** 2 * np.sum(values * solved)
+        best = max(best, -0.5 * quadratic + dims * (-0.5 * log_det + 0.5 * t_count * np.log(lam) + 0.5 * log_pdet))
+    return float(best)
+
+
+def jerk_sigma_from_labels(world_xy: np.ndarray, timestamps_s: np.ndarray, candidates: tuple[float, ...],
+                           evidence_nats: float) -> tuple[float, dict[float, float]]:
+    """The jerk stiffness (m/s^3) an object's labels support: the stiffest of ``candidates`` whose
+    evidence is within ``evidence_nats`` of the best; and each candidate's log evidence.
+
+    ``world_xy`` float [T, 2]: the labels' horizontal centres in the world (metres) at
+    ``timestamps_s`` [T] (seconds, increasing). Each candidate's evidence is the marginal
+    likelihood of those centres under the motion model (acceleration rows over
+    :data:`EVIDENCE_ACCEL_SIGMAS_MPS2`, jerk rows over the candidate; the acceleration stiffness
+    and the label noise, :data:`EVIDENCE_LABEL_SIGMAS_M`, each at its best): empirical Bayes, with
+    a preference for the stiffer (simpler) model until the labels speak against it by
+    ``evidence_nats`` (3: "strong" on Kass and Raftery's scale). Labels of a car that keeps its
+    speed or brakes steadily cannot tell a stiff jerk term from a loose one (within a fraction of a
+    nat over 20 frames of 5 cm labels), and get the stiff one, which steadies the directions
+    their returns do not observe; a car that starts or stops braking (2 m/s^2 or more from one
+    frame to the next) shows in 2 s of its labels by 5-35 nats, and keeps a loose one, which does
+    not smooth the change away (docs/refinement.md, "The jerk term's stiffness from the labels").
+    Fewer than 4 frames: the softest candidate (no jerk rows)."""
+    candidates = tuple(sorted(float(c) for c in candidates))
+    t_count = timestamps_s.shape[0]
+    if t_count < 4 or len(candidates) == 1:
+        return candidates[-1], {}
+    values = np.asarray(world_xy, dtype=np.float64)
+    values = values - values.mean(axis=0)
+    ts = np.asarray(timestamps_s, dtype=np.float64)
+    ts = ts - ts.mean()
+    accel_gram, jerk_gram = _difference_gram(ts, 2, 3), _difference_gram(ts, 3, 3)
+    evidence = {c: max(_log_evidence(values, accel_gram, jerk_gram, a, c, EVIDENCE_LABEL_SIGMAS_M)
+                       for a in EVIDENCE_ACCEL_SIGMAS_MPS2) for c in candidates}
+    top = max(evidence.values())
+    return min(c for c in candidates if evidence[c] >= top - evidence_nats), evidence
+
+
 #: prior sigma (metres) of the no-slip point's offset from the box centre, towards 0 (a car's rear
 #: axle lies 1-1.5 m behind its centre; the prior only matters while the object drives straight,
 #: where the offset is not observed and changes nothing)

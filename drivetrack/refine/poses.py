@@ -1,6 +1,7 @@
 """One object's refinement: :func:`refine_object_poses` (the Gauss-Newton driver) and its result."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -10,7 +11,8 @@ from drivetrack.geometry import (box_from_center_heading, center_heading_from_po
                                  wrap_angle)
 from drivetrack.refine.config import RefineConfig, RefineReason, _use_kernel
 from drivetrack.refine.extent import EXTENT_MIN_FRAMES, end_candidates, extent_shifts
-from drivetrack.refine.motion import SLIP_OFFSET_SIGMA_M, _motion_operator, _slip_terms, slip_offset_guess
+from drivetrack.refine.motion import (SLIP_OFFSET_SIGMA_M, _motion_operator, _slip_terms, jerk_sigma_from_labels,
+                                      slip_offset_guess)
 from drivetrack.refine.select import _body_points, _inside, _Selection, normal_priority, point_priority, spread_priority
 from drivetrack.refine.solver import _solve_spd
 from drivetrack.refine.terms import _associate, _data_terms, _pair_terms
@@ -52,6 +54,9 @@ class RefinedPoses:
             objects), where the point without lateral slip lies along the box's x axis from its
             centre (metres, negative behind it: a car's rear axle) at the refined poses; NaN
             when the prior was not applied.
+        jerk_sigma_mps3: the jerk term's stiffness (m/s^3) the registration ran with
+            (``RefineConfig.jerk_sigma_choices_mps3``: chosen from the labels); NaN when it did
+            not run or had no jerk term.
     """
     vehicle_from_box: np.ndarray
     world_from_box: np.ndarray
@@ -73,6 +78,7 @@ class RefinedPoses:
     pitch: np.ndarray | None = None
     roll: np.ndarray | None = None
     slip_offset_m: float = float("nan")
+    jerk_sigma_mps3: float = float("nan")
 
     def summary(self) -> dict:
         """Flat dict for the statistics tables and the gates (one row per object)."""
@@ -95,6 +101,7 @@ class RefinedPoses:
             "refine_frames_without_points": int((self.num_points == 0).sum()),
             "refine_iterations": int(self.iterations),
             "refine_cpu_seconds": float(self.cpu_seconds),
+            "refine_jerk_sigma_mps3": float(self.jerk_sigma_mps3),
         }
 
 
@@ -192,7 +199,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
             would be replaced).
         wheeled: the object drives on wheels (a vehicle or a cyclist): with
             ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
-            a pedestrian steps sideways, so not to it); with ``config.extent_sigma_m`` the
+            a pedestrian steps sideways, so not to it); with ``config.jerk_sigma_choices_mps3``
+            its jerk term's stiffness is chosen from its labels (``jerk_sigma_mps3`` otherwise); with ``config.extent_sigma_m`` the
             extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
             given (returns with range noise).
     Returns:
@@ -269,6 +277,14 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                       f"{config.min_points_per_frame} (need {config.min_frames_with_points})",
                       num_points=per_frame)
 
+    if wheeled and config.jerk_sigma_mps3 is not None and config.jerk_sigma_choices_mps3:
+        # the jerk term as stiff as the labels' own course allows (motion.jerk_sigma_from_labels);
+        # not a pedestrian's: its centre sways with each step (centimetres at 1-2 Hz: jerks of
+        # several m/s^3) where a wheeled body runs smooth
+        jerk, _ = jerk_sigma_from_labels((world_from_vehicle @ vehicle_from_box)[:, :2, 3], timestamps_s,
+                                         (config.jerk_sigma_mps3,) + config.jerk_sigma_choices_mps3,
+                                         config.jerk_evidence_nats)
+        config = dataclasses.replace(config, jerk_sigma_mps3=jerk)
     S, e0 = _motion_operator(world_from_vehicle, timestamps_s, config, label_heading if six else None)
     prior = [1.0 / config.label_sigma_m ** 2] * 3 + [1.0 / np.deg2rad(config.label_sigma_deg) ** 2]
     if six:
@@ -449,4 +465,6 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
                   detail=f"residual {residual_label:.4f} m at the labels -> {residual:.4f} m{extent_detail}{slip_detail}",
                   iterations=iterations, cpu_seconds=time.process_time() - cpu0)
     out.slip_offset_m = slip_offset
+    if config.jerk_sigma_mps3 is not None and t_count >= 4:
+        out.jerk_sigma_mps3 = float(config.jerk_sigma_mps3)
     return out
