@@ -89,11 +89,7 @@ def _jerk_operator(rotation: np.ndarray, offset: np.ndarray, timestamps_s: np.nd
     import scipy.sparse as sp
 
     t_count = timestamps_s.shape[0]
-    frames = np.arange(t_count - 3)[:, None] + np.arange(4)[None, :]        # [T-3, 4]
-    times = timestamps_s[frames]
-    diff = times[:, :, None] - times[:, None, :]                             # [T-3, 4, 4]
-    diff[:, np.arange(4), np.arange(4)] = 1.0
-    coef = 6.0 / diff.prod(axis=2)                                           # [T-3, 4]
+    frames, coef = _divided_differences(timestamps_s, 3)                     # [T-3, 4] each
     base_row = 3 * np.arange(t_count - 3)
     rows, cols, vals = [], [], []
     for k in range(4):
@@ -116,6 +112,19 @@ EVIDENCE_ACCEL_SIGMAS_MPS2 = (0.5, 2.0, 8.0)
 EVIDENCE_LABEL_SIGMAS_M = (0.01, 0.02, 0.05, 0.1)
 
 
+def _divided_differences(timestamps_s: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """(frames int [T - order, order + 1], coefficients float64 [T - order, order + 1]) of
+    ``order``! x the ``order``-th divided difference over every ``order + 1`` consecutive samples
+    at ``timestamps_s`` [T] (seconds, increasing): exact for a polynomial of that degree at any
+    spacing."""
+    t_count = timestamps_s.shape[0]
+    frames = np.arange(t_count - order)[:, None] + np.arange(order + 1)[None, :]
+    times = timestamps_s[frames]
+    diff = times[:, :, None] - times[:, None, :]                             # [R, order + 1, order + 1]
+    diff[:, np.arange(order + 1), np.arange(order + 1)] = 1.0
+    return frames, float(np.prod(np.arange(1, order + 1))) / diff.prod(axis=2)
+
+
 def _difference_gram(timestamps_s: np.ndarray, order: int, bands: int) -> np.ndarray:
     """float64 [bands + 1, T]: ``D' D`` in the upper banded form of ``scipy.linalg.cholesky_banded``
     (``bands`` >= ``order``), D [T - order, T] the rows of ``order``! x the ``order``-th divided
@@ -123,12 +132,8 @@ def _difference_gram(timestamps_s: np.ndarray, order: int, bands: int) -> np.nda
     increasing): exact for a polynomial of that degree at any spacing (2: the acceleration rows
     of :func:`_motion_operator`, 3: the jerk rows of :func:`_jerk_operator`)."""
     t_count = timestamps_s.shape[0]
-    first = np.arange(t_count - order)
-    frames = first[:, None] + np.arange(order + 1)[None, :]                            # [R, order + 1]
-    times = timestamps_s[frames]
-    diff = times[:, :, None] - times[:, None, :]
-    diff[:, np.arange(order + 1), np.arange(order + 1)] = 1.0
-    coef = float(np.prod(np.arange(1, order + 1))) / diff.prod(axis=2)                # [R, order + 1]
+    frames, coef = _divided_differences(timestamps_s, order)                          # [R, order + 1]
+    first = frames[:, 0]
     gram = np.zeros((bands + 1, t_count))
     for a in range(order + 1):
         for b in range(a, order + 1):

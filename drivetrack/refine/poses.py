@@ -200,8 +200,8 @@ def refine_object_poses(vehicle_from_box: np.ndarray, size: np.ndarray, world_fr
         wheeled: the object drives on wheels (a vehicle or a cyclist): with
             ``config.slip_sigma_mps`` the no-side-slip prior applies (``motion._slip_terms``;
             a pedestrian steps sideways, so not to it); with ``config.jerk_sigma_choices_mps3``
-            its jerk term's stiffness is chosen from its labels (``jerk_sigma_mps3`` otherwise); with ``config.extent_sigma_m`` the
-            extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
+            its jerk term's stiffness is chosen from its labels (``jerk_sigma_mps3`` otherwise);
+            with ``config.extent_sigma_m`` the extent term too (:mod:`drivetrack.refine.extent`), unless ``points_measured`` is
             given (returns with range noise).
     Returns:
         :class:`RefinedPoses`; the labels (``refined=False``) when disabled or on fallback.
